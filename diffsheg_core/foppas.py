@@ -1,0 +1,241 @@
+"""FOPPAS: fast outpainting-based partial autoregressive sampling (DiffSHEG, Algorithm 1).
+
+Long motion is sampled in windows of `clip_len` frames that overlap by `overlap`
+frames. The first window is plain DDIM. In every later window the overlap frames
+are fixed to the previous window's tail by RePaint masking at every step (the known
+frames re-noised to the level of the step), with RePaint's resampling jumps, and
+during the last steps the known overlap is cross-faded linearly into the generated
+one. A shorter last window runs at its own length.
+
+The sampler is model-agnostic: it calls `eps_fn(x_t, index)` for a window, where
+`index` is the step in the respaced schedule. `FoppasStream` takes conditioning
+frames as they arrive and returns motion frames as soon as they are final.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, replace
+from typing import Callable, Optional
+
+import torch
+
+from .diffusion import Schedule
+from .progress import Progress, ProgressCallback, check_cancel
+
+EpsFn = Callable[[torch.Tensor, int], torch.Tensor]
+"""(x_t of shape (1, L, D), schedule index) -> predicted noise (1, L, D)."""
+
+
+@dataclass(frozen=True)
+class FoppasConfig:
+    """Sampling settings. The defaults are the official BEAT inference settings."""
+
+    steps: int = 25                    # DDIM steps of the respaced schedule
+    overlap: int = 4                   # frames shared by consecutive windows
+    later_start: Optional[int] = 14    # schedule index later windows start from (None: steps - 1)
+    jump_length: int = 3               # RePaint: steps gone back up per jump
+    jump_n_sample: int = 2             # RePaint: each jump point is passed this many times
+    blend: bool = True                 # cross-fade the overlap during the last steps
+    blend_below: float = 0.2           # ... those landing at noise level sqrt(1 - abar) below this
+    reference_renoise: bool = True     # jump back with the beta of the current index, as the official code
+    eta: float = 0.0                   # 0: deterministic DDIM
+
+    def check(self, clip_len: int) -> None:
+        """Raise ValueError naming any setting that cannot work with `clip_len`-frame windows."""
+        if self.steps < 1:
+            raise ValueError(f"diffusion steps must be at least 1, got {self.steps}")
+        if not 0 <= self.overlap < clip_len:
+            raise ValueError(
+                f"overlap must be between 0 and {clip_len - 1} frames for {clip_len}-frame windows, "
+                f"got {self.overlap}")
+        if self.later_start is not None and not 0 <= self.later_start < self.steps:
+            raise ValueError(
+                f"later windows must start at a step index below {self.steps}, got {self.later_start}")
+        if self.jump_length < 1 or self.jump_n_sample < 1:
+            raise ValueError("jump_length and jump_n_sample must be at least 1")
+
+    @property
+    def start_index(self) -> int:
+        return self.steps - 1 if self.later_start is None else self.later_start
+
+
+PRESETS: dict[str, FoppasConfig] = {
+    "official-beat": FoppasConfig(),
+    "official-show": FoppasConfig(overlap=10),
+    "official-beat-n5": FoppasConfig(jump_n_sample=5),
+    "no-resample": FoppasConfig(jump_length=1, jump_n_sample=1),
+}
+
+
+def jump_schedule(start: int, jump_length: int = 1, jump_n_sample: int = 1) -> list[int]:
+    """Schedule indices a later window visits, from `start` down to -1 (done).
+
+    RePaint's resampling: at every `jump_length`-th index below start - jump_length
+    the walk goes back up `jump_length` steps, `jump_n_sample - 1` times.
+    """
+    n = start + 1
+    jumps = {j: jump_n_sample - 1 for j in range(0, n - jump_length, jump_length)}
+    t, times = n, []
+    while t >= 1:
+        t -= 1
+        times.append(t)
+        if jumps.get(t, 0) > 0:
+            jumps[t] -= 1
+            for _ in range(jump_length):
+                t += 1
+                times.append(t)
+    times.append(-1)
+    return times
+
+
+def model_calls(times: list[int]) -> int:
+    return sum(1 for a, b in zip(times, times[1:]) if b < a)
+
+
+def plan_windows(n_frames: int, clip_len: int, overlap: int) -> list[tuple[int, int]]:
+    """(start, end) frame ranges of the windows covering n_frames."""
+    windows, start = [], 0
+    while True:
+        end = min(start + clip_len, n_frames)
+        windows.append((start, end))
+        if end >= n_frames:
+            return windows
+        start = end - overlap
+
+
+class Foppas:
+    """Samples one window at a time with a fixed schedule, settings and window size."""
+
+    def __init__(self, schedule: Schedule, config: FoppasConfig, clip_len: int, dim: int):
+        config.check(clip_len)
+        self.schedule = schedule.respaced(config.steps)
+        self.config = config
+        self.clip_len = clip_len
+        self.dim = dim
+
+    def times(self, has_known: bool) -> list[int]:
+        if not has_known:
+            return list(range(self.config.steps - 1, -1, -1)) + [-1]
+        return jump_schedule(self.config.start_index, self.config.jump_length, self.config.jump_n_sample)
+
+    def sample_window(self, eps_fn: EpsFn, length: int, known: Optional[torch.Tensor],
+                      generator: torch.Generator, device: torch.device,
+                      on_step: Callable[[int, int], None] = lambda step, n: None) -> torch.Tensor:
+        """Sample a (1, length, dim) window; `known` (1, overlap, dim) fixes its first frames."""
+        cfg, sched = self.config, self.schedule
+
+        def randn(*shape: int) -> torch.Tensor:
+            return torch.randn(*shape, generator=generator).to(device)
+
+        x = randn(1, length, self.dim)
+        times = self.times(known is not None)
+        n_calls, call = model_calls(times), 0
+        if known is not None:
+            n_known = known.shape[1]
+            ramp = torch.linspace(0, 1, n_known, device=device).view(1, -1, 1)
+        for t_now, t_next in zip(times, times[1:]):
+            if t_next > t_now:
+                beta_index = t_now if cfg.reference_renoise else t_next
+                x = sched.renoise(x, beta_index, randn(*x.shape))
+                continue
+            eps = eps_fn(x, t_now)
+            x, _ = sched.ddim_step(x, t_now, eps, cfg.eta, randn(*x.shape) if cfg.eta > 0 else None)
+            if known is not None:
+                level = sched.noise_level_prev(t_now)
+                noisy_known = float((1 - level ** 2) ** 0.5) * known + level * randn(*known.shape)
+                if cfg.blend and level < cfg.blend_below:
+                    noisy_known = noisy_known * (1 - ramp) + x[:, :n_known] * ramp
+                x = torch.cat([noisy_known, x[:, n_known:]], dim=1)
+            on_step(call, n_calls)
+            call += 1
+        return x
+
+
+class FoppasStream:
+    """Streaming FOPPAS: push conditioning frames, get back final motion frames.
+
+    `make_eps_fn(cond)` turns a window of conditioning frames (1, L, F) into an
+    `EpsFn`. A window is sampled as soon as its conditioning is complete; its last
+    `overlap` frames are held back until the next window has re-painted them, so the
+    latency is at most one window plus its compute.
+    """
+
+    def __init__(self, sampler: Foppas, make_eps_fn: Callable[[torch.Tensor], EpsFn],
+                 generator: torch.Generator, device: torch.device,
+                 progress: Optional[ProgressCallback] = None,
+                 cancel: Optional[threading.Event] = None, expected_frames: Optional[int] = None):
+        self.sampler = sampler
+        self.make_eps_fn = make_eps_fn
+        self.generator = generator
+        self.device = device
+        self.progress = progress
+        self.cancel = cancel
+        self.expected_windows = (
+            len(plan_windows(expected_frames, sampler.clip_len, sampler.config.overlap))
+            if expected_frames else 0)
+        self._cond: Optional[torch.Tensor] = None   # conditioning from the current window start
+        self._tail: Optional[torch.Tensor] = None   # held-back overlap frames (1, overlap, D)
+        self._window = 0
+
+    def push(self, cond: torch.Tensor) -> torch.Tensor:
+        """Add (n, F) conditioning frames; return the (k, D) motion frames now final."""
+        self._cond = cond if self._cond is None else torch.cat([self._cond, cond])
+        out = []
+        while len(self._cond) >= self.sampler.clip_len:
+            out.append(self._run_window(self.sampler.clip_len))
+        return self._stack(out)
+
+    def finish(self) -> torch.Tensor:
+        """Sample what is left (a shorter last window) and return the remaining frames."""
+        out = []
+        held = 0 if self._tail is None else self._tail.shape[1]
+        if self._cond is not None and len(self._cond) > held:
+            out.append(self._run_window(len(self._cond)))
+        if self._tail is not None:
+            out.append(self._tail[0])
+            self._tail = None
+        self._cond = None
+        return self._stack(out)
+
+    def _run_window(self, length: int) -> torch.Tensor:
+        overlap = self.sampler.config.overlap
+        cond = self._cond[:length].unsqueeze(0).to(self.device)
+        known = self._tail if (self._tail is not None and overlap > 0) else None
+        clip, total = self._window, max(self.expected_windows, self._window + 1)
+
+        def on_step(step: int, n_steps: int) -> None:
+            if self.progress is not None:
+                self.progress(Progress(clip=clip, n_clips=total, step=step, n_steps=n_steps))
+
+        def eps_fn(x: torch.Tensor, index: int) -> torch.Tensor:
+            check_cancel(self.cancel)
+            return base_fn(x, index)
+
+        base_fn = self.make_eps_fn(cond)
+        window = self.sampler.sample_window(eps_fn, length, known, self.generator, self.device, on_step)
+        self._window += 1
+        keep = length - overlap if length == self.sampler.clip_len else length
+        self._tail = window[:, keep:] if keep < length else None
+        self._cond = self._cond[keep:]
+        return window[0, :keep]
+
+    def _stack(self, parts: list[torch.Tensor]) -> torch.Tensor:
+        if not parts:
+            return torch.zeros(0, self.sampler.dim, device=self.device)
+        return torch.cat(parts)
+
+
+def sample_long(sampler: Foppas, make_eps_fn: Callable[[torch.Tensor], EpsFn], cond: torch.Tensor,
+                generator: torch.Generator, device: torch.device,
+                progress: Optional[ProgressCallback] = None,
+                cancel: Optional[threading.Event] = None) -> torch.Tensor:
+    """Sample (T, D) motion for (T, F) conditioning frames."""
+    stream = FoppasStream(sampler, make_eps_fn, generator, device, progress, cancel,
+                          expected_frames=len(cond))
+    return torch.cat([stream.push(cond), stream.finish()])
+
+
+def with_overrides(config: FoppasConfig, **overrides) -> FoppasConfig:
+    """`config` with the given fields replaced, skipping those set to None."""
+    return replace(config, **{k: v for k, v in overrides.items() if v is not None})
