@@ -55,6 +55,14 @@ class FoppasConfig:
         if self.jump_length < 1 or self.jump_n_sample < 1:
             raise ValueError("jump_length and jump_n_sample must be at least 1")
 
+    def with_steps(self, steps: int) -> "FoppasConfig":
+        """The same settings with `steps` DDIM steps; later windows keep starting at the
+        same fraction of the schedule (official: index 14 of 25)."""
+        later = self.later_start
+        if later is not None and self.steps > 1:
+            later = min(steps - 1, round(later * (steps - 1) / (self.steps - 1)))
+        return replace(self, steps=steps, later_start=later)
+
     @property
     def start_index(self) -> int:
         return self.steps - 1 if self.later_start is None else self.later_start
@@ -236,6 +244,8 @@ def sample_long(sampler: Foppas, make_eps_fn: Callable[[torch.Tensor], EpsFn], c
     return torch.cat([stream.push(cond), stream.finish()])
 
 
-def with_overrides(config: FoppasConfig, **overrides) -> FoppasConfig:
+def with_overrides(config: FoppasConfig, steps: Optional[int] = None, **overrides) -> FoppasConfig:
     """`config` with the given fields replaced, skipping those set to None."""
+    if steps is not None:
+        config = config.with_steps(steps)
     return replace(config, **{k: v for k, v in overrides.items() if v is not None})

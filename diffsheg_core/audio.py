@@ -1,0 +1,414 @@
+"""Speech input: read and check audio, resample it, and compute the model's features.
+
+Three separate steps, each usable alone:
+
+- reading: `load_audio` turns a file (WAV, FLAC, OGG, MP3 - recognised by content,
+  not by extension) or an array into a checked mono `Audio`;
+- resampling: `resample` (soxr "HQ", the resampler `librosa.load` uses by default);
+- features: `mel_features`, the official DiffSHEG mel front end (one frame per
+  motion frame), and the optional `hubert_features`.
+
+HuBERT needs the `transformers` package and a local copy of
+facebook/hubert-large-ls960-ft; neither is needed for anything else, and
+importing this module never imports transformers (or torch).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Union
+
+import librosa
+import numpy as np
+import soundfile as sf
+
+from .errors import AudioError
+
+SAMPLE_SPEECH = Path(__file__).resolve().parent / "samples" / "sample_speech.wav"
+
+MIN_SAMPLE_RATE = 4000
+MAX_SAMPLE_RATE = 384000
+MIN_DURATION_S = 1.0 / 15.0  # one motion frame of the BEAT model
+SILENCE_PEAK = 1e-4
+MAX_FLOAT_PEAK = 16.0  # beyond this, float samples are integer PCM that was never scaled
+MAX_CHANNELS = 16
+RESAMPLER = "soxr_hq"
+
+# Official DiffSHEG mel front end (DESIGN.md section 5).
+LOAD_RATE = 22050
+MEL_RATE = 18000
+MEL_N_FFT = 2048
+MEL_N_MELS = 128
+
+# HuBERT (facebook/hubert-large-ls960-ft): 16 kHz input, one 1024-d frame per 320
+# samples from a 400-sample receptive field; long audio runs in chunks of 1000 frames.
+HUBERT_REPO_ID = "facebook/hubert-large-ls960-ft"
+HUBERT_RATE = 16000
+HUBERT_KERNEL = 400
+HUBERT_STRIDE = 320
+HUBERT_CHUNK = HUBERT_STRIDE * 1000
+HUBERT_WEIGHT_FILES = ("model.safetensors", "pytorch_model.bin")
+HUBERT_HOW_TO = (
+    f"HuBERT features need `pip install transformers` and the files of {HUBERT_REPO_ID} "
+    "(config.json and model.safetensors or pytorch_model.bin) either in the Hugging Face "
+    f"cache (`huggingface-cli download {HUBERT_REPO_ID}`) or in a folder whose path you "
+    "pass as model_path; nothing is downloaded automatically"
+)
+
+AudioSource = Union[str, os.PathLike, np.ndarray]
+
+
+@dataclass
+class Audio:
+    """Mono float32 samples (nominally in [-1, 1]) at `sample_rate` Hz; `path` if read from a file."""
+
+    samples: np.ndarray
+    sample_rate: int
+    path: str | None = None
+
+    @property
+    def duration(self) -> float:
+        """Length in seconds."""
+        return len(self.samples) / self.sample_rate
+
+    @property
+    def name(self) -> str:
+        """How error messages refer to this audio."""
+        return f"'{self.path}'" if self.path is not None else "the audio array"
+
+
+# --- reading -------------------------------------------------------------------
+
+
+def load_audio(source: AudioSource, sample_rate: int | None = None) -> Audio:
+    """Read and check speech from a file path or an array, mixed down to mono.
+
+    For a file, `sample_rate` (optional) resamples the result to that rate.
+    For an array, `sample_rate` is the array's own rate and is required; the array
+    may be (N,), (N, C) or (C, N) (the shorter axis is taken as channels), float
+    in [-1, 1] or integer PCM.
+    Raises AudioError for anything that is not usable speech.
+    """
+    if isinstance(source, (str, os.PathLike)):
+        audio = read_audio_file(source)
+        check_audio(audio)
+        if sample_rate is not None:
+            rate = _check_rate(sample_rate, f"the sample_rate requested for {audio.name}",
+                               "request a rate between 16000 and 48000 Hz, or None to keep the file's")
+            audio = resample(audio, rate)
+        return audio
+    if isinstance(source, np.ndarray):
+        if sample_rate is None:
+            raise AudioError(
+                "the audio array has no sample rate: pass sample_rate=<Hz> together with the array")
+        rate = _check_rate(sample_rate, "the sample_rate given with the audio array",
+                           "pass the rate the samples were recorded at")
+        audio = Audio(_array_to_mono(source), rate)
+        check_audio(audio)
+        return audio
+    raise AudioError(
+        f"cannot read audio from a {type(source).__name__}: pass a file path or a numpy array "
+        "(with sample_rate)")
+
+
+def read_audio_file(path: str | os.PathLike) -> Audio:
+    """Decode an audio file to mono float32 at its own rate (no checks on the content)."""
+    path = Path(path)
+    if not path.exists():
+        raise AudioError(f"audio file '{path}' does not exist: check the path")
+    if path.is_dir():
+        raise AudioError(f"'{path}' is a folder, not an audio file: choose a WAV, FLAC, OGG or MP3 file")
+    if not os.access(path, os.R_OK):
+        raise AudioError(f"audio file '{path}' cannot be read: check its permissions")
+    if path.stat().st_size == 0:
+        raise AudioError(f"audio file '{path}' is empty (0 bytes): record or export it again")
+    try:
+        frames, rate = _decode_with_soundfile(path)
+    except sf.SoundFileError as sf_error:
+        frames, rate = _decode_with_audioread(path, sf_error)
+    return Audio(_mixdown(frames), int(rate), str(path))
+
+
+def _decode_with_soundfile(path: Path) -> tuple[np.ndarray, int]:
+    """(N, C) float32 frames via libsndfile, which recognises WAV/FLAC/OGG/MP3 by content."""
+    frames, rate = sf.read(path, dtype="float32", always_2d=True)
+    return frames, rate
+
+
+def _decode_with_audioread(path: Path, sf_error: Exception) -> tuple[np.ndarray, int]:
+    """(N, C) float32 frames via audioread (ffmpeg, GStreamer, ...) for what libsndfile cannot read."""
+    not_audio = AudioError(
+        f"'{path}' could not be decoded as audio ({sf_error}): it is not a sound file, or in a "
+        "format this installation cannot read; convert it to WAV (e.g. `ffmpeg -i IN OUT.wav`)")
+    try:
+        import audioread
+    except ImportError:
+        raise not_audio from None
+    try:
+        with audioread.audio_open(str(path)) as decoder:
+            rate, channels = decoder.samplerate, decoder.channels
+            pcm = b"".join(decoder)
+    except (audioread.DecodeError, OSError, EOFError):
+        raise not_audio from None
+    samples = np.frombuffer(pcm, dtype="<i2").astype(np.float32) / 32768.0
+    return samples.reshape(-1, max(channels, 1)), rate
+
+
+def _mixdown(frames: np.ndarray) -> np.ndarray:
+    """(N, C) -> (N,) float32 by averaging the channels, as librosa.load does."""
+    return np.ascontiguousarray(frames.mean(axis=1, dtype=np.float32))
+
+
+def _array_to_mono(array: np.ndarray) -> np.ndarray:
+    """(N,), (N, C) or (C, N) numeric array -> (N,) float32 in [-1, 1] for integer PCM."""
+    if array.ndim not in (1, 2):
+        raise AudioError(
+            f"the audio array has shape {array.shape}: expected (samples,), (samples, channels) "
+            "or (channels, samples)")
+    if array.ndim == 2:
+        channels_axis = 0 if array.shape[0] < array.shape[1] else 1
+        if array.shape[channels_axis] > MAX_CHANNELS:
+            raise AudioError(
+                f"the audio array has shape {array.shape}: neither axis looks like channels "
+                f"(at most {MAX_CHANNELS}); pass (samples,) or (samples, channels)")
+        array = array if channels_axis == 1 else array.T
+    else:
+        array = array[:, None]
+    return _mixdown(_to_float(array))
+
+
+def _to_float(array: np.ndarray) -> np.ndarray:
+    """Float32 samples; integer PCM is scaled by its full range."""
+    if np.issubdtype(array.dtype, np.floating):
+        return array.astype(np.float32, copy=False)
+    if np.issubdtype(array.dtype, np.signedinteger):
+        return array.astype(np.float32) / float(-np.iinfo(array.dtype).min)
+    if np.issubdtype(array.dtype, np.unsignedinteger):
+        mid = float(np.iinfo(array.dtype).max // 2 + 1)
+        return (array.astype(np.float32) - mid) / mid
+    raise AudioError(
+        f"the audio array has dtype {array.dtype}: pass float samples in [-1, 1] or integer PCM")
+
+
+def _check_rate(sample_rate: Any, subject: str, fix: str) -> int:
+    """A whole number of Hz within [MIN_SAMPLE_RATE, MAX_SAMPLE_RATE]; `subject` and `fix` word the error."""
+    if isinstance(sample_rate, bool) or not isinstance(sample_rate, (int, float, np.number)) \
+            or not float(sample_rate).is_integer():
+        raise AudioError(f"{subject} ({sample_rate!r}) is not a whole number of Hz: {fix}")
+    rate = int(sample_rate)
+    if not MIN_SAMPLE_RATE <= rate <= MAX_SAMPLE_RATE:
+        raise AudioError(
+            f"{subject} ({rate} Hz) is outside {MIN_SAMPLE_RATE}-{MAX_SAMPLE_RATE} Hz: {fix}")
+    return rate
+
+
+def check_audio(audio: Audio) -> None:
+    """Raise AudioError unless `audio` is finite, audible mono speech of at least one motion frame."""
+    _check_rate(audio.sample_rate, f"the sample rate of {audio.name}",
+                "its header is wrong or it is not speech; resample it to 16000-48000 Hz")
+    n = len(audio.samples)
+    if n == 0:
+        raise AudioError(f"{audio.name} contains no audio samples: record or export it again")
+    if n < audio.sample_rate * MIN_DURATION_S:
+        raise AudioError(
+            f"{audio.name} is only {audio.duration * 1000:.1f} ms long: at least "
+            f"{MIN_DURATION_S * 1000:.1f} ms (one motion frame) of speech is needed")
+    if not np.isfinite(audio.samples).all():
+        raise AudioError(
+            f"{audio.name} contains NaN or infinite samples: the file or array is corrupt; "
+            "export the audio again")
+    peak = float(np.abs(audio.samples).max())
+    if peak < SILENCE_PEAK:
+        raise AudioError(
+            f"{audio.name} is silent (peak level {peak:.1e}, below {SILENCE_PEAK:.0e}): "
+            "use a recording with audible speech")
+    if peak > MAX_FLOAT_PEAK:
+        raise AudioError(
+            f"{audio.name} has samples up to {peak:.0f}, but float audio must lie in [-1, 1]: "
+            "it looks like unscaled integer PCM; divide 16-bit samples by 32768")
+
+
+# --- resampling ----------------------------------------------------------------
+
+
+def resample(audio: Audio, sample_rate: int) -> Audio:
+    """`audio` at `sample_rate` Hz with librosa's default resampler (soxr HQ).
+
+    The length is ceil(N * new / old), as `librosa.load(path, sr=...)` gives.
+    """
+    if sample_rate == audio.sample_rate:
+        return audio
+    samples = librosa.resample(
+        audio.samples, orig_sr=audio.sample_rate, target_sr=sample_rate, res_type=RESAMPLER)
+    return Audio(samples.astype(np.float32, copy=False), int(sample_rate), audio.path)
+
+
+def _resampled_length(n: int, orig_sr: int, target_sr: int) -> int:
+    """Sample count `resample` produces, computed exactly as librosa does."""
+    if orig_sr == target_sr:
+        return n
+    return int(np.ceil(n * (float(target_sr) / orig_sr)))
+
+
+# --- mel features --------------------------------------------------------------
+
+
+def mel_hop(fps: float) -> int:
+    """Mel hop in samples at 18 kHz for `fps` motion frames per second (1200 at 15 fps)."""
+    hop = MEL_RATE / fps if fps > 0 else math.nan
+    if not (math.isfinite(hop) and hop.is_integer() and hop >= 1):
+        raise AudioError(
+            f"motion rate {fps!r} fps gives no whole mel hop at {MEL_RATE} Hz: use a frame rate "
+            f"that divides {MEL_RATE}, e.g. 15 (the BEAT model), 24, 25, 30 or 60")
+    return int(hop)
+
+
+def mel_features(audio: Audio, fps: float = 15.0) -> np.ndarray:
+    """(T, 128) float32 mel power spectrogram, one frame per motion frame (official DiffSHEG).
+
+    The audio goes to 22050 Hz (as librosa.load does), then 18000 Hz; the
+    spectrogram uses n_fft 2048, hop 18000 / fps, hann window, centred frames, power
+    (no log, no normalisation); the last frame, centred past the end, is dropped.
+    """
+    hop = mel_hop(fps)
+    speech = resample(resample(audio, LOAD_RATE), MEL_RATE)
+    mel = librosa.feature.melspectrogram(
+        y=speech.samples, sr=MEL_RATE, n_fft=MEL_N_FFT, hop_length=hop, n_mels=MEL_N_MELS)
+    return np.ascontiguousarray(mel[:, :-1].T, dtype=np.float32)
+
+
+def n_motion_frames(audio: Audio, fps: float = 15.0) -> int:
+    """Number of motion frames for `audio` at `fps`; equals len(mel_features(audio, fps))."""
+    hop = mel_hop(fps)
+    n_load = _resampled_length(len(audio.samples), audio.sample_rate, LOAD_RATE)
+    return _resampled_length(n_load, LOAD_RATE, MEL_RATE) // hop
+
+
+# --- HuBERT features (optional) ------------------------------------------------
+
+
+@dataclass
+class HubertEncoder:
+    """A loaded HuBERT model and its feature extractor; load once with `load_hubert`, reuse."""
+
+    model: Any
+    feature_extractor: Any
+    device: Any
+
+
+def hubert_status(model_path: str | os.PathLike | None = None) -> str | None:
+    """None when HuBERT features can be computed, else a one-line reason why not."""
+    if importlib.util.find_spec("transformers") is None:
+        return "the Python package 'transformers' is not installed"
+    folder = Path(model_path) if model_path is not None else _cached_hubert_folder()
+    if folder is None:
+        return f"{HUBERT_REPO_ID} is not in the Hugging Face cache"
+    if not folder.is_dir():
+        return f"HuBERT model folder '{folder}' does not exist"
+    if not (folder / "config.json").is_file():
+        return f"HuBERT model folder '{folder}' has no config.json"
+    if not any((folder / name).is_file() for name in HUBERT_WEIGHT_FILES):
+        return f"HuBERT model folder '{folder}' has no {' or '.join(HUBERT_WEIGHT_FILES)}"
+    return None
+
+
+def _cached_hubert_folder() -> Path | None:
+    """The cached snapshot folder of HUBERT_REPO_ID, without touching the network."""
+    try:
+        from huggingface_hub import try_to_load_from_cache
+    except ImportError:
+        return None
+    config = try_to_load_from_cache(HUBERT_REPO_ID, "config.json")
+    return Path(config).parent if isinstance(config, str) else None
+
+
+def load_hubert(model_path: str | os.PathLike | None = None, device: str = "cpu") -> HubertEncoder:
+    """Load HuBERT from `model_path` (a folder) or the Hugging Face cache; never downloads."""
+    reason = hubert_status(model_path)
+    if reason is not None:
+        raise AudioError(f"HuBERT features are unavailable: {reason}. {HUBERT_HOW_TO}")
+    torch_device = _torch_device(device)
+    from transformers import HubertModel, Wav2Vec2FeatureExtractor
+
+    folder = Path(model_path) if model_path is not None else _cached_hubert_folder()
+    try:
+        model = HubertModel.from_pretrained(folder, local_files_only=True)
+        if (folder / "preprocessor_config.json").is_file():
+            extractor = Wav2Vec2FeatureExtractor.from_pretrained(folder, local_files_only=True)
+        else:
+            extractor = Wav2Vec2FeatureExtractor(
+                feature_size=1, sampling_rate=HUBERT_RATE, padding_value=0.0, do_normalize=True)
+    except (OSError, ValueError) as error:
+        raise AudioError(f"HuBERT model in '{folder}' cannot be loaded ({error}). {HUBERT_HOW_TO}") from None
+    return HubertEncoder(model.eval().to(torch_device), extractor, torch_device)
+
+
+def _torch_device(device: str) -> Any:
+    """torch.device for 'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:N'."""
+    import torch
+
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        torch_device = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise AudioError(f"unknown device {device!r} for HuBERT: use 'auto', 'cpu' or 'cuda'") from None
+    if torch_device.type == "cuda" and not torch.cuda.is_available():
+        raise AudioError(f"device {device!r} was requested for HuBERT but no CUDA GPU is available: "
+                         "use device='auto' or 'cpu'")
+    return torch_device
+
+
+def hubert_features(
+    audio: Audio,
+    n_frames: int,
+    model_path: str | os.PathLike | None = None,
+    device: str = "cpu",
+    official_quirk: bool = False,
+    encoder: HubertEncoder | None = None,
+) -> np.ndarray:
+    """(n_frames, 1024) float32 HuBERT last hidden states, resampled to the motion frames.
+
+    HuBERT runs on 16 kHz audio. `official_quirk=True` instead feeds the 22050 Hz
+    audio as if it were 16 kHz, as the official DiffSHEG inference code does (it
+    passes librosa.load's output straight to HuBERT). The 50 Hz states are
+    interpolated linearly with align_corners=True (first and last states land on the
+    first and last motion frames), as the official checkpoints were trained; each
+    motion frame then reads HuBERT from 12 to 75 ms after its own time, at any length.
+    `encoder` (from `load_hubert`) avoids reloading the model; otherwise it is
+    loaded from `model_path` or the Hugging Face cache onto `device`.
+    """
+    if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
+        raise AudioError(f"n_frames must be a positive whole number of motion frames, got {n_frames!r}")
+    encoder = encoder if encoder is not None else load_hubert(model_path, device)
+    speech = resample(audio, LOAD_RATE if official_quirk else HUBERT_RATE)
+    import torch.nn.functional as F
+
+    states = _hubert_states(encoder, speech)
+    resized = F.interpolate(states.T[None], size=int(n_frames), mode="linear", align_corners=True)
+    return np.ascontiguousarray(resized[0].T.numpy(), dtype=np.float32)
+
+
+def _hubert_states(encoder: HubertEncoder, speech: Audio) -> Any:
+    """(frames, 1024) float32 CPU tensor: one state per 320 input samples, in 1000-frame chunks."""
+    import torch
+
+    values = encoder.feature_extractor(
+        speech.samples, sampling_rate=HUBERT_RATE, return_tensors="pt").input_values
+    n = values.shape[1]
+    expected = (n - (HUBERT_KERNEL - HUBERT_STRIDE)) // HUBERT_STRIDE
+    if expected < 1:
+        raise AudioError(f"{speech.name} is too short for HuBERT (needs {HUBERT_KERNEL} samples at 16 kHz)")
+    chunk_len = HUBERT_CHUNK + HUBERT_KERNEL - HUBERT_STRIDE
+    chunks = [values[:, start:start + chunk_len] for start in range(0, n, HUBERT_CHUNK)]
+    with torch.inference_mode():
+        states = torch.cat([
+            encoder.model(chunk.to(encoder.device)).last_hidden_state[0].float().cpu()
+            for chunk in chunks if chunk.shape[1] >= HUBERT_KERNEL])
+    if len(states) < expected:  # a tail shorter than one receptive field: repeat the last state
+        states = torch.cat([states, states[-1:].expand(expected - len(states), -1)])
+    return states[:expected]

@@ -1,0 +1,127 @@
+"""Command line: `python -m diffsheg_core generate|train|evaluate ...`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Optional, Sequence
+
+from .errors import DiffshegError
+
+
+def _generate_parser(sub: argparse._SubParsersAction) -> None:
+    from .foppas import PRESETS
+
+    p = sub.add_parser("generate", help="generate motion from a speech recording",
+                       description="Generate body, hand, head and face motion from speech.")
+    p.add_argument("audio", nargs="?", help="speech file (WAV/FLAC/OGG/MP3); default: the bundled sample")
+    p.add_argument("-o", "--output", default="out/motion.npz", help="motion .npz to write (default %(default)s)")
+    p.add_argument("--bvh", help="also write a BVH (beat layout: 75-joint BEAT skeleton)")
+    p.add_argument("--arkit-json", help="also write face weights as the official ARKit JSON")
+    p.add_argument("--csv", help="also write face weights as a Live Link Face CSV")
+    p.add_argument("--checkpoint", help="model checkpoint (ours or an official DiffSHEG .pth); default: bundled")
+    p.add_argument("--config", choices=["beat", "show"], help="force the official configuration")
+    p.add_argument("--stats", help="folder of the official normalisation statistics (official checkpoints)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--steps", type=int, help="DDIM steps (default: the model's, 25)")
+    p.add_argument("--overlap", type=int, help="FOPPAS overlap frames (default: the model's)")
+    p.add_argument("--preset", choices=sorted(PRESETS), help="FOPPAS settings preset")
+    p.add_argument("--style", type=int, default=0, help="style / speaker id (default %(default)s)")
+    p.add_argument("--guidance", type=float, help="classifier-free guidance scale (guided models only)")
+    p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
+    p.add_argument("--precision", default="fp32", choices=["fp32", "bf16", "fp16"])
+    p.add_argument("--hubert", help="local folder of facebook/hubert-large-ls960-ft (models that use HuBERT)")
+    p.add_argument("--hubert-official-quirk", action="store_true",
+                   help="feed HuBERT 22.05 kHz audio as the official code does (default: correct 16 kHz)")
+
+
+def run_generate(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from . import motion as motion_io
+    from .audio import SAMPLE_SPEECH, load_audio
+    from .checkpoints import load_model
+    from .foppas import PRESETS
+    from .pipeline import generate, resolve_device
+
+    audio_path = args.audio or str(SAMPLE_SPEECH)
+    if args.audio is None:
+        print(f"no audio given: using the bundled sample speech {SAMPLE_SPEECH}")
+    started = time.perf_counter()
+    device = resolve_device(args.device)
+    speech = load_audio(audio_path)
+    bundle = load_model(args.checkpoint, device=device, dataset=args.config, stats_dir=args.stats)
+    if not bundle.trained:
+        print(f"warning: model '{bundle.model_id}' is UNTRAINED (random weights): "
+              "the motion is not learned from data", file=sys.stderr)
+    bar = tqdm(total=1000, unit="‰", desc="generating", leave=False,
+               bar_format="{l_bar}{bar}| {elapsed}<{remaining}")
+
+    def on_progress(p) -> None:
+        bar.set_postfix_str(f"clip {p.clip + 1}/{p.n_clips}", refresh=False)
+        bar.update(int(p.fraction * 1000) - bar.n)
+
+    cancel = threading.Event()
+    try:
+        result = generate(speech, model=bundle, seed=args.seed, steps=args.steps, overlap=args.overlap,
+                          style=args.style, guidance=args.guidance,
+                          sampling=PRESETS[args.preset] if args.preset else None,
+                          device=str(device), precision=args.precision, hubert_path=args.hubert,
+                          hubert_quirk=args.hubert_official_quirk, progress=on_progress, cancel=cancel)
+    except KeyboardInterrupt:
+        cancel.set()
+        raise
+    finally:
+        bar.close()
+    elapsed = time.perf_counter() - started
+    written = [result.save_npz(args.output)]
+    if args.bvh:
+        from .bvh import write_bvh
+        written.append(write_bvh(result, args.bvh))
+    if args.arkit_json:
+        written.append(motion_io.write_arkit_json(result, args.arkit_json))
+    if args.csv:
+        written.append(motion_io.write_livelink_csv(result, args.csv))
+    for path in written:
+        print(f"wrote {path}")
+    print(f"{result.n_frames} frames at {result.fps:g} fps = {result.duration:.1f} s of motion in "
+          f"{elapsed:.1f} s ({result.n_frames / elapsed:.1f} frames/s, "
+          f"{result.duration / elapsed:.2f}x real time) on {device} with {bundle.model_id}")
+    return 0
+
+
+def _delegate(module: str, argv: Sequence[str]) -> int:
+    import importlib
+
+    return importlib.import_module(f"diffsheg_core.{module}").main(list(argv)) or 0
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in ("train", "evaluate"):
+        try:
+            return _delegate(argv[0], argv[1:])
+        except DiffshegError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    parser = argparse.ArgumentParser(prog="python -m diffsheg_core",
+                                     description="Speech-driven gesture and expression generation (DiffSHEG).")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{generate,train,evaluate}")
+    _generate_parser(sub)
+    sub.add_parser("train", help="train a model (see: train --help)")
+    sub.add_parser("evaluate", help="evaluate motion against references (see: evaluate --help)")
+    args = parser.parse_args(argv)
+    try:
+        return run_generate(args)
+    except DiffshegError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("cancelled", file=sys.stderr)
+        return 130
+    except OSError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2

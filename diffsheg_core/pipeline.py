@@ -1,0 +1,164 @@
+"""`generate`: speech in, `Motion` out. The one entry point clients use."""
+
+from __future__ import annotations
+
+import threading
+from functools import lru_cache
+from pathlib import Path
+from typing import Callable, Optional, Union
+
+import numpy as np
+import torch
+
+from . import __version__
+from .audio import Audio, hubert_features, load_audio, load_hubert, mel_features
+from .checkpoints import ModelBundle, load_model
+from .diffusion import Schedule
+from .errors import DiffshegError
+from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, sample_long, with_overrides
+from .motion import Motion
+from .progress import ProgressCallback
+
+AudioInput = Union[str, Path, np.ndarray, Audio]
+
+_hubert_encoder = lru_cache(maxsize=1)(load_hubert)  # the 1.2 GB model is loaded once per process
+
+
+def resolve_device(device: str | torch.device = "auto") -> torch.device:
+    """'auto' picks CUDA when present, else the CPU; asking for an absent GPU is an error."""
+    name = str(device)
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise DiffshegError("device 'cuda' was requested but no CUDA GPU is available to torch: "
+                            "use device 'auto' or 'cpu', or install a CUDA build of torch (README)")
+    if name not in ("cpu",) and not name.startswith("cuda"):
+        raise DiffshegError(f"unknown device '{name}': use auto, cpu or cuda")
+    return torch.device(name)
+
+
+def style_onehot(bundle: ModelBundle, style: int) -> torch.Tensor:
+    n = bundle.config.style_dim
+    if isinstance(style, bool) or not isinstance(style, (int, np.integer)) or not 0 <= style < n:
+        raise DiffshegError(f"style must be a whole number from 0 to {n - 1} for this model, got {style!r}")
+    onehot = torch.zeros(1, n)
+    onehot[0, int(style)] = 1.0
+    return onehot
+
+
+def resolve_guidance(bundle: ModelBundle, guidance: Optional[float]) -> Optional[float]:
+    if not bundle.config.classifier_free:
+        if guidance not in (None, 1.0):
+            raise DiffshegError(f"model {bundle.model_id} was trained without classifier-free guidance: "
+                                "leave the guidance scale at 1")
+        return None
+    scale = bundle.guidance if guidance is None else float(guidance)
+    if scale is not None and not 0.0 <= scale <= 10.0:
+        raise DiffshegError(f"guidance scale must be between 0 and 10, got {scale}")
+    return scale
+
+
+def speech_features(bundle: ModelBundle, audio: Audio, hubert_path: Optional[str] = None,
+                    hubert_quirk: bool = False, device: str = "cpu") -> torch.Tensor:
+    """(T, F) conditioning frames: mel, then HuBERT when the model uses it."""
+    mel = mel_features(audio, fps=bundle.config.fps)
+    parts = [mel]
+    if bundle.config.use_hubert:
+        parts.append(hubert_features(audio, len(mel), official_quirk=hubert_quirk,
+                                     encoder=_hubert_encoder(hubert_path, device)))
+    return torch.from_numpy(np.concatenate(parts, axis=1).astype(np.float32))
+
+
+def make_eps_fn_factory(bundle: ModelBundle, sampler: Foppas, style: torch.Tensor,
+                        guidance: Optional[float], autocast: Optional[torch.dtype]
+                        ) -> Callable[[torch.Tensor], EpsFn]:
+    """Bind model, style and guidance; the result binds one window's speech features."""
+    cfg, sched, device = bundle.config, sampler.schedule, bundle.device
+    style = style.to(device)
+
+    def make(cond: torch.Tensor) -> EpsFn:
+        mel = cond[..., : cfg.mel_dim]
+        hubert = cond[..., cfg.mel_dim:] if cfg.use_hubert else None
+
+        @torch.inference_mode()
+        def eps_fn(x: torch.Tensor, index: int) -> torch.Tensor:
+            idx = torch.tensor([index], device=device)
+            with torch.autocast(device.type, dtype=autocast, enabled=autocast is not None):
+                eps = bundle.model(x, sched.model_timesteps(idx), mel, hubert, style,
+                                   sched.x0_coefs(idx, x), guidance)
+            return eps.float()
+
+        return eps_fn
+
+    return make
+
+
+def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
+             model: Union[None, str, Path, ModelBundle] = None, seed: int = 0,
+             overlap: Optional[int] = None, steps: Optional[int] = None, style: int = 0,
+             guidance: Optional[float] = None, sampling: Optional[FoppasConfig] = None,
+             device: str = "auto", precision: str = "fp32",
+             hubert_path: Optional[str] = None, hubert_quirk: bool = False,
+             progress: Optional[ProgressCallback] = None,
+             cancel: Optional[threading.Event] = None) -> Motion:
+    """Generate body, hand, head and face motion for a speech recording.
+
+    audio: a file path, an array (with `sample_rate`) or a loaded `Audio`.
+    model: None for the bundled default, a checkpoint path, or a loaded `ModelBundle`.
+    sampling: FOPPAS settings (default: the model's); `steps` / `overlap` override them.
+    precision: 'fp32', or 'bf16' / 'fp16' autocast on CUDA.
+    progress: called after every diffusion step; cancel: checked before every step.
+    The result has one frame per 1/fps s of audio (fps of the model, 15 for BEAT).
+    """
+    torch_device = resolve_device(device)
+    bundle = model if isinstance(model, ModelBundle) else load_model(model, device=torch_device)
+    if bundle.device != torch_device:
+        bundle.model.to(torch_device)
+    speech = audio if isinstance(audio, Audio) else load_audio(audio, sample_rate)
+    config = with_overrides(sampling or bundle.sampling, steps=steps, overlap=overlap)
+    try:
+        sampler = Foppas(Schedule.linear(), config, bundle.config.clip_len, bundle.config.dim)
+    except ValueError as exc:
+        raise DiffshegError(str(exc)) from None
+    onehot = style_onehot(bundle, style)
+    scale = resolve_guidance(bundle, guidance)
+    autocast = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}.get(precision, "bad")
+    if autocast == "bad" or (autocast is not None and torch_device.type != "cuda"):
+        raise DiffshegError(f"precision '{precision}' is not available on {torch_device.type}: "
+                            "use fp32 (or bf16/fp16 on a CUDA GPU)")
+
+    cond = speech_features(bundle, speech, hubert_path, hubert_quirk, str(torch_device))
+    make_eps_fn = make_eps_fn_factory(bundle, sampler, onehot, scale, autocast)
+    generator = torch.Generator().manual_seed(int(seed))
+    normalised = sample_long(sampler, make_eps_fn, cond, generator, torch_device, progress, cancel)
+    return to_motion(bundle, normalised.cpu().numpy(), meta={
+        "model_id": bundle.model_id, "trained": bundle.trained, "seed": int(seed),
+        "audio_file": speech.path, "sample_rate": speech.sample_rate, "style": int(style),
+        "guidance": scale, "steps": config.steps, "overlap": config.overlap,
+        "device": str(torch_device), "software": f"diffsheg_core {__version__}",
+    })
+
+
+def to_motion(bundle: ModelBundle, normalised: np.ndarray, meta: dict) -> Motion:
+    """Denormalise (T, D) model output and split it into named rotations and face weights."""
+    layout = bundle.layout
+    rotations, face = layout.split(bundle.denormalise(normalised).astype(np.float32))
+    if layout.name == "beat":
+        face = np.clip(face, 0.0, 1.0)  # ARKit weights are defined on [0, 1]
+    return Motion(fps=bundle.config.fps, rig=layout.name, joint_names=list(layout.joint_names),
+                  rotations=rotations, face_names=list(layout.face_names), face=face, meta=meta)
+
+
+def open_stream(bundle: ModelBundle, *, seed: int = 0, style: int = 0,
+                guidance: Optional[float] = None, sampling: Optional[FoppasConfig] = None,
+                device: str = "auto") -> FoppasStream:
+    """A `FoppasStream` for live use: push (n, F) speech features from `speech_features`
+    (computed on audio chunks whose lengths are multiples of 1/fps s), get normalised
+    motion frames back; `to_motion` turns them into a Motion."""
+    torch_device = resolve_device(device)
+    bundle.model.to(torch_device)
+    sampler = Foppas(Schedule.linear(), sampling or bundle.sampling, bundle.config.clip_len,
+                     bundle.config.dim)
+    make = make_eps_fn_factory(bundle, sampler, style_onehot(bundle, style),
+                               resolve_guidance(bundle, guidance), None)
+    return FoppasStream(sampler, make, torch.Generator().manual_seed(int(seed)), torch_device)
