@@ -1,0 +1,125 @@
+"""Our checkpoint format and the official DiffSHEG checkpoints: strict, safe loading."""
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+import soundfile as sf
+import torch
+from safetensors.torch import load_file
+
+from diffsheg_core import CheckpointError, generate
+from diffsheg_core.bvh import read_bvh
+from diffsheg_core.checkpoints import (ModelBundle, load_model, official_stats, save_checkpoint,
+                                       untrained_bundle)
+from diffsheg_core.motion import read_arkit_json
+from diffsheg_core.model import ModelConfig, UniEG
+
+
+def golden_official_file(golden_dir, tmp_path, prefix="module."):
+    """The golden small BEAT weights saved the way the official trainer saves checkpoints."""
+    state = load_file(str(golden_dir / "beat_small.safetensors"))
+    state = {prefix + k: v for k, v in state.items()}
+    path = tmp_path / "beat_small.pth"
+    torch.save({"encoder": state, "epoch": 999}, path)
+    return path
+
+
+def test_our_format_round_trips(tmp_path):
+    bundle = untrained_bundle(seed=3)
+    bundle.info = {"trained_on": "nothing"}
+    path = save_checkpoint(bundle, tmp_path / "m.safetensors")
+    loaded = load_model(path)
+    assert loaded.config == bundle.config and loaded.model_id == bundle.model_id
+    assert loaded.trained is False and loaded.info == {"trained_on": "nothing"}
+    assert loaded.sampling == bundle.sampling
+    for (k, a), (_, b) in zip(bundle.model.state_dict().items(), loaded.model.state_dict().items()):
+        assert torch.equal(a, b), k
+    assert np.array_equal(loaded.std, bundle.std)
+
+
+def test_truncated_checkpoint_is_reported(tmp_path):
+    path = save_checkpoint(untrained_bundle(), tmp_path / "m.safetensors")
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CheckpointError, match="truncated"):
+        load_model(path)
+
+
+def test_missing_checkpoint_is_reported(tmp_path):
+    with pytest.raises(CheckpointError, match="no such checkpoint"):
+        load_model(tmp_path / "absent.pth")
+
+
+def test_official_checkpoint_loads_strictly_with_inferred_config(golden_dir, data_dir, tmp_path):
+    bundle = load_model(golden_official_file(golden_dir, tmp_path), stats_dir=data_dir / "beat")
+    cfg = bundle.config
+    assert (cfg.gesture_dim, cfg.expression_dim, cfg.style_dim, cfg.latent, cfg.layers, cfg.ff) == \
+        (141, 51, 30, 64, 2, 128)
+    assert cfg.use_hubert and not cfg.classifier_free and cfg.clip_len == 34 and cfg.layout == "beat"
+    assert bundle.sampling.overlap == 4 and bundle.guidance is None
+    assert bundle.mean.shape == (192,) and np.allclose(bundle.mean[:141], np.load(data_dir / "beat/axis_angle_mean.npy"))
+
+
+def test_official_checkpoint_without_stats_explains(golden_dir, tmp_path, monkeypatch):
+    monkeypatch.delenv("DIFFSHEG_OFFICIAL_STATS", raising=False)
+    with pytest.raises(CheckpointError, match="axis_angle_mean.npy.*--stats"):
+        load_model(golden_official_file(golden_dir, tmp_path))
+
+
+def test_corrupted_official_checkpoint_names_each_key(golden_dir, data_dir, tmp_path):
+    state = {k: v for k, v in load_file(str(golden_dir / "beat_small.safetensors")).items()}
+    state.pop("encoder_ges.temporal_decoder_blocks.1.ffn.linear2.bias")
+    state["encoder_exp.joint_embed.weights"] = state.pop("encoder_exp.joint_embed.weight")
+    state["encoder_exp.audio_proj.bias"] = torch.zeros(7)
+    path = tmp_path / "corrupt.pth"
+    torch.save({"encoder": state}, path)
+    with pytest.raises(CheckpointError) as err:
+        load_model(path, stats_dir=data_dir / "beat")
+    msg = str(err.value)
+    for key in ("encoder_ges.temporal_decoder_blocks.1.ffn.linear2.bias", "encoder_exp.joint_embed.weight",
+                "encoder_exp.joint_embed.weights", "encoder_exp.audio_proj.bias"):
+        assert key in msg
+    assert "likely cause" in msg
+
+
+def test_pickle_needing_code_is_refused(golden_dir, tmp_path):
+    path = tmp_path / "with_options.pth"
+    torch.save({"encoder": {}, "opt": argparse.Namespace(lr=1)}, path)
+    with pytest.raises(CheckpointError, match="arbitrary code"):
+        load_model(path)
+
+
+def test_show_stats_have_the_model_width(data_dir):
+    mean, std = official_stats("show", data_dir / "show")
+    assert mean.shape == std.shape == (232,) and (std > 0).all()
+
+
+def test_official_size_beat_end_to_end_with_random_weights(data_dir, tmp_path):
+    """Full-size official BEAT network (random weights) and a HuBERT-layout model (random),
+    official FOPPAS preset, 10 s of real speech: BVH and ARKit JSON come out and re-parse."""
+    transformers = pytest.importorskip("transformers")
+    torch.manual_seed(0)
+    hubert = tmp_path / "hubert"
+    transformers.HubertModel(transformers.HubertConfig(
+        hidden_size=1024, num_hidden_layers=1, num_attention_heads=4, intermediate_size=256,
+        conv_dim=(32,) * 7, num_conv_pos_embeddings=16, num_conv_pos_embedding_groups=4,
+    )).save_pretrained(hubert)
+    model = UniEG(ModelConfig())
+    for p in model.parameters():
+        torch.nn.init.normal_(p, std=0.02)
+    ckpt = tmp_path / "beat_official.pth"
+    torch.save({"encoder": model.state_dict()}, ckpt)
+    del model
+    bundle = load_model(ckpt, stats_dir=data_dir / "beat")
+    samples, sr = sf.read(data_dir / "audio" / "2_scott_0_3_3.wav", dtype="float32")
+    motion = generate(samples[: 10 * sr], sr, model=bundle, device="cpu", hubert_path=str(hubert))
+    assert motion.n_frames == 150 and np.isfinite(motion.rotations).all()
+    from diffsheg_core.bvh import write_bvh
+    from diffsheg_core.motion import write_arkit_json
+    bvh = read_bvh(write_bvh(motion, tmp_path / "out.bvh"))
+    assert len(bvh.frames) == 150 and len(bvh.joint_names) == 75
+    face = read_arkit_json(write_arkit_json(motion, tmp_path / "out.json"))
+    assert face.weights.shape == (150, 51)
+    assert json.loads((tmp_path / "out.json").read_text())["names"][0] == "browDownLeft"

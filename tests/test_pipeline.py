@@ -1,0 +1,136 @@
+"""generate(): the contract the add-on and the CLI rely on."""
+
+import subprocess
+import sys
+import threading
+
+import numpy as np
+import pytest
+import soundfile as sf
+import torch
+
+from diffsheg_core import AudioError, Cancelled, DiffshegError, Motion, generate
+from diffsheg_core.checkpoints import ModelBundle, untrained_bundle
+from diffsheg_core.foppas import PRESETS
+from diffsheg_core.model import ModelConfig, UniEG
+from diffsheg_core.rigs import ARKIT51, BEAT_JOINTS, SMPLX_EXPRESSION
+
+
+@pytest.fixture(scope="module")
+def speech(data_dir, tmp_path_factory):
+    """Four seconds of real speech."""
+    samples, sr = sf.read(data_dir / "audio" / "2_scott_0_4_4.wav", dtype="float32")
+    path = tmp_path_factory.mktemp("audio") / "four_seconds.wav"
+    sf.write(path, samples[sr * 3: sr * 7], sr)
+    return path
+
+
+@pytest.fixture(scope="module")
+def model():
+    return untrained_bundle()
+
+
+def test_motion_contract(speech, model):
+    motion = generate(speech, model=model, steps=4, seed=1, device="cpu")
+    assert isinstance(motion, Motion)
+    assert motion.fps == 15.0 and motion.rig == "beat" and motion.n_frames == 60
+    assert motion.joint_names == list(BEAT_JOINTS) and motion.face_names == list(ARKIT51)
+    assert motion.rotations.shape == (60, 47, 3) and motion.face.shape == (60, 51)
+    assert np.isfinite(motion.rotations).all() and (0 <= motion.face).all() and (motion.face <= 1).all()
+    assert motion.meta["trained"] is False and motion.meta["model_id"] == "untrained-beat-small"
+    assert motion.meta["seed"] == 1 and motion.meta["audio_file"].endswith("four_seconds.wav")
+
+
+def test_seeded_runs_repeat_bit_for_bit_and_seeds_differ(speech, model):
+    a = generate(speech, model=model, steps=4, seed=7, device="cpu")
+    b = generate(speech, model=model, steps=4, seed=7, device="cpu")
+    c = generate(speech, model=model, steps=4, seed=8, device="cpu")
+    assert np.array_equal(a.rotations, b.rotations) and np.array_equal(a.face, b.face)
+    assert not np.allclose(a.rotations, c.rotations)
+
+
+def test_array_input_equals_file_input(speech, model):
+    samples, sr = sf.read(speech, dtype="float32")
+    a = generate(speech, model=model, steps=3, device="cpu")
+    b = generate(samples, sr, model=model, steps=3, device="cpu")
+    assert np.array_equal(a.rotations, b.rotations)
+
+
+def test_progress_reports_every_step_of_every_clip(speech, model):
+    seen = []
+    generate(speech, model=model, steps=6, device="cpu", progress=seen.append)
+    clips = sorted({p.clip for p in seen})
+    assert clips == [0, 1]  # 60 frames: windows (0, 34) and (30, 60)
+    assert [p.step for p in seen if p.clip == 0] == list(range(6))
+    fractions = [p.fraction for p in seen]
+    assert fractions == sorted(fractions) and fractions[-1] == pytest.approx(1.0)
+
+
+def test_cancel_between_steps(speech, model):
+    cancel, calls = threading.Event(), []
+
+    def progress(p):
+        calls.append(p)
+        if len(calls) == 3:
+            cancel.set()
+
+    with pytest.raises(Cancelled):
+        generate(speech, model=model, steps=10, device="cpu", progress=progress, cancel=cancel)
+    assert len(calls) == 3
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(style=30), "style"), (dict(style=-1), "style"), (dict(guidance=2.0), "guidance"),
+    (dict(overlap=34), "overlap"), (dict(steps=0), "steps"), (dict(precision="bf16"), "precision"),
+    (dict(device="tpu"), "device"),
+])
+def test_bad_settings_are_refused(speech, model, kwargs, match):
+    with pytest.raises(DiffshegError, match=match):
+        generate(speech, **{"model": model, "device": "cpu", **kwargs})
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on machines without CUDA")
+def test_cuda_request_without_gpu_explains(speech, model):
+    with pytest.raises(DiffshegError, match="no CUDA GPU"):
+        generate(speech, model=model, device="cuda")
+
+
+def test_bad_audio_is_refused(tmp_path, model):
+    text = tmp_path / "notes.wav"
+    text.write_text("not audio at all")
+    silent = tmp_path / "silent.wav"
+    sf.write(silent, np.zeros(16000, np.float32), 16000)
+    for path, match in [(tmp_path / "missing.wav", "does not exist"), (text, "decoded"), (silent, "silent")]:
+        with pytest.raises(AudioError, match=match):
+            generate(path, model=model, device="cpu")
+
+
+def test_smplx_layout_with_classifier_free_guidance(speech):
+    cfg = ModelConfig(gesture_dim=129, expression_dim=103, style_dim=4, classifier_free=True,
+                      use_hubert=False, latent=32, layers=1, ff=64, heads=4, clip_len=88, layout="smplx")
+    torch.manual_seed(0)
+    bundle = ModelBundle(model=UniEG(cfg).eval(), mean=np.zeros(cfg.dim, np.float32),
+                         std=np.ones(cfg.dim, np.float32), sampling=PRESETS["official-show"],
+                         guidance=1.25, model_id="tiny-show", trained=False)
+    motion = generate(speech, model=bundle, steps=3, device="cpu")
+    assert motion.rig == "smplx" and motion.joint_names[-1] == "jaw" and len(motion.joint_names) == 44
+    assert motion.face_names == list(SMPLX_EXPRESSION) and motion.meta["guidance"] == 1.25
+    unguided = generate(speech, model=bundle, steps=3, device="cpu", guidance=1.0)
+    assert not np.allclose(motion.face, unguided.face)
+
+
+def test_cli_generates_and_reports(tmp_path, speech):
+    out = tmp_path / "talk.npz"
+    result = subprocess.run([sys.executable, "-m", "diffsheg_core", "generate", str(speech), "-o", str(out),
+                             "--steps", "3", "--device", "cpu", "--arkit-json", str(tmp_path / "f.json")],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert "60 frames at 15 fps" in result.stdout and "frames/s" in result.stdout
+    assert Motion.load_npz(out).n_frames == 60 and (tmp_path / "f.json").is_file()
+
+
+def test_cli_bad_input_prints_one_line_and_fails(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "diffsheg_core", "generate", str(tmp_path / "nope.wav")],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode != 0
+    assert "Traceback" not in result.stderr and "nope.wav" in result.stderr
