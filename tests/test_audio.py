@@ -246,8 +246,16 @@ def test_importing_audio_does_not_import_transformers():
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
 
 
-@pytest.mark.skipif(HAS_TRANSFORMERS, reason="transformers is installed")
-def test_hubert_without_transformers_says_what_to_install(tmp_path):
+@pytest.fixture
+def without_transformers(monkeypatch):
+    """Make this process behave as if transformers were not installed."""
+    real_find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name.split(".")[0] == "transformers" else real_find_spec(name, *a))
+    monkeypatch.setitem(sys.modules, "transformers", None)
+
+
+def test_hubert_without_transformers_says_what_to_install(tmp_path, without_transformers):
     assert "transformers" in hubert_status()
     audio = load_audio(SAMPLE_SPEECH)
     for model_path in (None, tmp_path):
