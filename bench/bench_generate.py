@@ -1,0 +1,126 @@
+"""Benchmark: seconds per stage for generating motion from real speech.
+
+Prints, side by side for each configuration, the time spent loading audio,
+computing speech features, sampling (FOPPAS), and writing outputs, then frames per
+second and the real-time factor (audio seconds per wall second). Run from the repo:
+
+    python bench/bench_generate.py [--seconds 60] [--configs small,official] [--device auto]
+
+`official` is the full-size official BEAT network (random weights) with HuBERT
+features from a randomly initialised HuBERT-large-layout model (the real model's
+compute; needs `transformers`), sampled with the official FOPPAS preset.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import soundfile as sf
+import torch
+
+from diffsheg_core.audio import load_audio
+from diffsheg_core.bvh import write_bvh
+from diffsheg_core.checkpoints import ModelBundle, untrained_bundle
+from diffsheg_core.foppas import PRESETS
+from diffsheg_core.model import ModelConfig, UniEG
+from diffsheg_core.motion import write_arkit_json
+from diffsheg_core.pipeline import (make_eps_fn_factory, resolve_device, speech_features,
+                                    style_onehot, to_motion)
+from diffsheg_core.diffusion import Schedule
+from diffsheg_core.foppas import Foppas, sample_long
+
+SPEECH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "audio" / "2_scott_0_3_3.wav"
+
+
+def official_bundle() -> ModelBundle:
+    torch.manual_seed(0)
+    model = UniEG(ModelConfig()).eval()
+    dim = model.cfg.dim
+    return ModelBundle(model=model, mean=np.zeros(dim, np.float32), std=np.ones(dim, np.float32),
+                       sampling=PRESETS["official-beat"], model_id="official-size-random")
+
+
+def random_hubert_large(folder: Path) -> str:
+    import transformers
+
+    torch.manual_seed(0)
+    config = transformers.HubertConfig(hidden_size=1024, num_hidden_layers=24, num_attention_heads=16,
+                                       intermediate_size=4096, feat_extract_norm="layer",
+                                       do_stable_layer_norm=True)
+    transformers.HubertModel(config).save_pretrained(folder)
+    return str(folder)
+
+
+def run(bundle: ModelBundle, audio_path: Path, device: torch.device, hubert: str | None, out: Path) -> dict:
+    bundle.model.to(device)
+    times = {}
+    t = time.perf_counter()
+    speech = load_audio(audio_path)
+    times["load"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    cond = speech_features(bundle, speech, hubert_path=hubert, device=str(device))
+    times["features"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    sampler = Foppas(Schedule.linear(), bundle.sampling, bundle.config.clip_len, bundle.config.dim)
+    make = make_eps_fn_factory(bundle, sampler, style_onehot(bundle, 0), None, None)
+    out_frames = sample_long(sampler, make, cond, torch.Generator().manual_seed(0), device)
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    times["sampling"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    motion = to_motion(bundle, out_frames.cpu().numpy(), meta={})
+    motion.save_npz(out / "m.npz")
+    write_bvh(motion, out / "m.bvh")
+    write_arkit_json(motion, out / "m.json")
+    times["writing"] = time.perf_counter() - t
+    times["total"] = sum(times.values())
+    times["frames"] = motion.n_frames
+    times["audio_s"] = speech.duration
+    return times
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=60.0, help="seconds of real speech (default 60)")
+    parser.add_argument("--configs", default="small,official")
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = resolve_device(args.device)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        samples, sr = sf.read(SPEECH, dtype="float32")
+        audio = tmp / "speech.wav"
+        sf.write(audio, samples[: int(args.seconds * sr)], sr)
+        results = {}
+        for name in args.configs.split(","):
+            if name == "small":
+                results[name] = run(untrained_bundle(), audio, device, None, tmp)
+            elif name == "official":
+                results[name] = run(official_bundle(), audio, device, random_hubert_large(tmp / "hubert"), tmp)
+            else:
+                raise SystemExit(f"unknown configuration {name}: use small, official")
+    print(f"device: {device} ({torch.cuda.get_device_name() if device.type == 'cuda' else 'CPU'}), "
+          f"torch threads {torch.get_num_threads()}, {args.seconds:g} s of real speech")
+    names = list(results)
+    print(f"{'stage':<12}" + "".join(f"{n:>14}" for n in names))
+    for key in ("load", "features", "sampling", "writing", "total"):
+        print(f"{key + ' (s)':<12}" + "".join(f"{results[n][key]:>14.2f}" for n in names))
+    print(f"{'frames/s':<12}" + "".join(f"{results[n]['frames'] / results[n]['total']:>14.1f}" for n in names))
+    print(f"{'x real time':<12}" + "".join(f"{results[n]['audio_s'] / results[n]['total']:>14.2f}" for n in names))
+    if len(names) == 2:
+        a, b = names
+        print(f"ratio {b}/{a} total time: {results[b]['total'] / results[a]['total']:.1f}x")
+
+
+if __name__ == "__main__":
+    main()
