@@ -22,6 +22,7 @@ def _generate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bvh", help="also write a BVH (beat layout: 75-joint BEAT skeleton)")
     p.add_argument("--arkit-json", help="also write face weights as the official ARKit JSON")
     p.add_argument("--csv", help="also write face weights as a Live Link Face CSV")
+    p.add_argument("--talkshow", help="also write SMPL-X motion as a TalkSHOW-layout .npz")
     p.add_argument("--checkpoint", help="model checkpoint (ours or an official DiffSHEG .pth); default: bundled")
     p.add_argument("--config", choices=["beat", "show"], help="force the official configuration")
     p.add_argument("--stats", help="folder of the official normalisation statistics (official checkpoints)")
@@ -85,6 +86,8 @@ def run_generate(args: argparse.Namespace) -> int:
         written.append(motion_io.write_arkit_json(result, args.arkit_json))
     if args.csv:
         written.append(motion_io.write_livelink_csv(result, args.csv))
+    if args.talkshow:
+        written.append(motion_io.write_talkshow_npz(result, args.talkshow))
     for path in written:
         print(f"wrote {path}")
     print(f"{result.n_frames} frames at {result.fps:g} fps = {result.duration:.1f} s of motion in "

@@ -374,3 +374,30 @@ def read_livelink_csv(path: str | Path, timecode_rate: float | None = None) -> F
         raise DiffshegError(f"{path}: a blendshape value is not a number ({exc})") from None
     times = _timecode_seconds([r[t_col] for r in rows[1:]], timecode_rate, str(path))
     return _face_curves(times, [header[k] for k in wanted], weights.reshape(len(rows) - 1, -1), str(path))
+
+
+def write_talkshow_npz(motion: Motion, path: str | Path) -> Path:
+    """SMPL-X motion in the TalkSHOW parameter layout, as the official SHOW model's
+    statistics use it: `pose` (T, 165) = jaw 3, left eye 3, right eye 3, global 3,
+    body 63 (SMPL-X joints 1..21), hands 90 (left then right, 15 joints each), all
+    axis-angle; `expression` (T, 100) FLAME coefficients; `fps`. Joints the motion
+    does not drive are zero (rest pose)."""
+    from .rigs import SMPLX_JOINTS
+
+    if motion.rig != "smplx":
+        raise DiffshegError(f"the TalkSHOW layout holds SMPL-X motion; this motion uses the "
+                            f"'{motion.rig}' layout (save it as .npz or BVH instead)")
+    order = ("jaw", "left_eye_smplhf", "right_eye_smplhf", "pelvis") + SMPLX_JOINTS[1:22] + SMPLX_JOINTS[25:55]
+    pose = np.zeros((motion.n_frames, len(order), 3), dtype=np.float32)
+    index = {name: k for k, name in enumerate(order)}
+    for j, name in enumerate(motion.joint_names):
+        pose[:, index[name]] = motion.rotations[:, j]
+    expression = np.zeros((motion.n_frames, 100), dtype=np.float32)
+    n_exp = min(100, motion.face.shape[1])
+    expression[:, :n_exp] = motion.face[:, :n_exp]
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as fh:
+        np.savez(fh, pose=pose.reshape(motion.n_frames, -1), expression=expression,
+                 fps=np.float64(motion.fps))
+    return path

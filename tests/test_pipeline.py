@@ -134,3 +134,27 @@ def test_cli_bad_input_prints_one_line_and_fails(tmp_path):
                             capture_output=True, text=True, timeout=300)
     assert result.returncode != 0
     assert "Traceback" not in result.stderr and "nope.wav" in result.stderr
+
+
+def test_smplx_motion_in_talkshow_layout(speech, tmp_path):
+    from diffsheg_core.motion import write_talkshow_npz
+    from diffsheg_core.rigs import SMPLX_GESTURE_JOINTS
+
+    cfg = ModelConfig(gesture_dim=129, expression_dim=103, style_dim=4, use_hubert=False, latent=32,
+                      layers=1, ff=64, heads=4, clip_len=88, layout="smplx")
+    bundle = ModelBundle(model=UniEG(cfg).eval(), mean=np.zeros(cfg.dim, np.float32),
+                         std=np.ones(cfg.dim, np.float32), sampling=PRESETS["official-show"])
+    motion = generate(speech, model=bundle, steps=2, device="cpu")
+    with np.load(write_talkshow_npz(motion, tmp_path / "show.npz")) as z:
+        pose, expression = z["pose"], z["expression"]
+    assert pose.shape == (60, 165) and expression.shape == (60, 100)
+    jaw = motion.joint_names.index("jaw")
+    assert np.array_equal(pose[:, :3], motion.rotations[:, jaw])
+    neck = motion.joint_names.index("neck")  # SMPL-X joint 12 -> body slot 11
+    assert np.array_equal(pose[:, 12 + 3 * 11: 12 + 3 * 12], motion.rotations[:, neck])
+    assert np.array_equal(pose[:, 75:78], motion.rotations[:, SMPLX_GESTURE_JOINTS.index("left_index1")])
+    assert np.array_equal(expression, motion.face)
+    assert not pose[:, 9:12].any()  # pelvis / global orientation is not driven
+    beat_motion = generate(speech, model=untrained_bundle(), steps=2, device="cpu")
+    with pytest.raises(DiffshegError, match="SMPL-X"):
+        write_talkshow_npz(beat_motion, tmp_path / "beat.npz")

@@ -1,0 +1,152 @@
+"""Write a generated Motion into the scene: Actions, sound strip, frame range.
+
+Everything that can fail (resampling, matching the rig, converting rotations) runs
+before the first change to Blender data; the changes themselves are recorded and
+undone in reverse if anything still goes wrong, so the scene is left as it was.
+Call only from Blender's main thread.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from diffsheg_core.errors import DiffshegError
+from diffsheg_core.motion import Motion, resample_motion
+
+from .keying import Channel, Undo, new_action, rotation_channels, shape_key_channel, write_channels
+from .retarget import Preset, bone_quaternions, map_armature, map_shape_keys
+from .sound import add_sound_strip
+
+
+@dataclass
+class BakeOptions:
+    """What to key and how. `tolerance` 0 keys every frame; above 0, keys are reduced
+    so the curve stays within it. `smoothing` is a Gaussian sigma in scene frames."""
+
+    armature: object | None
+    face_meshes: list = field(default_factory=list)
+    preset: Preset | None = None
+    start_frame: int = 1
+    tolerance: float = 0.0
+    smoothing: float = 0.0
+    add_sound: bool = True
+    set_frame_range: bool = True
+    action_name: str = ""
+
+
+@dataclass
+class BakeResult:
+    actions: list[str]
+    n_frames: int
+    n_keys: int
+    unmatched_bones: list[str]
+    unmatched_shape_keys: dict[str, list[str]]
+    sound_strip: str | None
+
+
+def scene_fps(scene) -> float:
+    return scene.render.fps / scene.render.fps_base
+
+
+def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOptions) -> BakeResult:
+    """Key `motion` onto the options' armature and face meshes from `start_frame`.
+
+    Raises DiffshegError (scene unchanged) when nothing can be keyed.
+    """
+    if options.armature is None and not options.face_meshes:
+        raise DiffshegError("no target: choose an armature and/or a face mesh in the panel")
+    if options.preset is None:
+        raise DiffshegError("no rig preset chosen: pick one in the panel")
+    fps = scene_fps(scene)
+    motion = resample_motion(motion, fps)
+    name = options.action_name or Path(audio_path or motion.meta.get("audio_file") or "speech").stem
+
+    plans: list[tuple[object, str, list[Channel]]] = []
+    unmatched_bones: list[str] = []
+    if options.armature is not None:
+        mapping = map_armature(options.armature, options.preset, motion)
+        unmatched_bones = mapping.unmatched
+        channels = []
+        for bone, quats in bone_quaternions(motion, mapping).items():
+            if options.smoothing > 0:
+                quats = smooth(quats, options.smoothing)
+                quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+            mode = options.armature.pose.bones[bone].rotation_mode
+            channels += rotation_channels(bone, mode, quats)
+        plans.append((options.armature, name, channels))
+    unmatched_keys: dict[str, list[str]] = {}
+    for mesh in options.face_meshes:
+        keys = map_shape_keys(mesh, options.preset, motion)
+        unmatched_keys[mesh.name] = keys.unmatched
+        face = smooth(motion.face, options.smoothing) if options.smoothing > 0 else motion.face
+        channels = []
+        for index, key_name in keys.pairs:
+            block = mesh.data.shape_keys.key_blocks[key_name]
+            channels.append(shape_key_channel(key_name, np.clip(face[:, index], block.slider_min, block.slider_max)))
+        plans.append((mesh.data.shape_keys, f"{name}_{mesh.name}", channels))
+
+    undo: list[Undo] = []
+    try:
+        actions, n_keys = [], 0
+        tolerance = options.tolerance if options.tolerance > 0 else None
+        for id_data, action_name, channels in plans:
+            action, slot = new_action(id_data, action_name, undo)
+            n_keys += write_channels(action, slot, channels, options.start_frame, tolerance)
+            actions.append(action.name)
+        if options.armature is not None:
+            _set_properties(options.armature, options.preset.properties, undo)
+        strip = None
+        if options.add_sound and audio_path:
+            strip = add_sound_strip(scene, audio_path, options.start_frame, undo).name
+        if options.set_frame_range:
+            _set_frame_range(scene, options.start_frame, options.start_frame + motion.n_frames - 1, undo)
+    except Exception as exc:
+        for step in reversed(undo):
+            step()
+        if isinstance(exc, DiffshegError):
+            raise
+        raise DiffshegError(f"could not write the animation into the scene: {exc}") from exc
+    return BakeResult(actions=actions, n_frames=motion.n_frames, n_keys=n_keys,
+                      unmatched_bones=unmatched_bones, unmatched_shape_keys=unmatched_keys,
+                      sound_strip=strip)
+
+
+def smooth(values: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing along time (axis 0), edges held."""
+    radius = max(1, int(np.ceil(3 * sigma)))
+    x = np.arange(-radius, radius + 1)
+    kernel = np.exp(-0.5 * (x / sigma) ** 2)
+    kernel /= kernel.sum()
+    padded = np.concatenate([np.repeat(values[:1], radius, 0), values, np.repeat(values[-1:], radius, 0)])
+    out = np.empty(values.shape, dtype=np.float64)
+    flat_in = padded.reshape(len(padded), -1)
+    flat_out = out.reshape(len(values), -1)
+    for c in range(flat_in.shape[1]):
+        flat_out[:, c] = np.convolve(flat_in[:, c], kernel, mode="valid")
+    return out
+
+
+def _set_properties(armature, properties: dict, undo: list[Undo]) -> None:
+    """Custom properties a preset needs on the rig (e.g. Rigify arms switched to FK)."""
+    for bone_name, props in properties.items():
+        bone = armature.pose.bones.get(bone_name)
+        if bone is None:
+            continue
+        for key, value in props.items():
+            if key in bone:
+                old = bone[key]
+                undo.append(lambda b=bone, k=key, v=old: b.__setitem__(k, v))
+                bone[key] = value
+
+
+def _set_frame_range(scene, start: int, end: int, undo: list[Undo]) -> None:
+    old = (scene.frame_start, scene.frame_end)
+
+    def restore() -> None:
+        scene.frame_start, scene.frame_end = old
+
+    undo.append(restore)
+    scene.frame_start, scene.frame_end = int(start), int(end)

@@ -1,0 +1,202 @@
+"""Bulk keyframing into a new Action, on Blender 5.x layered actions or the legacy API.
+
+The API is chosen by feature detection: layered actions (slots + channelbags, 4.4+)
+when `bpy_extras.anim_utils.action_ensure_channelbag_for_slot` exists, else the
+`Action.fcurves` of 4.2-4.3. A user's Action already on the datablock is kept and
+pushed onto an NLA track, never overwritten. Keys go in with `keyframe_points.add`
++ `foreach_set`, optionally reduced to fewer keys that stay within a tolerance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+import bpy
+
+from diffsheg_core.errors import DiffshegError
+
+try:
+    from bpy_extras.anim_utils import action_ensure_channelbag_for_slot
+except ImportError:  # Blender 4.2-4.3: legacy actions only
+    action_ensure_channelbag_for_slot = None
+
+
+@dataclass
+class Channel:
+    """One F-Curve's worth of values, one per frame from the start frame."""
+
+    data_path: str
+    index: int
+    values: np.ndarray
+    group: str = ""
+
+
+Undo = Callable[[], None]
+
+
+def uses_layered_actions() -> bool:
+    return action_ensure_channelbag_for_slot is not None and "slots" in bpy.types.Action.bl_rna.properties
+
+
+def new_action(id_data, name: str, undo: list[Undo]):
+    """Create and assign a new Action on `id_data` (an Object or a shape-key Key);
+    a user's Action already there is pushed to the NLA. Each change is recorded in
+    `undo` (callables restoring the previous state, run in reverse on failure)."""
+    created_anim = id_data.animation_data is None
+    anim = id_data.animation_data_create()
+    if created_anim:
+        undo.append(lambda: id_data.animation_data_clear())
+    previous = anim.action
+    if previous is not None:
+        _push_to_nla(anim, previous, undo)
+    action = bpy.data.actions.new(name)
+    undo.append(lambda: bpy.data.actions.remove(action))
+    slot = None
+    if uses_layered_actions():
+        slot = action.slots.new(id_type=id_data.id_type, name=id_data.name)
+    anim.action = action
+    if slot is not None:
+        anim.action_slot = slot
+    return action, slot
+
+
+def _push_to_nla(anim, action, undo: list[Undo]) -> None:
+    slot = getattr(anim, "action_slot", None)
+    track = anim.nla_tracks.new()
+    track.name = action.name
+    start = int(np.floor(action.frame_range[0]))
+    strip = track.strips.new(action.name, start, action)
+    if slot is not None and hasattr(strip, "action_slot"):
+        strip.action_slot = slot
+    anim.action = None
+
+    def restore() -> None:
+        anim.nla_tracks.remove(track)
+        anim.action = action
+        if slot is not None:
+            anim.action_slot = slot
+
+    undo.append(restore)
+
+
+def write_channels(action, slot, channels: list[Channel], start_frame: float,
+                   tolerance: float | None = None) -> int:
+    """Key every channel from `start_frame`, one value per frame; with `tolerance`,
+    keep only the keys needed for linear interpolation to stay within it.
+    Returns the number of keys written."""
+    make = _fcurve_factory(action, slot)
+    groups: dict[str, object] = {}
+    total = 0
+    for ch in channels:
+        values = np.asarray(ch.values, dtype=np.float64)
+        if not np.all(np.isfinite(values)):
+            raise DiffshegError(f"the motion holds non-finite values for {ch.data_path}[{ch.index}]: "
+                                "try another seed or model")
+        fc = make(ch.data_path, ch.index, ch.group, groups)
+        keep = reduce_keys(values, tolerance) if tolerance else np.arange(len(values))
+        co = np.empty((len(keep), 2), dtype=np.float32)
+        co[:, 0] = start_frame + keep
+        co[:, 1] = values[keep]
+        fc.keyframe_points.add(len(keep))
+        fc.keyframe_points.foreach_set("co", co.ravel())
+        if tolerance:
+            linear = bpy.types.Keyframe.bl_rna.properties["interpolation"].enum_items["LINEAR"].value
+            fc.keyframe_points.foreach_set("interpolation", [linear] * len(keep))
+        fc.update()
+        total += len(keep)
+    return total
+
+
+def _fcurve_factory(action, slot):
+    """A function adding a grouped F-Curve to (action, slot), on either API."""
+    if slot is not None:
+        bag = action_ensure_channelbag_for_slot(action, slot)
+
+        def make(path, index, group, groups):
+            fc = bag.fcurves.new(path, index=index)
+            if group:
+                if group not in groups:
+                    groups[group] = bag.groups.new(group)
+                fc.group = groups[group]
+            return fc
+
+        return make
+
+    def make_legacy(path, index, group, groups):
+        return action.fcurves.new(path, index=index, action_group=group)
+
+    return make_legacy
+
+
+def reduce_keys(values: np.ndarray, tolerance: float) -> np.ndarray:
+    """Indices of the keys to keep so that linear interpolation between them is within
+    `tolerance` of every value (split at the worst sample until all segments fit)."""
+    n = len(values)
+    if n <= 2:
+        return np.arange(n)
+    keep = {0, n - 1}
+    stack = [(0, n - 1)]
+    while stack:
+        a, b = stack.pop()
+        if b - a < 2:
+            continue
+        t = np.arange(a + 1, b)
+        line = values[a] + (values[b] - values[a]) * (t - a) / (b - a)
+        err = np.abs(values[a + 1:b] - line)
+        worst = int(np.argmax(err))
+        if err[worst] > tolerance:
+            mid = a + 1 + worst
+            keep.add(mid)
+            stack.extend([(a, mid), (mid, b)])
+    return np.array(sorted(keep))
+
+
+def fcurves_of(id_data) -> list:
+    """The F-Curves of the Action (and slot) assigned to `id_data`, on either API."""
+    anim = id_data.animation_data
+    if anim is None or anim.action is None:
+        return []
+    slot = getattr(anim, "action_slot", None)
+    if slot is not None and action_ensure_channelbag_for_slot is not None:
+        from bpy_extras.anim_utils import action_get_channelbag_for_slot
+        bag = action_get_channelbag_for_slot(anim.action, slot)
+        return list(bag.fcurves) if bag else []
+    return list(anim.action.fcurves)
+
+
+def rotation_channels(bone: str, rotation_mode: str, quaternions: np.ndarray) -> list[Channel]:
+    """Channels for a pose bone's rotation in its own mode: quaternion (continuous
+    hemisphere), axis-angle, or Euler in the bone's order (continuous across frames)."""
+    from mathutils import Euler, Quaternion
+
+    base = f'pose.bones["{_escape(bone)}"]'
+    if rotation_mode == "QUATERNION":
+        values = quaternions
+        path = base + ".rotation_quaternion"
+    elif rotation_mode == "AXIS_ANGLE":
+        values = np.array([_axis_angle(Quaternion(q)) for q in quaternions])
+        path = base + ".rotation_axis_angle"
+    else:
+        values = np.empty((len(quaternions), 3))
+        previous = Euler((0.0, 0.0, 0.0), rotation_mode)
+        for i, q in enumerate(quaternions):
+            previous = Quaternion(q).to_euler(rotation_mode, previous)
+            values[i] = previous
+        path = base + ".rotation_euler"
+    return [Channel(path, i, values[:, i], group=bone) for i in range(values.shape[1])]
+
+
+def _axis_angle(q) -> tuple[float, float, float, float]:
+    axis, angle = q.to_axis_angle()
+    return (angle, axis.x, axis.y, axis.z)
+
+
+def _escape(name: str) -> str:
+    return name.replace("\\", "\\\\").replace('"', '\\"')
+
+
+def shape_key_channel(key_name: str, values: np.ndarray) -> Channel:
+    return Channel(f'key_blocks["{_escape(key_name)}"].value', 0, values, group="Shape Keys")

@@ -1,0 +1,290 @@
+"""Operators: Generate (modal, generation in a worker thread), new seed, face mesh list.
+
+Generation never touches Blender data: it runs `diffsheg_core.generate` off the main
+thread, reports progress through a `threading.Event`-cancellable job, and only when it
+has finished does the main thread key the result (one undo step). Cancel and errors
+therefore leave the scene as it was.
+"""
+
+from __future__ import annotations
+
+import random
+import threading
+from pathlib import Path
+
+import bpy
+
+from diffsheg_core.errors import DiffshegError
+
+from . import preset
+from .preferences import missing_dependencies
+from .properties import CUSTOM_PRESET
+
+
+def audio_file(settings) -> Path:
+    raw = settings.audio_path.strip()
+    if not raw:
+        raise DiffshegError("no audio file chosen: pick a speech recording in the panel")
+    path = Path(bpy.path.abspath(raw))
+    if not path.is_file():
+        raise DiffshegError(f"{path}: audio file not found")
+    return path
+
+
+def preset_of(settings) -> preset.Preset:
+    if settings.preset == CUSTOM_PRESET:
+        if not settings.preset_file.strip():
+            raise DiffshegError("'Custom file...' preset chosen but no preset file given")
+        return preset.load_preset(bpy.path.abspath(settings.preset_file))
+    return preset.load_preset(settings.preset)
+
+
+def generate_kwargs(settings) -> dict:
+    """Keyword arguments of `diffsheg_core.generate` from the panel's settings."""
+    return {
+        "model": bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None,
+        "seed": settings.seed,
+        "steps": settings.steps,
+        "overlap": settings.overlap or None,
+        "style": settings.style,
+        "guidance": settings.guidance or None,
+        "device": settings.device_arg(),
+    }
+
+
+def bake_options(settings):
+    from .bake import BakeOptions
+
+    return BakeOptions(
+        armature=settings.armature, face_meshes=settings.face_objects(), preset=preset_of(settings),
+        start_frame=settings.start_frame,
+        tolerance=settings.tolerance if settings.key_mode == "REDUCED" else 0.0,
+        smoothing=settings.smoothing, add_sound=settings.add_sound,
+        set_frame_range=settings.set_frame_range)
+
+
+def check_ready(settings) -> tuple:
+    """Everything checkable before generating: dependencies, audio file, targets, preset."""
+    missing = missing_dependencies()
+    if missing:
+        raise DiffshegError(
+            f"missing Python packages: {', '.join(missing)}. Install them with "
+            "Edit > Preferences > Add-ons > DiffSHEG > Install dependencies")
+    path = audio_file(settings)
+    options = bake_options(settings)
+    if options.armature is None and not options.face_meshes:
+        raise DiffshegError("no target: choose an armature and/or a face mesh in the panel")
+    return path, options
+
+
+def model_label(meta: dict) -> str:
+    label = str(meta.get("model_id", "unknown model"))
+    if meta.get("trained") is False or meta.get("untrained"):
+        label += " - UNTRAINED (random weights, no learned motion)"
+    return label
+
+
+def summary(result) -> str:
+    text = (f"keyed {result.n_frames} frames ({result.n_keys} keys) into "
+            f"{', '.join(result.actions)}")
+    if result.unmatched_bones:
+        text += f"; bones not on the rig: {', '.join(result.unmatched_bones)}"
+    for mesh, names in result.unmatched_shape_keys.items():
+        if names:
+            text += f"; {len(names)} face channels without a shape key on {mesh}: {', '.join(names)}"
+    return text
+
+
+def apply_result(context, settings, motion, path: Path, options):
+    """Key `motion` into the scene (main thread only); returns the BakeResult."""
+    from .bake import bake_motion
+
+    result = bake_motion(context.scene, motion, str(path), options)
+    settings.model_label = model_label(motion.meta)
+    settings.last_report = summary(result)
+    return result
+
+
+class GenerationJob:
+    """`diffsheg_core.generate` in a daemon thread; poll `done`, then read `motion`/`error`."""
+
+    def __init__(self, path: Path, kwargs: dict):
+        self.cancel = threading.Event()
+        self.fraction = 0.0
+        self.motion = None
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, args=(path, kwargs), daemon=True)
+
+    def start(self) -> "GenerationJob":
+        self._thread.start()
+        return self
+
+    def _run(self, path: Path, kwargs: dict) -> None:
+        import diffsheg_core
+
+        try:
+            self.motion = diffsheg_core.generate(str(path), progress=self._progress, cancel=self.cancel, **kwargs)
+        except BaseException as exc:  # handed to the main thread, which reports it
+            self.error = exc
+
+    def _progress(self, p) -> None:
+        self.fraction = p.fraction
+
+    @property
+    def done(self) -> bool:
+        return not self._thread.is_alive()
+
+    def wait(self) -> None:
+        self._thread.join()
+
+
+def error_message(exc: BaseException) -> str:
+    if isinstance(exc, DiffshegError):
+        return str(exc)
+    return f"unexpected {type(exc).__name__}: {exc}"
+
+
+class DIFFSHEG_OT_generate(bpy.types.Operator):
+    """Generate body, hand, head and face animation from the audio file"""
+
+    bl_idname = "diffsheg.generate"
+    bl_label = "Generate"
+    bl_options = {"REGISTER", "UNDO"}
+
+    _job: GenerationJob | None = None
+    _timer = None
+
+    def _prepare(self, context):
+        settings = context.scene.diffsheg
+        path, options = check_ready(settings)
+        return settings, path, options
+
+    def execute(self, context):
+        """Blocking run (scripts, batch): generate, then key."""
+        try:
+            settings, path, options = self._prepare(context)
+            job = GenerationJob(path, generate_kwargs(settings)).start()
+            job.wait()
+            if job.error is not None:
+                raise job.error
+            result = apply_result(context, settings, job.motion, path, options)
+        except Exception as exc:
+            self.report({"ERROR"}, error_message(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, summary(result))
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        try:
+            settings, path, options = self._prepare(context)
+        except DiffshegError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self._path, self._options = path, options
+        self._job = GenerationJob(path, generate_kwargs(settings)).start()
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.progress_begin(0, 100)
+        wm.modal_handler_add(self)
+        self._status(context, "Generating motion 0% - Esc to cancel")
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == "ESC" and event.value == "PRESS":
+            job.cancel.set()
+        if event.type != "TIMER":
+            return {"RUNNING_MODAL"}
+        if not job.done:
+            context.window_manager.progress_update(int(100 * job.fraction))
+            label = "Cancelling..." if job.cancel.is_set() else \
+                f"Generating motion {int(100 * job.fraction)}% - Esc to cancel"
+            self._status(context, label)
+            return {"RUNNING_MODAL"}
+        self._finish(context)
+        if job.error is not None:
+            if job.cancel.is_set():
+                self.report({"WARNING"}, "generation cancelled: the scene is unchanged")
+            else:
+                self.report({"ERROR"}, error_message(job.error))
+            return {"CANCELLED"}
+        try:
+            result = apply_result(context, context.scene.diffsheg, job.motion, self._path, self._options)
+        except Exception as exc:
+            self.report({"ERROR"}, error_message(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, summary(result))
+        return {"FINISHED"}
+
+    def _finish(self, context) -> None:
+        wm = context.window_manager
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        self._status(context, None)
+
+    @staticmethod
+    def _status(context, text) -> None:
+        if context.workspace is not None:
+            context.workspace.status_text_set(text)
+
+
+class DIFFSHEG_OT_new_seed(bpy.types.Operator):
+    """Pick a new random seed (a different motion for the same audio)"""
+
+    bl_idname = "diffsheg.new_seed"
+    bl_label = "New Seed"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        context.scene.diffsheg.seed = random.randrange(0, 2**31 - 1)
+        return {"FINISHED"}
+
+
+class DIFFSHEG_OT_face_add(bpy.types.Operator):
+    """Add the selected meshes that have shape keys as face meshes"""
+
+    bl_idname = "diffsheg.face_add"
+    bl_label = "Add Selected Face Meshes"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        settings = context.scene.diffsheg
+        present = set(settings.face_objects())
+        added = 0
+        for obj in context.selected_objects:
+            if obj.type == "MESH" and obj.data.shape_keys is not None and obj not in present:
+                settings.face_meshes.add().object = obj
+                added += 1
+        if not added:
+            self.report({"WARNING"}, "select a mesh with shape keys first")
+            return {"CANCELLED"}
+        return {"FINISHED"}
+
+
+class DIFFSHEG_OT_face_remove(bpy.types.Operator):
+    """Remove the highlighted face mesh from the list"""
+
+    bl_idname = "diffsheg.face_remove"
+    bl_label = "Remove Face Mesh"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        settings = context.scene.diffsheg
+        if not 0 <= settings.face_index < len(settings.face_meshes):
+            return {"CANCELLED"}
+        settings.face_meshes.remove(settings.face_index)
+        settings.face_index = max(0, settings.face_index - 1)
+        return {"FINISHED"}
+
+
+CLASSES = (DIFFSHEG_OT_generate, DIFFSHEG_OT_new_seed, DIFFSHEG_OT_face_add, DIFFSHEG_OT_face_remove)
+
+
+def register() -> None:
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+
+
+def unregister() -> None:
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

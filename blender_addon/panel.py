@@ -1,0 +1,98 @@
+"""The View3D sidebar tab "DiffSHEG" with the panel "Generate from audio"."""
+
+from __future__ import annotations
+
+import sys
+
+import bpy
+
+from .preferences import missing_dependencies
+from .properties import CUSTOM_PRESET
+
+
+def device_label(choice: str) -> str:
+    """Which device a run will use; torch is only asked once it is loaded."""
+    torch = sys.modules.get("torch")
+    if choice == "CPU":
+        return "CPU"
+    if torch is None:
+        return "GPU (CUDA) if available, else CPU" if choice == "AUTO" else "GPU (CUDA)"
+    has_cuda = torch.cuda.is_available()
+    if choice == "GPU":
+        return "GPU (CUDA)" if has_cuda else "no CUDA GPU found: choose Auto or CPU"
+    return "GPU (CUDA)" if has_cuda else "CPU (no CUDA GPU found)"
+
+
+class DIFFSHEG_UL_face_meshes(bpy.types.UIList):
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index=0):
+        layout.prop(item, "object", text="", emboss=False, icon="MESH_DATA")
+
+
+class DIFFSHEG_PT_generate(bpy.types.Panel):
+    bl_label = "Generate from audio"
+    bl_idname = "DIFFSHEG_PT_generate"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "DiffSHEG"
+
+    def draw(self, context):
+        layout = self.layout
+        s = context.scene.diffsheg
+        missing = missing_dependencies()
+        if missing:
+            box = layout.box()
+            box.label(text=f"Missing Python packages: {', '.join(missing)}", icon="ERROR")
+            box.label(text="Install them in Preferences > Add-ons > DiffSHEG")
+
+        layout.prop(s, "audio_path")
+        layout.prop(s, "armature")
+        layout.label(text="Face meshes:")
+        row = layout.row()
+        row.template_list("DIFFSHEG_UL_face_meshes", "", s, "face_meshes", s, "face_index", rows=2)
+        col = row.column(align=True)
+        col.operator("diffsheg.face_add", text="", icon="ADD")
+        col.operator("diffsheg.face_remove", text="", icon="REMOVE")
+        layout.prop(s, "preset")
+        if s.preset == CUSTOM_PRESET:
+            layout.prop(s, "preset_file")
+
+        col = layout.column(align=True)
+        col.prop(s, "model_path")
+        row = col.row(align=True)
+        row.prop(s, "seed")
+        row.operator("diffsheg.new_seed", text="", icon="FILE_REFRESH")
+        col.prop(s, "steps")
+        col.prop(s, "overlap")
+        col.prop(s, "style")
+        col.prop(s, "guidance")
+        col.prop(s, "device")
+        col.label(text=f"Runs on: {device_label(s.device)}")
+
+        col = layout.column(align=True)
+        col.prop(s, "start_frame")
+        col.prop(s, "smoothing")
+        col.prop(s, "key_mode")
+        if s.key_mode == "REDUCED":
+            col.prop(s, "tolerance")
+        col.prop(s, "add_sound")
+        col.prop(s, "set_frame_range")
+
+        layout.operator("diffsheg.generate", icon="PLAY_SOUND")
+        if s.model_label:
+            untrained = "UNTRAINED" in s.model_label
+            layout.label(text=f"Model: {s.model_label}", icon="ERROR" if untrained else "INFO")
+        if s.last_report:
+            layout.label(text=s.last_report)
+
+
+CLASSES = (DIFFSHEG_UL_face_meshes, DIFFSHEG_PT_generate)
+
+
+def register() -> None:
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+
+
+def unregister() -> None:
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

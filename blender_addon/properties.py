@@ -1,0 +1,97 @@
+"""Generation settings, stored on the Scene (`scene.diffsheg`) so they persist in the .blend."""
+
+from __future__ import annotations
+
+import bpy
+from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
+                       IntProperty, PointerProperty, StringProperty)
+
+from . import preset
+
+CUSTOM_PRESET = "__custom__"
+
+
+def _is_armature(_self, obj) -> bool:
+    return obj.type == "ARMATURE"
+
+
+def _is_mesh(_self, obj) -> bool:
+    return obj.type == "MESH"
+
+
+_preset_items_cache: list = []
+
+
+def _preset_items(_self, _context):
+    # Blender keeps only the strings of the last returned list alive: keep a reference.
+    _preset_items_cache[:] = [(n, n, f"rig preset presets/{n}.json") for n in preset.available_presets()]
+    _preset_items_cache.append((CUSTOM_PRESET, "Custom file...", "a preset .json file of your own"))
+    return _preset_items_cache
+
+
+class DIFFSHEG_PG_face_mesh(bpy.types.PropertyGroup):
+    object: PointerProperty(name="Face mesh", type=bpy.types.Object, poll=_is_mesh,
+                            description="a mesh whose shape keys receive the face weights")
+
+
+class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
+    audio_path: StringProperty(name="Audio", subtype="FILE_PATH",
+                               description="speech recording (WAV, FLAC, OGG or MP3)")
+    armature: PointerProperty(name="Armature", type=bpy.types.Object, poll=_is_armature,
+                              description="the rig receiving body, hand, head and jaw rotations")
+    face_meshes: CollectionProperty(type=DIFFSHEG_PG_face_mesh)
+    face_index: IntProperty(default=0)
+    preset: EnumProperty(name="Rig preset", items=_preset_items,
+                         description="which bones and shape keys the model's channels go to")
+    preset_file: StringProperty(name="Preset file", subtype="FILE_PATH",
+                                description="your own preset .json (see presets/ for the format)")
+    model_path: StringProperty(name="Model", subtype="FILE_PATH",
+                               description="a checkpoint file; empty = the bundled default model")
+    seed: IntProperty(name="Seed", default=0, min=0, description="same seed, same motion")
+    steps: IntProperty(name="Steps", default=25, min=1, max=1000,
+                       description="diffusion steps: fewer are faster, 25 is the model's default")
+    overlap: IntProperty(name="Overlap", default=0, min=0, max=64,
+                         description="frames shared by consecutive windows; 0 = the model's default")
+    style: IntProperty(name="Style", default=0, min=0, description="speaker style index of the model")
+    guidance: FloatProperty(name="Guidance", default=0.0, min=0.0, max=10.0,
+                            description="classifier-free guidance scale; 0 = the model's default")
+    start_frame: IntProperty(name="Start frame", default=1, description="frame of the first key and the sound strip")
+    device: EnumProperty(name="Device", default="AUTO", items=[
+        ("AUTO", "Auto", "a CUDA GPU when there is one, else the CPU"),
+        ("CPU", "CPU", "always the CPU"),
+        ("GPU", "GPU", "a CUDA GPU (error if there is none)")])
+    smoothing: FloatProperty(name="Smoothing", default=0.0, min=0.0, max=10.0,
+                             description="Gaussian smoothing of the keys, sigma in frames; 0 = off")
+    key_mode: EnumProperty(name="Keys", default="ALL", items=[
+        ("ALL", "Every frame", "one key per scene frame"),
+        ("REDUCED", "Reduced", "fewer keys, the curve stays within the tolerance")])
+    tolerance: FloatProperty(name="Tolerance", default=0.01, min=1e-5, max=1.0, precision=4,
+                             description="largest allowed difference from the full curve "
+                                         "(quaternion / radian / shape-key units)")
+    add_sound: BoolProperty(name="Add sound strip", default=True)
+    set_frame_range: BoolProperty(name="Set frame range", default=True,
+                                  description="make the scene's frame range cover the clip")
+    model_label: StringProperty(name="Model used", default="",
+                                description="the model of the last generation")
+    last_report: StringProperty(default="")
+
+    def face_objects(self) -> list:
+        return [item.object for item in self.face_meshes if item.object is not None]
+
+    def device_arg(self) -> str:
+        return {"AUTO": "auto", "CPU": "cpu", "GPU": "cuda"}[self.device]
+
+
+CLASSES = (DIFFSHEG_PG_face_mesh, DIFFSHEG_PG_settings)
+
+
+def register() -> None:
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.diffsheg = PointerProperty(type=DIFFSHEG_PG_settings)
+
+
+def unregister() -> None:
+    del bpy.types.Scene.diffsheg
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

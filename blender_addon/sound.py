@@ -1,0 +1,35 @@
+"""The audio as a sound strip in the scene's sequencer, at the animation's start frame."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .keying import Undo
+
+
+def _strips(editor):
+    # Blender 5.0 has `strips` only, 4.x `sequences`. An empty collection is falsy,
+    # so the choice is by attribute, never by `or`.
+    return editor.strips if hasattr(editor, "strips") else editor.sequences
+
+
+def add_sound_strip(scene, audio_path: str, frame_start: int, undo: list[Undo]):
+    """Add `audio_path` as a sound strip starting at `frame_start` on the lowest
+    channel free over the clip; returns the strip."""
+    created = scene.sequence_editor is None
+    editor = scene.sequence_editor_create()
+    if created:
+        undo.append(lambda: scene.sequence_editor_clear())
+    strips = _strips(editor)
+    used = {s.channel for s in strips if s.frame_final_end > frame_start}
+    channel = next(c for c in range(1, 129) if c not in used)
+    strip = strips.new_sound(Path(audio_path).stem, str(audio_path), channel=channel, frame_start=int(frame_start))
+    if not created:
+        undo.append(lambda: strips.remove(strip))
+    return strip
+
+
+def sound_strips(scene) -> list:
+    if scene.sequence_editor is None:
+        return []
+    return [s for s in _strips(scene.sequence_editor) if s.type == "SOUND"]

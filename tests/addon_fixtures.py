@@ -1,0 +1,242 @@
+"""Shared helpers for the headless bpy tests of the Blender add-on (tests/test_addon_*.py).
+
+Real material only, by path: the BEAT mocap take and its audio, the ARKit face mesh,
+real speech. Rigs are made the way users get them: BVH import, Rigify generation, and
+an SMPL-X-named armature built bone by bone.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+import soundfile as sf  # noqa: E402
+
+from diffsheg_core.bvh import bvh_to_motion, read_bvh  # noqa: E402
+from diffsheg_core.motion import Motion  # noqa: E402
+from diffsheg_core.rigs import ARKIT51, SMPLX_JOINTS  # noqa: E402
+
+DATA = REPO.parent / "shared" / "data"
+BEAT_BVH = DATA / "beat" / "2_scott_0_1_1.bvh"
+BEAT_WAV = DATA / "beat2" / "2_scott_0_1_1.wav"
+BEAT2_NPZ = DATA / "beat2" / "2_scott_0_1_1.npz"
+FACE_BLEND = DATA / "rigs" / "beat_face_arkit51.blend"
+SPEECH = DATA / "audio" / "2_scott_0_3_3.wav"
+SPEECH_2 = DATA / "audio" / "12_zhao_2_3_3.wav"
+MISNAMED_MP3 = DATA / "audio" / "2_scott_0_103_103_28s.wav"
+
+
+def reset_scene(fps: float = 24.0) -> "bpy.types.Scene":
+    """Factory settings, empty scene, the add-on registered, the given frame rate."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    ensure_registered()
+    scene = bpy.context.scene
+    set_fps(scene, fps)
+    return scene
+
+
+def set_fps(scene, fps: float) -> None:
+    """29.97 is set as Blender's presets do: fps 30, fps_base 1.001."""
+    if abs(fps - round(fps)) < 1e-6:
+        scene.render.fps, scene.render.fps_base = int(round(fps)), 1.0
+    else:
+        scene.render.fps, scene.render.fps_base = int(np.ceil(fps)), np.ceil(fps) / fps
+
+
+def ensure_registered() -> None:
+    import blender_addon
+
+    if not hasattr(bpy.types.Scene, "diffsheg"):
+        blender_addon.register()
+
+
+def cut_speech(tmp_path: Path, seconds: float = 3.0, source: Path = SPEECH, offset: float = 5.0,
+               name: str | None = None) -> Path:
+    """A few seconds of real speech written to tmp_path as 16-bit WAV."""
+    info = sf.info(str(source))
+    start = int(offset * info.samplerate)
+    samples, rate = sf.read(str(source), start=start, frames=int(seconds * info.samplerate))
+    out = tmp_path / (name or f"{source.stem}_{seconds:g}s.wav")
+    sf.write(str(out), samples, rate, subtype="PCM_16")
+    return out
+
+
+def mocap_motion(frames: int | None = None) -> Motion:
+    """The real BEAT take as a beat-layout Motion (15 fps), with ARKit face weights built
+    from the same take's audio: jawOpen follows the speech envelope, blinks every 3 s."""
+    body = bvh_to_motion(read_bvh(BEAT_BVH, fps=15.0))
+    n = body.n_frames if frames is None else frames
+    audio, rate = sf.read(str(BEAT_WAV), dtype="float32")
+    hop = rate // 15
+    rms = np.sqrt(np.mean(audio[: n * hop].reshape(n, hop) ** 2, axis=1))
+    face = np.zeros((n, len(ARKIT51)), dtype=np.float32)
+    face[:, ARKIT51.index("jawOpen")] = rms / rms.max()
+    blink = (np.arange(n) % 45 < 3).astype(np.float32)
+    face[:, ARKIT51.index("eyeBlinkLeft")] = blink
+    face[:, ARKIT51.index("eyeBlinkRight")] = blink
+    return Motion(fps=15.0, rig="beat", joint_names=body.joint_names, rotations=body.rotations[:n],
+                  face_names=list(ARKIT51), face=face, meta={"audio_file": str(BEAT_WAV)})
+
+
+def import_beat_armature(animated: bool = False):
+    """The BEAT skeleton as Blender's BVH importer makes it from the shared take."""
+    bpy.ops.import_anim.bvh(filepath=str(BEAT_BVH), update_scene_fps=False, update_scene_duration=False)
+    ob = bpy.context.object
+    if not animated:
+        ob.animation_data_clear()
+        for pb in ob.pose.bones:
+            pb.rotation_quaternion, pb.rotation_euler, pb.location = (1, 0, 0, 0), (0, 0, 0), (0, 0, 0)
+    return ob
+
+
+def append_face():
+    """The real ARKit face mesh 'Neutral' (Basis + 51 ARKit shape keys)."""
+    with bpy.data.libraries.load(str(FACE_BLEND)) as (src, dst):
+        dst.objects = ["Neutral"]
+    ob = dst.objects[0]
+    bpy.context.scene.collection.objects.link(ob)
+    return ob
+
+
+# SMPL-X joints (T-pose, metres, Y up / Z forward as in SMPL-X) for an SMPL-X-named rig.
+_SMPLX_PARENTS = {
+    "pelvis": None, "spine1": "pelvis", "spine2": "spine1", "spine3": "spine2", "neck": "spine3",
+    "head": "neck", "jaw": "head", "left_collar": "spine3", "right_collar": "spine3",
+    "left_shoulder": "left_collar", "right_shoulder": "right_collar",
+    "left_elbow": "left_shoulder", "right_elbow": "right_shoulder",
+    "left_wrist": "left_elbow", "right_wrist": "right_elbow",
+}
+_SMPLX_POSITIONS = {
+    "pelvis": (0, 0.0, 0), "spine1": (0, 0.1, -0.01), "spine2": (0, 0.24, 0), "spine3": (0, 0.3, 0.01),
+    "neck": (0, 0.52, -0.02), "head": (0, 0.6, 0.02), "jaw": (0, 0.62, 0.05),
+    "left_collar": (0.07, 0.43, 0), "right_collar": (-0.07, 0.43, 0),
+    "left_shoulder": (0.18, 0.45, -0.01), "right_shoulder": (-0.18, 0.45, -0.01),
+    "left_elbow": (0.44, 0.45, -0.02), "right_elbow": (-0.44, 0.45, -0.02),
+    "left_wrist": (0.69, 0.45, -0.02), "right_wrist": (-0.69, 0.45, -0.02),
+}
+
+
+def _smplx_layout() -> dict[str, tuple[str | None, tuple[float, float, float]]]:
+    joints = {n: (_SMPLX_PARENTS[n], _SMPLX_POSITIONS[n]) for n in _SMPLX_PARENTS}
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        for k, finger in enumerate(("index", "middle", "ring", "pinky", "thumb")):
+            base_x, z = 0.78 + (0.0 if finger != "thumb" else -0.05), 0.03 - 0.015 * k
+            y = 0.45 - (0.02 if finger == "thumb" else 0.0)
+            parent = f"{side}_wrist"
+            for i in (1, 2, 3):
+                name = f"{side}_{finger}{i}"
+                joints[name] = (parent, (sign * (base_x + 0.03 * (i - 1)), y, z + (0.03 if finger == "thumb" else 0)))
+                parent = name
+    return joints
+
+
+def build_smplx_armature(roll_seed: int = 0, name: str = "SMPLX-neutral"):
+    """An armature named like the SMPL-X Blender add-on's (the bones this project keys),
+    Z up and facing -Y, with pseudo-random bone rolls (a seed) to show roll independence."""
+    assert set(_SMPLX_PARENTS) <= set(SMPLX_JOINTS)
+    rng = np.random.default_rng(roll_seed)
+    joints = _smplx_layout()
+    arm = bpy.data.armatures.new(name)
+    ob = bpy.data.objects.new(name, arm)
+    bpy.context.scene.collection.objects.link(ob)
+    bpy.context.view_layer.objects.active = ob
+    bpy.ops.object.mode_set(mode="EDIT")
+    children = {n: [c for c, (p, _) in joints.items() if p == n] for n in joints}
+
+    def to_blender(p):  # Y-up, facing +Z  ->  Z-up, facing -Y
+        return (p[0], -p[2], p[1])
+
+    for n, (parent, pos) in joints.items():
+        eb = arm.edit_bones.new(n)
+        eb.head = to_blender(pos)
+        kids = children[n]
+        if kids:
+            tail = np.mean([joints[c][1] for c in kids], axis=0)
+        else:
+            tail = np.array(pos) + (np.array(pos) - np.array(joints[parent][1])) * 0.5 if parent else np.array(pos) + (0, 0.1, 0)
+        if np.linalg.norm(np.array(tail) - pos) < 1e-3:
+            tail = np.array(pos) + (0, 0.05, 0)
+        eb.tail = to_blender(tail)
+        eb.roll = float(rng.uniform(-np.pi, np.pi)) if roll_seed else 0.0
+    for n, (parent, _) in joints.items():
+        if parent:
+            arm.edit_bones[n].parent = arm.edit_bones[parent]
+    bpy.ops.object.mode_set(mode="OBJECT")
+    return ob
+
+
+@pytest.fixture(scope="session")
+def rigify_blend(tmp_path_factory) -> Path:
+    """A .blend with a Rigify rig generated from the human metarig (made once per session,
+    also when several test modules import this fixture)."""
+    path = tmp_path_factory.getbasetemp() / "rigify_human.blend"
+    return path if path.is_file() else generate_rigify_blend(path)
+
+
+def generate_rigify_blend(path: Path) -> Path:
+    """A Rigify rig generated from the human metarig, saved to `path`."""
+    import addon_utils
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    addon_utils.enable("rigify", default_set=True)
+    bpy.ops.object.armature_human_metarig_add()
+    bpy.ops.pose.rigify_generate()
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    return path
+
+
+def armature_pose_matrices(ob, bones: list[str]) -> np.ndarray:
+    """(len(bones), 3, 3) armature-space pose orientations, scale removed."""
+    out = []
+    for b in bones:
+        m = np.array(ob.pose.bones[b].matrix.to_3x3())
+        out.append(m / np.linalg.norm(m, axis=0, keepdims=True))
+    return np.array(out)
+
+
+def smplx_mocap_motion(frames: int = 120) -> Motion:
+    """The same real take in the SMPL-X layout (BEAT2 npz, 30 fps), joints as the
+    `smplx` layout orders them, jaw included; no expression weights."""
+    from diffsheg_core.rigs import SMPLX
+
+    with np.load(BEAT2_NPZ) as z:
+        poses = z["poses"][:frames].reshape(frames, 55, 3)
+        fps = float(z["mocap_frame_rate"])
+    index = [SMPLX_JOINTS.index(n) for n in SMPLX.joint_names]
+    return Motion(fps=fps, rig="smplx", joint_names=list(SMPLX.joint_names), rotations=poses[:, index],
+                  face_names=[], face=np.zeros((frames, 0)))
+
+
+def world_direction(ob, bone: str) -> np.ndarray:
+    """World-space unit direction (head to tail) of a posed bone."""
+    pb = ob.pose.bones[bone]
+    v = np.array(ob.matrix_world @ pb.tail) - np.array(ob.matrix_world @ pb.head)
+    return v / np.linalg.norm(v)
+
+
+def scene_state(scene) -> dict:
+    """What generation may change: Actions, assignments, NLA tracks, strips, frame range."""
+    from blender_addon.sound import sound_strips
+
+    def anim(id_data):
+        ad = id_data.animation_data if id_data is not None else None
+        if ad is None:
+            return None
+        return (ad.action.name if ad.action else None, [t.name for t in ad.nla_tracks])
+
+    return {
+        "actions": sorted(bpy.data.actions.keys()),
+        "objects": {ob.name: (anim(ob), anim(getattr(ob.data, "shape_keys", None)))
+                    for ob in scene.objects},
+        "strips": [s.name for s in sound_strips(scene)],
+        "range": (scene.frame_start, scene.frame_end),
+    }

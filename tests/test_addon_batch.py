@@ -1,0 +1,85 @@
+"""batch_render.py end to end, as a user runs it: a folder of two real speech clips,
+keyed into a saved scene without rendering, then with a tiny Workbench render."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from addon_fixtures import (REPO, SPEECH, SPEECH_2, append_face, bpy, cut_speech,
+                            import_beat_armature, reset_scene)
+
+from blender_addon.keying import fcurves_of
+from blender_addon.sound import sound_strips
+
+
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("talks")
+    cut_speech(folder, seconds=2.0, source=SPEECH, name="scott.wav")
+    cut_speech(folder, seconds=1.5, source=SPEECH_2, name="zhao.wav")
+    return folder
+
+
+@pytest.fixture(scope="module")
+def scene_blend(tmp_path_factory):
+    scene = reset_scene(fps=12)
+    import_beat_armature()
+    append_face()
+    scene.render.engine = "BLENDER_WORKBENCH"
+    scene.render.resolution_x, scene.render.resolution_y = 48, 32
+    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(camera)
+    camera.location, camera.rotation_euler = (0.0, -4.0, 1.2), (1.57, 0.0, 0.0)
+    scene.camera = camera
+    path = tmp_path_factory.mktemp("scene") / "scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    return path
+
+
+def _batch(*args, cwd):
+    return subprocess.run([sys.executable, str(REPO / "batch_render.py"), *args], cwd=cwd,
+                          capture_output=True, text=True, timeout=600)
+
+
+def test_folder_without_render_saves_keyed_scenes(clips, scene_blend, tmp_path):
+    proc = _batch("--blend", str(scene_blend), "--audio", str(clips), "--preset", "beat",
+                  "--steps", "5", "--device", "cpu", "--no-render", "--save", str(tmp_path / "saved"),
+                  cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "[1/2] scott.wav: generating" in proc.stdout and "[2/2] zhao.wav" in proc.stdout
+    for stem, seconds in (("scott", 2.0), ("zhao", 1.5)):
+        bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "saved" / f"{stem}.blend"))
+        scene = bpy.context.scene
+        ob = scene.objects["2_scott_0_1_1"]
+        assert ob.animation_data.action.name == stem
+        curves = fcurves_of(ob)
+        assert len(curves) == 3 * 47  # the BVH importer makes Euler bones
+        assert curves[0].keyframe_points[-1].co[0] == round(seconds * 12)
+        assert len(fcurves_of(scene.objects["Neutral"].data.shape_keys)) == 51
+        assert [s.name for s in sound_strips(scene)] == [stem]  # each file from the same start scene
+    assert not list(tmp_path.glob("*.mp4"))
+
+
+def test_folder_with_tiny_workbench_render_writes_videos_with_audio(clips, scene_blend, tmp_path):
+    out = tmp_path / "renders"
+    proc = _batch("--blend", str(scene_blend), "--audio", str(clips), "--steps", "5",
+                  "--device", "cpu", "--output", str(out), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    for stem in ("scott", "zhao"):
+        video = out / f"{stem}.mp4"
+        assert video.is_file() and video.stat().st_size > 1000
+        if shutil.which("ffprobe"):
+            streams = subprocess.run(["ffprobe", "-v", "error", "-show_entries", "stream=codec_type",
+                                      "-of", "csv=p=0", str(video)], capture_output=True, text=True).stdout
+            assert sorted(streams.split()) == ["audio", "video"]
+
+
+def test_failure_is_one_line_and_a_nonzero_exit(scene_blend, tmp_path):
+    proc = _batch("--blend", str(scene_blend), "--audio", str(tmp_path / "missing.wav"), cwd=tmp_path)
+    assert proc.returncode == 1
+    assert proc.stderr.strip().splitlines()[-1].startswith("batch_render: error: ")
+    assert "missing.wav" in proc.stderr and "Traceback" not in proc.stderr
