@@ -1,0 +1,92 @@
+"""Speech synthesis with timed phones: the voices the corpus draws from and one entry
+point, `synthesize`, over the espeak-ng and festival back ends."""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import DiffshegError
+from .phones import Phone
+
+ESPEAK_ACCENTS = (
+    "en-us", "en-us", "en-us", "en", "en-gb-x-rp", "en-gb-scotland", "en-029", "en-us-nyc",
+    "en-gb-x-gbclan", "en-gb-x-gbcwmd",
+)
+"""espeak-ng English voices by the names its library accepts ("en" is British English; en-us
+weighted up: the product's users speak mostly US English)."""
+
+ESPEAK_VARIANTS = (
+    "", "m1", "m2", "m3", "m4", "m5", "m6", "m7", "m8", "f1", "f2", "f3", "f4", "f5",
+    "klatt", "klatt2", "klatt3", "klatt4", "Alex", "Alicia", "Andy", "Annie", "aunty", "belinda",
+    "benjamin", "caleb", "david", "ed", "edward", "Gene", "john", "linda", "max", "Michael",
+    "paul", "quincy", "rob", "robert", "steph", "travis", "victor", "zac", "norbert", "shelby",
+    "grandpa", "grandma", "Lee", "Mike", "adam", "Andrea",
+)
+"""Human-sounding voice variants (whisper, robot and effect variants left out)."""
+
+FESTIVAL_VOICES = ("kal_diphone", "ked_diphone", "cmu_us_slt_arctic_hts")
+"""US English festival voices from Debian (festvox-kallpc16k, festvox-kdlpc16k, festvox-us-slt-hts)."""
+
+
+@dataclass(frozen=True)
+class VoiceSpec:
+    """A voice and its speaking style. `rate` (words per minute), `pitch` and
+    `pitch_range` (0-100) and `word_gap` (10 ms units) are espeak-ng parameters;
+    festival voices use `stretch` (duration factor) instead."""
+
+    engine: str
+    name: str
+    rate: int = 175
+    pitch: int = 50
+    pitch_range: int = 50
+    word_gap: int = 0
+    stretch: float = 1.0
+
+
+@dataclass
+class Synthesis:
+    """Synthesised speech: float32 mono samples and the phones timed on them."""
+
+    samples: np.ndarray
+    sample_rate: int
+    phones: list[Phone]
+    voice: VoiceSpec
+
+    @property
+    def duration(self) -> float:
+        return len(self.samples) / self.sample_rate
+
+
+def festival_available() -> bool:
+    return shutil.which("festival") is not None
+
+
+def random_voice(rng: np.random.Generator, engines: tuple[str, ...] = ("espeak", "festival")) -> VoiceSpec:
+    """Draw a voice and speaking style. Festival, whose voices sound more natural (the HTS
+    voice most), is drawn a third of the time when allowed, HTS for half of those."""
+    if "festival" in engines and ("espeak" not in engines or rng.random() < 1 / 3):
+        return VoiceSpec("festival", str(rng.choice(FESTIVAL_VOICES, p=[0.25, 0.25, 0.5])),
+                         stretch=float(rng.uniform(0.85, 1.25)))
+    accent = str(rng.choice(ESPEAK_ACCENTS))
+    variant = str(rng.choice(ESPEAK_VARIANTS))
+    return VoiceSpec(
+        "espeak", f"{accent}+{variant}" if variant else accent,
+        rate=int(rng.integers(130, 215)), pitch=int(rng.integers(25, 80)),
+        pitch_range=int(rng.integers(30, 95)), word_gap=int(rng.choice([0, 0, 0, 1, 2])),
+    )
+
+
+def synthesize(text: str, voice: VoiceSpec) -> Synthesis:
+    """Speak `text`; the phones are timed exactly as the synthesiser placed them."""
+    if not text.strip():
+        raise DiffshegError("cannot synthesise empty text")
+    if voice.engine == "espeak":
+        from .espeak import synthesize as speak
+    elif voice.engine == "festival":
+        from .festival import synthesize as speak
+    else:
+        raise DiffshegError(f"unknown speech engine {voice.engine!r}: use 'espeak' or 'festival'")
+    return speak(text, voice)

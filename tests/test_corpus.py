@@ -1,0 +1,239 @@
+"""The corpus builder and its teacher, on real synthesis of two short sentences, and the
+teacher on the real take 2_scott_0_1_1 (its audio and forced-aligned phones)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import soundfile as sf
+
+from diffsheg_core.audio import Audio, load_audio, n_motion_frames
+from diffsheg_core.bvh import bvh_to_motion, read_bvh
+from diffsheg_core.corpus.__main__ import main
+from diffsheg_core.corpus.augment import SAMPLE_RATE, AugmentSpec, augment
+from diffsheg_core.corpus.build import BuildConfig, build, make_utterance, read_manifest, utterance_specs
+from diffsheg_core.corpus.phones import SILENCE, check_phones, phones_from_textgrid
+from diffsheg_core.corpus.synthesis import VoiceSpec, festival_available, synthesize
+from diffsheg_core.corpus.teacher import load_utterance, teach
+from diffsheg_core.corpus.texts import fortune_files, load_texts, split_utterances
+from diffsheg_core.errors import DiffshegError
+from diffsheg_core.motion import Motion
+from diffsheg_core.metrics.blinks import detect_blinks
+from diffsheg_core.metrics.lipsync import envelope_correlation, phoneme_contrast
+from diffsheg_core.metrics.textgrid import phone_tier, read_textgrid
+from diffsheg_core.rigs import ARKIT51, BEAT_JOINTS
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+SENTENCES = (
+    "Peter and Bob bought a map of the big park.",
+    "My father always opens the window before breakfast.",
+)
+OPEN_VOWELS = {"AA", "AE", "AH", "AO", "AW", "AY"}
+BILABIALS = {"P", "B", "M"}
+
+
+def _col(name: str) -> int:
+    return ARKIT51.index(name)
+
+
+def _at_phones(motion, phones, labels: set[str]) -> np.ndarray:
+    """Face rows at the middle frame of every phone in `labels`."""
+    rows = [min(int(round(p.middle * motion.fps)), motion.n_frames - 1) for p in phones if p.label in labels]
+    assert rows, f"no phones {labels}"
+    return motion.face[rows]
+
+
+def _rms(samples: np.ndarray, sr: int, start: float, end: float) -> float:
+    seg = samples[int(start * sr): int(end * sr)]
+    return float(np.sqrt(np.mean(seg.astype(np.float64) ** 2)))
+
+
+def _check_timings_fit_speech(synth) -> None:
+    phones = synth.phones
+    check_phones(phones)
+    assert phones[-1].end == pytest.approx(synth.duration, abs=0.02)
+    assert {p.label for p in phones} >= BILABIALS
+    vowels = [_rms(synth.samples, synth.sample_rate, p.start, p.end) for p in phones if p.is_vowel]
+    pauses = [_rms(synth.samples, synth.sample_rate, p.start + 0.02, p.end - 0.02)
+              for p in phones[1:-1] if p.label == SILENCE and p.end - p.start > 0.06]
+    assert pauses, "the two sentences should be separated by a pause"
+    # exact timings: the synthesiser's pauses are (nearly) silent in its audio, and so is
+    # the first part (the closure) of every p and b
+    assert np.mean(pauses) < 0.05 * np.mean(vowels)
+    closures = [_rms(synth.samples, synth.sample_rate, p.start, p.start + 0.4 * (p.end - p.start))
+                for p in phones if p.label in ("P", "B")]
+    assert np.mean(closures) < 0.2 * np.mean(vowels)
+    assert any(p.stress == 1 for p in phones if p.is_vowel)
+
+
+def test_espeak_gives_exact_phone_timings_and_stress():
+    synth = synthesize(" ".join(SENTENCES), VoiceSpec("espeak", "en-us+m3", rate=170))
+    _check_timings_fit_speech(synth)
+
+
+@pytest.mark.skipif(not festival_available(), reason="festival is not installed")
+def test_festival_gives_exact_phone_timings_and_stress():
+    synth = synthesize(" ".join(SENTENCES), VoiceSpec("festival", "kal_diphone"))
+    _check_timings_fit_speech(synth)
+
+
+def test_augmentation_retimes_phones():
+    synth = synthesize(SENTENCES[0], VoiceSpec("espeak", "en-us"))
+    spec = AugmentSpec(pad=(0.3, 0.2), pitch_cents=200.0, tempo=1.1, reverb=(40.0, 60.0, -4.0),
+                       snr_db=20.0, noise="pink", level_db=-25.0)
+    y, phones = augment(synth.samples, synth.sample_rate, synth.phones, spec, np.random.default_rng(0))
+    assert len(y) / SAMPLE_RATE == pytest.approx((synth.duration + 0.5) / 1.1, rel=0.01)
+    check_phones(phones)
+    assert phones[0].label == SILENCE and phones[-1].end == pytest.approx(len(y) / SAMPLE_RATE)
+    before = [p for p in synth.phones if p.label != SILENCE]
+    after = [p for p in phones if p.label != SILENCE]
+    assert [p.label for p in after] == [p.label for p in before]
+    assert [p.start for p in after] == pytest.approx([(p.start + 0.3) / 1.1 for p in before])
+    assert np.isfinite(y).all() and np.abs(y).max() < 1.0
+
+
+def test_texts_are_cut_into_utterances(tmp_path):
+    text = tmp_path / "source.txt"
+    text.write_text("\n%\n".join(SENTENCES + ("Too short.", "|||| ---- //// ====")))
+    assert load_texts([text]) == list(SENTENCES)
+    long = " ".join(["word"] * 100) + "."
+    pieces = split_utterances(long)
+    assert all(6 <= len(p.split()) <= 40 for p in pieces) and sum(len(p.split()) for p in pieces) == 100
+    with pytest.raises(DiffshegError, match="apt-get install fortunes"):
+        fortune_files(tmp_path / "none")
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory):
+    out = tmp_path_factory.mktemp("corpus")
+    text = out / "two.txt"
+    text.write_text("\n\n".join(SENTENCES))
+    config = BuildConfig(out=out / "c", hours=12 / 3600, jobs=1, seed=3, engines=("espeak",),
+                         text_files=(text,))
+    return config, build(config, progress=False)
+
+
+def test_build_writes_utterances_and_manifest(corpus):
+    config, summary = corpus
+    out = config.out
+    records = read_manifest(out)
+    assert summary["utterances"] == len(records) >= 2 and summary["failed"] == 0
+    assert summary["hours"] * 3600 >= 12 and summary["size_bytes"] > 0
+    assert json.loads((out / "corpus.json").read_text())["utterances"] == summary["utterances"]
+    assert {r["text"] for r in records.values()} <= set(SENTENCES)
+    for rec in records.values():
+        samples, sr = sf.read(out / rec["wav"], dtype="float32")
+        assert sr == 16000 and samples.ndim == 1
+        motion, phones, info = load_utterance(out / rec["npz"])
+        assert motion.n_frames == n_motion_frames(Audio(samples, sr), 15.0) == rec["frames"]
+        assert motion.fps == 15.0 and motion.rotations.shape[1:] == (len(BEAT_JOINTS), 3)
+        assert motion.face.shape[1] == 51 and info["text"] == rec["text"]
+        check_phones(phones)
+        assert phones[-1].end == pytest.approx(len(samples) / sr, abs=1e-3)
+        assert np.isfinite(motion.rotations).all() and np.isfinite(motion.face).all()
+        assert motion.face.min() >= 0.0 and motion.face.max() <= 1.0
+
+
+def test_build_resumes_and_extends(corpus):
+    config, summary = corpus
+    before = (config.out / "manifest.jsonl").read_text()
+    again = build(config, progress=False)
+    assert (config.out / "manifest.jsonl").read_text() == before
+    assert again["utterances"] == summary["utterances"] and again["speech_seconds_this_run"] == 0
+    more = build(BuildConfig(**{**config.__dict__, "hours": summary["hours"] + 4 / 3600}),
+                 progress=False)
+    assert more["utterances"] > summary["utterances"]
+
+
+def test_utterances_are_reproducible_whatever_was_made_before(tmp_path):
+    specs = list(itertools.islice(utterance_specs(list(SENTENCES), 5, ("espeak",)), 2))
+    for folder, order in (("a", specs), ("b", specs[::-1])):
+        for spec in order:
+            make_utterance(spec, tmp_path / folder)
+    for spec in specs:
+        for ext in ("wav", "npz"):
+            name = f"{spec.folder}/{spec.name}.{ext}"
+            assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
+
+
+def test_teacher_mouth_closes_on_bilabials_and_opens_on_vowels(corpus):
+    config, _ = corpus
+    for rec in read_manifest(config.out).values():
+        motion, phones, _ = load_utterance(config.out / rec["npz"])
+        bil, vow = _at_phones(motion, phones, BILABIALS), _at_phones(motion, phones, OPEN_VOWELS)
+        assert bil[:, _col("jawOpen")].max() < 0.1
+        assert vow[:, _col("jawOpen")].mean() > max(0.15, 3 * bil[:, _col("jawOpen")].mean())
+        for name in ("mouthClose", "mouthPressLeft", "mouthPressRight"):
+            assert bil[:, _col(name)].min() > 0.3 > vow[:, _col(name)].mean()
+        pauses = [p for p in phones if p.label == SILENCE and p.end - p.start > 0.25]
+        rest = motion.face[[min(round(p.middle * motion.fps), motion.n_frames - 1) for p in pauses]]
+        assert (rest[:, _col("mouthPressLeft")] < 0.1).all()  # relaxed, not pressed shut
+        assert (rest[:, _col("jawOpen")] < 0.1).all()
+
+
+def test_teacher_gestures_move_during_speech_without_jitter(corpus):
+    config, _ = corpus
+    real = bvh_to_motion(read_bvh(DATA / "beat" / "2_scott_0_1_1.bvh", fps=15)).rotations
+    real_jerk = np.abs(np.diff(real.reshape(len(real), -1), n=3, axis=0)).mean()
+    arms = [BEAT_JOINTS.index(n) for n in ("RightArm", "RightForeArm", "LeftArm", "LeftForeArm")]
+    for rec in read_manifest(config.out).values():
+        motion, _, _ = load_utterance(config.out / rec["npz"])
+        step = np.linalg.norm(np.diff(motion.rotations[:, arms], axis=0), axis=2).sum(axis=1)
+        assert (step > 1e-4).all(), "the arms must never freeze"
+        assert step.mean() * motion.fps > 0.2
+        jerk = np.abs(np.diff(motion.rotations.reshape(motion.n_frames, -1), n=3, axis=0)).mean()
+        assert jerk < 1.5 * real_jerk
+
+
+@pytest.fixture(scope="module")
+def real_take_teacher():
+    audio = load_audio(DATA / "beat2" / "2_scott_0_1_1.wav")
+    phones = phones_from_textgrid(DATA / "beat2" / "2_scott_0_1_1.TextGrid")
+    return audio, phones, teach(audio, phones, seed=0)
+
+
+def test_teacher_on_real_speech_blinks_and_lip_syncs(real_take_teacher):
+    """The evaluation's own measures on the teacher for the real take (issue 3's bars)."""
+    audio, _, motion = real_take_teacher
+    assert motion.n_frames == n_motion_frames(audio, 15.0)
+    blinks = detect_blinks(motion.face[:, _col("eyeBlinkLeft")], motion.fps)
+    assert 10 <= len(blinks) / (motion.n_frames / motion.fps) * 60 <= 30
+    assert all(0.1 <= end - start <= 0.4 for start, end in blinks)
+    intervals = phone_tier(read_textgrid(DATA / "beat2" / "2_scott_0_1_1.TextGrid"))
+    jaw = motion.face[:, _col("jawOpen")]
+    assert phoneme_contrast(jaw, motion.fps, intervals)["ratio"] >= 2
+    for name in ("mouthClose", "mouthPressLeft"):
+        contrast = phoneme_contrast(motion.face[:, _col(name)], motion.fps, intervals)
+        assert contrast["bilabial"] > contrast["open"]
+    assert envelope_correlation(jaw, motion.fps, audio.samples, audio.sample_rate)[0] >= 0.2
+
+
+def test_teacher_brows_and_gesture_strokes_follow_accents(real_take_teacher):
+    _, _, motion = real_take_teacher
+    accents, strokes = np.array(motion.meta["accents"]), np.array(motion.meta["strokes"])
+    assert len(accents) > 20 and len(strokes) > 10
+    frames = np.clip(np.round((accents + 0.1) * motion.fps).astype(int), 0, motion.n_frames - 1)
+    brow = motion.face[:, _col("browInnerUp")]
+    assert brow[frames].mean() > 1.2 * brow.mean()
+    arms = [BEAT_JOINTS.index(n) for n in ("RightArm", "RightForeArm", "LeftArm", "LeftForeArm")]
+    speed = np.linalg.norm(np.diff(motion.rotations[:, arms], axis=0), axis=2).sum(axis=1)
+    at_strokes = speed[np.clip(np.round(strokes * motion.fps).astype(int), 0, len(speed) - 1)]
+    assert at_strokes.mean() > 1.5 * speed.mean()
+
+
+def test_cli_teaches_a_recording_with_its_textgrid(tmp_path):
+    out = tmp_path / "teacher.npz"
+    assert main(["teach", "--audio", str(DATA / "beat2" / "2_scott_0_1_1.wav"),
+                 "--textgrid", str(DATA / "beat2" / "2_scott_0_1_1.TextGrid"), "--out", str(out)]) == 0
+    motion = Motion.load_npz(out)
+    assert motion.rig == "beat" and motion.face_names == list(ARKIT51)
+    assert motion.meta["model"].startswith("teacher")
+
+
+def test_cli_rejects_bad_arguments(tmp_path, capsys):
+    assert main(["build", "--out", str(tmp_path / "c"), "--hours", "0"]) == 2
+    assert "--hours must be positive" in capsys.readouterr().err
