@@ -225,13 +225,18 @@ def config_from_state(state: dict[str, torch.Tensor], dataset: Optional[str], pa
     return ModelConfig(**cfg, clip_len=setup.clip_len, layout=setup.layout)
 
 
-def official_stats(dataset: str, stats_dir: Optional[str | Path]) -> tuple[np.ndarray, np.ndarray]:
-    """Normalisation statistics the official model was trained with."""
+def official_stats(dataset: str, stats_dir: Optional[str | Path],
+                   beside: Optional[Path] = None) -> tuple[np.ndarray, np.ndarray]:
+    """Normalisation statistics the official model was trained with, from `stats_dir`,
+    else $DIFFSHEG_OFFICIAL_STATS, else the folder `beside` (the checkpoint's own)."""
     setup = OFFICIAL[dataset]
-    folder = stats_dir or os.environ.get(STATS_ENV)
     help_text = (f"official {dataset.upper()} checkpoints need the official normalisation statistics "
                  f"({', '.join(setup.stats_files)}), found in the DiffSHEG repository's "
-                 f"assets/data.tar.gz: pass their folder with --stats DIR (or set {STATS_ENV})")
+                 f"assets/data.tar.gz: put them beside the checkpoint, or pass their folder with "
+                 f"--stats DIR (or set {STATS_ENV})")
+    folder = stats_dir or os.environ.get(STATS_ENV)
+    if not folder and beside is not None and all((beside / f).is_file() for f in setup.stats_files):
+        folder = beside
     if not folder:
         raise CheckpointError(help_text)
     folder = Path(folder)
@@ -261,7 +266,7 @@ def _load_official(path: Path, dataset: Optional[str], stats_dir, device: torch.
     load_state_strict(model, state, str(path),
                       hint=f"the checkpoint is not the official {name.upper()} model: try --config "
                            f"{'show' if name == 'beat' else 'beat'}, or the file is truncated")
-    mean, std = official_stats(name, stats_dir)
+    mean, std = official_stats(name, stats_dir, beside=path.parent)
     setup = OFFICIAL[name]
     return ModelBundle(model=model.to(device).eval(), mean=mean, std=std, sampling=setup.sampling,
                        guidance=setup.guidance if cfg.classifier_free else None,

@@ -68,6 +68,16 @@ def test_official_checkpoint_without_stats_explains(golden_dir, tmp_path, monkey
         load_model(golden_official_file(golden_dir, tmp_path))
 
 
+def test_official_stats_are_found_beside_the_checkpoint(golden_dir, data_dir, tmp_path, monkeypatch):
+    import shutil
+
+    monkeypatch.delenv("DIFFSHEG_OFFICIAL_STATS", raising=False)
+    path = golden_official_file(golden_dir, tmp_path)
+    for name in ("axis_angle_mean.npy", "axis_angle_std.npy", "facial51_mean.npy", "facial51_std.npy"):
+        shutil.copy(data_dir / "beat" / name, tmp_path / name)
+    assert load_model(path).std.shape == (192,)
+
+
 def test_corrupted_official_checkpoint_names_each_key(golden_dir, data_dir, tmp_path):
     state = {k: v for k, v in load_file(str(golden_dir / "beat_small.safetensors")).items()}
     state.pop("encoder_ges.temporal_decoder_blocks.1.ffn.linear2.bias")
