@@ -279,12 +279,4 @@ class DIFFSHEG_OT_face_remove(bpy.types.Operator):
 
 CLASSES = (DIFFSHEG_OT_generate, DIFFSHEG_OT_new_seed, DIFFSHEG_OT_face_add, DIFFSHEG_OT_face_remove)
 
-
-def register() -> None:
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
-
-
-def unregister() -> None:
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)

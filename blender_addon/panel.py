@@ -87,12 +87,4 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
 
 CLASSES = (DIFFSHEG_UL_face_meshes, DIFFSHEG_PT_generate)
 
-
-def register() -> None:
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
-
-
-def unregister() -> None:
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)

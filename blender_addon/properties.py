@@ -82,16 +82,15 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
         return {"AUTO": "auto", "CPU": "cpu", "GPU": "cuda"}[self.device]
 
 
-CLASSES = (DIFFSHEG_PG_face_mesh, DIFFSHEG_PG_settings)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(
+    (DIFFSHEG_PG_face_mesh, DIFFSHEG_PG_settings))
 
 
 def register() -> None:
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
+    _register_classes()
     bpy.types.Scene.diffsheg = PointerProperty(type=DIFFSHEG_PG_settings)
 
 
 def unregister() -> None:
     del bpy.types.Scene.diffsheg
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+    _unregister_classes()
