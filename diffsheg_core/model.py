@@ -198,7 +198,7 @@ class Branch(nn.Module):
 
     def forward(self, x: torch.Tensor, timesteps: torch.Tensor, audio: torch.Tensor,
                 hubert: torch.Tensor | None, extra: torch.Tensor | None, style: torch.Tensor,
-                guidance: float | None) -> torch.Tensor:
+                guidance: float | None, null_rows: int = 0) -> torch.Tensor:
         parts = [self.audio_proj(audio)]
         if hubert is not None:
             parts.append(self.hubert_encoder(hubert.transpose(1, 2)).transpose(1, 2))
@@ -208,7 +208,6 @@ class Branch(nn.Module):
         emb = self.time_embed(timestep_embedding(timesteps, self.latent)) + self.pid_embed(style)
         h = self.PE(self.joint_embed(x))
 
-        null_rows = 0
         if guidance is not None:
             # Unconditioned and conditioned passes in one batch: [null | cond].
             null_rows = x.shape[0]
@@ -239,20 +238,24 @@ class UniEG(nn.Module):
     def forward(self, x_t: torch.Tensor, timesteps: torch.Tensor, mel: torch.Tensor,
                 hubert: torch.Tensor | None, style: torch.Tensor,
                 x0_coefs: tuple[torch.Tensor, torch.Tensor],
-                guidance: float | None = None) -> torch.Tensor:
+                guidance: float | None = None, null_rows: int = 0) -> torch.Tensor:
         """Predict the noise in x_t.
 
         timesteps: (B,) in the 1000-step indexing. x0_coefs: sqrt(1/abar_t) and
         sqrt(1/abar_t - 1), each (B, 1, 1), used to turn the expression noise into the
         expression x0 that conditions the gesture branch. guidance: classifier-free
         scale (only for models trained with a null condition; None = unguided).
+        null_rows: in training, the first `null_rows` batch rows see the learned null
+        condition instead of their speech (classifier-free dropout).
         """
         cfg = self.cfg
         if (hubert is not None) != cfg.use_hubert:
             raise ValueError(
                 "this model was built %s HuBERT features" % ("with" if cfg.use_hubert else "without"))
-        if guidance is not None and not cfg.classifier_free:
+        if (guidance is not None or null_rows) and not cfg.classifier_free:
             raise ValueError("classifier-free guidance needs a model trained with a null condition")
+        if guidance is not None and null_rows:
+            raise ValueError("null_rows is for training; guidance builds its own null rows")
         emb = self.time_embed(timestep_embedding(timesteps, cfg.latent))
         # The official fusion residual also runs on the audio layer, which has no
         # fusion MLP: its input is added to itself before attention.
@@ -260,8 +263,8 @@ class UniEG(nn.Module):
         audio = torch.cat([mel, mel_feat], dim=-1)
 
         gesture, expression = x_t.split([cfg.gesture_dim, cfg.expression_dim], dim=-1)
-        eps_exp = self.encoder_exp(expression, timesteps, audio, hubert, None, style, guidance)
+        eps_exp = self.encoder_exp(expression, timesteps, audio, hubert, None, style, guidance, null_rows)
         sqrt_recip, sqrt_recipm1 = x0_coefs
         exp_x0 = sqrt_recip * expression - sqrt_recipm1 * eps_exp.detach()
-        eps_ges = self.encoder_ges(gesture, timesteps, audio, hubert, exp_x0, style, guidance)
+        eps_ges = self.encoder_ges(gesture, timesteps, audio, hubert, exp_x0, style, guidance, null_rows)
         return torch.cat([eps_ges, eps_exp], dim=-1)
