@@ -104,18 +104,21 @@ def _delegate(module: str, argv: Sequence[str]) -> int:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in ("train", "evaluate"):
+    delegated = {"train": "train", "evaluate": "evaluate", "train-autoencoder": "autoencoder"}
+    if argv and argv[0] in delegated:
         try:
-            return _delegate(argv[0], argv[1:])
+            return _delegate(delegated[argv[0]], argv[1:])
         except DiffshegError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
     parser = argparse.ArgumentParser(prog="python -m diffsheg_core",
                                      description="Speech-driven gesture and expression generation (DiffSHEG).")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{generate,train,evaluate}")
+    sub = parser.add_subparsers(dest="command", required=True,
+                                metavar="{generate,train,evaluate,train-autoencoder}")
     _generate_parser(sub)
     sub.add_parser("train", help="train a model (see: train --help)")
     sub.add_parser("evaluate", help="evaluate motion against references (see: evaluate --help)")
+    sub.add_parser("train-autoencoder", help="train the motion autoencoder for Fréchet distances")
     args = parser.parse_args(argv)
     try:
         return run_generate(args)

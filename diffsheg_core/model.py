@@ -36,6 +36,7 @@ class ModelConfig:
     pe_period: int = 600          # sinusoidal PE, restarting in every window
     pe_length: int = 1200
     classifier_free: bool = False  # learned null condition for guidance
+    log_mel: bool = False         # feed log10(mel + 1e-5) instead of the raw power mel (official: raw)
     clip_len: int = 34            # frames per diffusion window (n_poses)
     fps: float = 15.0
     layout: str = "beat"
@@ -256,6 +257,8 @@ class UniEG(nn.Module):
             raise ValueError("classifier-free guidance needs a model trained with a null condition")
         if guidance is not None and null_rows:
             raise ValueError("null_rows is for training; guidance builds its own null rows")
+        if cfg.log_mel:
+            mel = torch.log10(mel + 1e-5)
         emb = self.time_embed(timestep_embedding(timesteps, cfg.latent))
         # The official fusion residual also runs on the audio layer, which has no
         # fusion MLP: its input is added to itself before attention.

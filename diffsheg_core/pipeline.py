@@ -135,6 +135,7 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
         "model_id": bundle.model_id, "trained": bundle.trained, "seed": int(seed),
         "audio_file": speech.path, "sample_rate": speech.sample_rate, "style": int(style),
         "guidance": scale, "steps": config.steps, "overlap": config.overlap,
+        "clip_len": bundle.config.clip_len,
         "device": str(torch_device), "software": f"diffsheg_core {__version__}",
     })
 

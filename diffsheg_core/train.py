@@ -1,0 +1,450 @@
+"""Training DiffSHEG: `python -m diffsheg_core train --config run.toml`.
+
+The objective is the paper's (section 3.4): lambda_t * MSE on the predicted noise +
+lambda_v * MSE on the velocity of the predicted x0 + lambda_delta * Huber on x0, with
+speaker-style conditioning and classifier-free dropout. AdamW, gradient clipping, EMA
+weights, autocast on GPU, torch.distributed when launched by torchrun (gloo on CPU,
+nccl on GPU).
+
+Every random draw of step s (clips, timesteps, noise, dropout) comes from a generator
+seeded with (seed, s, rank), so a run resumed from its last checkpoint after a kill
+continues exactly as it would have. The run folder holds:
+  train_state.pt      everything needed to resume (weights, EMA, optimiser, step)
+  model.safetensors   the EMA model as a generation checkpoint (config, statistics, layout)
+  log.jsonl           one line per logged step and per validation pass
+  summary.json        final step, losses and a parameter checksum per rank
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import time
+import tomllib
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from .checkpoints import ModelBundle, save_checkpoint
+from .data import ClipDataset, DataConfig, NormStats, load_takes, normalisation
+from .diffusion import Schedule
+from .errors import DiffshegError
+from .foppas import PRESETS
+from .model import ModelConfig, UniEG
+from .pipeline import resolve_device
+
+STATE_FILE = "train_state.pt"
+MODEL_FILE = "model.safetensors"
+LOG_FILE = "log.jsonl"
+SUMMARY_FILE = "summary.json"
+
+
+@dataclass
+class TrainConfig:
+    """A training run. `data` is a DataConfig; `model` overrides ModelConfig fields (the
+    layout, its sizes, the clip length and fps come from the data)."""
+
+    data: DataConfig = field(default_factory=DataConfig)
+    model: dict = field(default_factory=dict)
+    out_dir: str = "runs/diffsheg"
+    steps: int = 100_000
+    batch_size: int = 32            # over all processes together
+    lr: float = 2e-4
+    warmup_steps: int = 0
+    lr_schedule: str = "cosine"     # cosine (down to lr_min) or constant, after the warm-up
+    lr_min: float = 0.0
+    weight_decay: float = 0.0
+    grad_clip: float = 1.0
+    ema_decay: float = 0.999
+    lambda_t: float = 10.0          # noise prediction
+    lambda_v: float = 1.0           # velocity of x0
+    lambda_delta: float = 1.0       # Huber on x0
+    huber_delta: float = 1.0
+    cond_drop: float = 0.0          # classifier-free dropout probability (official SHOW: 0.2)
+    precision: str = "auto"         # auto (bf16/fp16 on GPU, fp32 on CPU), fp32, bf16, fp16
+    device: str = "auto"
+    seed: int = 0
+    log_every: int = 50
+    checkpoint_every: int = 1000
+    validate_every: int = 1000
+    val_clips: int = 256
+    sampling_preset: str = "official-beat"
+    model_id: str = "diffsheg-trained"
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "TrainConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise DiffshegError(f"unknown training settings: {', '.join(sorted(unknown))} "
+                                f"(known: {', '.join(sorted(known))})")
+        values = dict(values)
+        data = values.pop("data", {})
+        data_known = {f.name for f in fields(DataConfig)}
+        if set(data) - data_known:
+            raise DiffshegError(f"unknown data settings: {', '.join(sorted(set(data) - data_known))}")
+        return cls(data=DataConfig(**data), **values)
+
+
+def read_config_file(path: str | Path) -> dict:
+    """A JSON (.json) or TOML (any other suffix) file as a dict."""
+    path = Path(path)
+    if not path.is_file():
+        raise DiffshegError(f"{path}: no such configuration file")
+    try:
+        if path.suffix.lower() == ".json":
+            return json.loads(path.read_text(encoding="utf-8"))
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, tomllib.TOMLDecodeError) as exc:
+        raise DiffshegError(f"{path}: not valid {'JSON' if path.suffix == '.json' else 'TOML'} ({exc})") from exc
+
+
+# ---------------------------------------------------------------- processes and devices
+
+@dataclass
+class Dist:
+    rank: int = 0
+    world: int = 1
+    device: torch.device = torch.device("cpu")
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def init_distributed(device: str) -> Dist:
+    """One process, or one of WORLD_SIZE processes started by torchrun."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    torch_device = resolve_device(device)
+    if world == 1:
+        return Dist(0, 1, torch_device)
+    if torch_device.type == "cuda":
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        torch.cuda.set_device(local)
+        torch_device = torch.device("cuda", local)
+    dist.init_process_group("nccl" if torch_device.type == "cuda" else "gloo")
+    return Dist(dist.get_rank(), dist.get_world_size(), torch_device)
+
+
+def autocast_dtype(precision: str, device: torch.device) -> torch.dtype | None:
+    if precision not in ("auto", "fp32", "bf16", "fp16"):
+        raise DiffshegError(f"precision must be auto, fp32, bf16 or fp16, got '{precision}'")
+    if device.type != "cuda":
+        if precision in ("bf16", "fp16"):
+            raise DiffshegError(f"precision '{precision}' needs a CUDA GPU; use auto or fp32 on the CPU")
+        return None
+    if precision == "auto":
+        return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+    return {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}[precision]
+
+
+def learning_rate(cfg: TrainConfig, step: int) -> float:
+    """Linear warm-up, then constant or cosine decay to lr_min at the last step."""
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    if cfg.lr_schedule == "constant":
+        return cfg.lr
+    if cfg.lr_schedule != "cosine":
+        raise DiffshegError(f"lr_schedule must be cosine or constant, got '{cfg.lr_schedule}'")
+    done = (step - cfg.warmup_steps) / max(cfg.steps - cfg.warmup_steps, 1)
+    return cfg.lr_min + 0.5 * (cfg.lr - cfg.lr_min) * (1 + math.cos(math.pi * min(done, 1.0)))
+
+
+def step_generator(seed: int, step: int, rank: int) -> torch.Generator:
+    """The generator of every random draw of one step on one process."""
+    return torch.Generator().manual_seed((seed * 1_000_003 + step) * 4099 + rank)
+
+
+# ---------------------------------------------------------------- loss
+
+def masked_mean(values: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    weight = weight.expand_as(values)
+    return (values * weight).sum() / weight.sum().clamp_min(1.0)
+
+
+def diffsheg_loss(model: torch.nn.Module, schedule: Schedule, batch: dict[str, torch.Tensor],
+                  cfg: TrainConfig, gen: torch.Generator, style_dim: int, null_condition: bool
+                  ) -> dict[str, torch.Tensor]:
+    """The paper's loss terms for one batch (eq. 4, 6, 7, 8)."""
+    x0, mel, mask = batch["motion"], batch["mel"], batch["mask"].unsqueeze(1)
+    b, device = x0.shape[0], x0.device
+    index = torch.randint(len(schedule), (b,), generator=gen).to(device)
+    noise = torch.randn(x0.shape, generator=gen).to(device)
+    style = F.one_hot(batch["style"], style_dim).float()
+    drop = (torch.rand(b, generator=gen) < cfg.cond_drop).to(device)
+    style = style * (~drop).float().unsqueeze(1)
+    order = torch.argsort(~drop, stable=True)  # dropped rows first: the model nulls the first rows
+    x0, mel, mask, index, noise, style = (v[order] for v in (x0, mel, mask, index, noise, style))
+    n_null = int(drop.sum()) if null_condition else 0
+
+    x_t = schedule.q_sample(x0, index, noise)
+    extra = {"null_rows": n_null} if n_null else {}
+    eps = model(x_t, schedule.model_timesteps(index), mel, None, style,
+                schedule.x0_coefs(index, x_t), **extra).float()
+    x0_hat = schedule.predict_x0(x_t, index, eps)
+    loss_t = masked_mean((eps - noise) ** 2, mask)
+    loss_v = masked_mean((x0_hat.diff(dim=1) - x0.diff(dim=1)) ** 2, mask)
+    loss_d = masked_mean(F.huber_loss(x0_hat, x0, reduction="none", delta=cfg.huber_delta), mask)
+    total = cfg.lambda_t * loss_t + cfg.lambda_v * loss_v + cfg.lambda_delta * loss_d
+    return {"loss": total, "loss_t": loss_t, "loss_v": loss_v, "loss_delta": loss_d}
+
+
+# ---------------------------------------------------------------- the trainer
+
+def build_model_config(cfg: TrainConfig, layout_name: str) -> ModelConfig:
+    from .rigs import get_layout
+
+    layout = get_layout(layout_name)
+    values = {"use_hubert": False, **cfg.model, "gesture_dim": layout.gesture_dim,
+              "expression_dim": layout.expression_dim, "layout": layout.name,
+              "clip_len": cfg.data.clip_len, "fps": cfg.data.fps}
+    if values["use_hubert"]:
+        raise DiffshegError("training with HuBERT features is not supported yet: set "
+                            "use_hubert = false in the model settings")
+    try:
+        return ModelConfig.from_dict(values)
+    except (TypeError, ValueError) as exc:
+        raise DiffshegError(f"model settings: {exc}") from exc
+
+
+class Trainer:
+    def __init__(self, cfg: TrainConfig, env: Dist):
+        self.cfg, self.env = cfg, env
+        if cfg.batch_size % env.world:
+            raise DiffshegError(f"batch_size {cfg.batch_size} does not split evenly over {env.world} processes")
+        if cfg.sampling_preset not in PRESETS:
+            raise DiffshegError(f"unknown sampling preset '{cfg.sampling_preset}': "
+                                f"choose one of {', '.join(PRESETS)}")
+        self.out = Path(cfg.out_dir)
+        train = load_takes(cfg.data, "train")
+        val = load_takes(cfg.data, "val")
+        self.skipped = train.skipped + val.skipped
+        self.stats: NormStats = normalisation(cfg.data, train)
+        self.train_set = ClipDataset(train.takes, cfg.data.clip_len, cfg.data.stride, self.stats)
+        self.val_set = ClipDataset(val.takes, cfg.data.clip_len, cfg.data.clip_len, self.stats) \
+            if val.takes and any(t.n_frames >= cfg.data.clip_len for t in val.takes) else None
+        self.model_cfg = build_model_config(cfg, train.layout.name)
+        styles = max(t.style for t in train.takes)
+        if styles >= self.model_cfg.style_dim:
+            raise DiffshegError(f"the data has style class {styles}, but the model has only "
+                                f"{self.model_cfg.style_dim}: raise style_dim in the model settings")
+
+        torch.manual_seed(cfg.seed)
+        self.model = UniEG(self.model_cfg).to(env.device)
+        self.ema = UniEG(self.model_cfg).to(env.device).eval()
+        self.ema.load_state_dict(self.model.state_dict())
+        self.ema.requires_grad_(False)
+        self.ddp = torch.nn.parallel.DistributedDataParallel(self.model) if env.world > 1 else self.model
+        self.opt = torch.optim.AdamW(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        self.amp = autocast_dtype(cfg.precision, env.device)
+        self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp == torch.float16)
+        self.schedule = Schedule.linear()
+        self.step = 0
+
+    # -- state
+
+    def state(self) -> dict:
+        return {"step": self.step, "model": self.model.state_dict(), "ema": self.ema.state_dict(),
+                "optimizer": self.opt.state_dict(), "scaler": self.scaler.state_dict(),
+                "model_config": json.dumps(self.model_cfg.to_dict()),
+                "mean": torch.from_numpy(self.stats.mean), "std": torch.from_numpy(self.stats.std)}
+
+    def resume(self) -> bool:
+        path = self.out / STATE_FILE
+        if not path.is_file():
+            return False
+        try:
+            state = torch.load(path, map_location=self.env.device, weights_only=True)
+        except Exception as exc:  # torch raises several types for damaged files
+            raise DiffshegError(f"{path}: cannot read the training state ({exc}); delete it to start over") from exc
+        if json.loads(state["model_config"]) != self.model_cfg.to_dict():
+            raise DiffshegError(f"{path} was saved with another model configuration: use a new out_dir "
+                                "or the configuration the run was started with")
+        self.model.load_state_dict(state["model"])
+        self.ema.load_state_dict(state["ema"])
+        self.opt.load_state_dict(state["optimizer"])
+        self.scaler.load_state_dict(state["scaler"])
+        self.stats = NormStats(state["mean"].cpu().numpy(), state["std"].cpu().numpy())
+        self.step = int(state["step"])
+        return True
+
+    def save(self) -> None:
+        """Training state, then the generation checkpoint, each written atomically."""
+        self.out.mkdir(parents=True, exist_ok=True)
+        tmp = self.out / (STATE_FILE + ".partial")
+        torch.save(self.state(), tmp)
+        os.replace(tmp, self.out / STATE_FILE)
+        save_checkpoint(self.bundle(), self.out / MODEL_FILE)
+
+    def bundle(self) -> ModelBundle:
+        ema = UniEG(self.model_cfg)
+        ema.load_state_dict({k: v.cpu() for k, v in self.ema.state_dict().items()})
+        return ModelBundle(model=ema.eval(), mean=self.stats.mean, std=self.stats.std,
+                           sampling=PRESETS[self.cfg.sampling_preset], model_id=self.cfg.model_id,
+                           info={"trained_steps": self.step, "data": asdict(self.cfg.data),
+                                 "training": {k: v for k, v in asdict(self.cfg).items() if k != "data"}})
+
+    # -- steps
+
+    def batch(self, dataset: ClipDataset, indices: torch.Tensor) -> dict[str, torch.Tensor]:
+        items = [dataset[int(i)] for i in indices]
+        return {k: torch.stack([it[k] for it in items]).to(self.env.device) for k in items[0]}
+
+    def train_step(self) -> dict[str, float]:
+        cfg, env = self.cfg, self.env
+        gen = step_generator(cfg.seed, self.step, env.rank)
+        torch.manual_seed(int(torch.randint(2**62, (1,), generator=gen)))  # dropout inside the model
+        per_rank = cfg.batch_size // env.world
+        batch = self.batch(self.train_set, torch.randint(len(self.train_set), (per_rank,), generator=gen))
+        self.ddp.train()
+        with torch.autocast(env.device.type, dtype=self.amp, enabled=self.amp is not None):
+            losses = diffsheg_loss(self.ddp, self.schedule, batch, cfg, gen, self.model_cfg.style_dim,
+                                   self.model_cfg.classifier_free)
+        for group in self.opt.param_groups:
+            group["lr"] = learning_rate(cfg, self.step)
+        self.opt.zero_grad(set_to_none=True)
+        self.scaler.scale(losses["loss"]).backward()
+        self.scaler.unscale_(self.opt)
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+        self.scaler.step(self.opt)
+        self.scaler.update()
+        with torch.no_grad():
+            for e, p in zip(self.ema.parameters(), self.model.parameters()):
+                e.lerp_(p, 1.0 - cfg.ema_decay)
+            for e, b in zip(self.ema.buffers(), self.model.buffers()):
+                e.copy_(b)
+        self.step += 1
+        out = {k: float(v.detach()) for k, v in losses.items()}
+        out["grad_norm"] = float(grad_norm)
+        out["lr"] = self.opt.param_groups[0]["lr"]
+        return out
+
+    @torch.no_grad()
+    def validate(self) -> float | None:
+        """Mean loss of the EMA model on fixed validation clips, timesteps and noise."""
+        if self.val_set is None:
+            return None
+        gen = torch.Generator().manual_seed(self.cfg.seed + 12345)
+        cfg = replace(self.cfg, cond_drop=0.0)
+        n = min(len(self.val_set), self.cfg.val_clips)
+        total, count = 0.0, 0
+        for start in range(0, n, self.cfg.batch_size):
+            batch = self.batch(self.val_set, torch.arange(start, min(start + self.cfg.batch_size, n)))
+            losses = diffsheg_loss(self.ema, self.schedule, batch, cfg, gen, self.model_cfg.style_dim, False)
+            total += float(losses["loss"]) * len(batch["motion"])
+            count += len(batch["motion"])
+        return total / count
+
+    def param_checksum(self) -> float:
+        return float(sum(p.detach().double().sum() for p in self.model.parameters()))
+
+
+class RunLog:
+    """log.jsonl: on resume, lines past the resumed step are dropped so the curve continues."""
+
+    def __init__(self, path: Path, resumed_step: int, enabled: bool):
+        self.path, self.enabled = path, enabled
+        if enabled:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            kept = []
+            if resumed_step and path.is_file():
+                kept = [ln for ln in path.read_text().splitlines() if ln and json.loads(ln)["step"] <= resumed_step]
+            path.write_text("".join(ln + "\n" for ln in kept))
+
+    def write(self, record: dict) -> None:
+        if self.enabled:
+            with open(self.path, "a") as fh:
+                fh.write(json.dumps(record) + "\n")
+
+
+def train(cfg: TrainConfig) -> dict:
+    """Run (or resume) training; returns the summary that rank 0 writes to summary.json."""
+    env = init_distributed(cfg.device)
+    try:
+        return _train(cfg, env)
+    finally:
+        if env.world > 1:
+            dist.destroy_process_group()
+
+
+def _train(cfg: TrainConfig, env: Dist) -> dict:
+    trainer = Trainer(cfg, env)
+    resumed = trainer.resume()
+    log = RunLog(trainer.out / LOG_FILE, trainer.step if resumed else 0, env.main)
+    if env.main:
+        for name, reason in trainer.skipped:
+            tqdm.write(f"skipped take {name}: {reason}")
+        tqdm.write(f"{'resuming at step ' + str(trainer.step) if resumed else 'training'}: "
+                   f"{len(trainer.train_set)} clips of {cfg.data.clip_len} frames, "
+                   f"{env.world} process(es) on {env.device}")
+    if trainer.step == 0:
+        val = trainer.validate()
+        if val is not None:
+            log.write({"step": 0, "val_loss": round(val, 6)})
+    bar = tqdm(total=cfg.steps, initial=trainer.step, disable=not env.main, unit="step", dynamic_ncols=True)
+    window_start, window_steps = time.perf_counter(), 0
+    losses: dict[str, float] = {}
+    while trainer.step < cfg.steps:
+        losses = trainer.train_step()
+        if not math.isfinite(losses["loss"]):
+            raise DiffshegError(f"the loss became {losses['loss']} at step {trainer.step}: lower lr "
+                                "or grad_clip, or check the data for outliers")
+        window_steps += 1
+        bar.update(1)
+        step = trainer.step
+        if step % cfg.log_every == 0 or step == cfg.steps:
+            rate = window_steps * cfg.batch_size / (time.perf_counter() - window_start)
+            bar.set_postfix(loss=f"{losses['loss']:.4f}", clips_s=f"{rate:.0f}")
+            log.write({"step": step, **{k: round(v, 6) for k, v in losses.items()}, "clips_per_s": round(rate, 1)})
+            window_start, window_steps = time.perf_counter(), 0
+        if step % cfg.validate_every == 0 or step == cfg.steps:
+            val = trainer.validate()
+            if val is not None:
+                log.write({"step": step, "val_loss": round(val, 6)})
+                bar.set_postfix(loss=f"{losses['loss']:.4f}", val=f"{val:.4f}")
+        if (step % cfg.checkpoint_every == 0 or step == cfg.steps) and env.main:
+            trainer.save()
+    bar.close()
+    checksums = [trainer.param_checksum()]
+    if env.world > 1:
+        gathered = [None] * env.world
+        dist.all_gather_object(gathered, checksums[0])
+        checksums = gathered
+    summary = {"step": trainer.step, "final_loss": losses.get("loss"), "world_size": env.world,
+               "param_checksums": checksums, "skipped_takes": len(trainer.skipped),
+               "checkpoint": str(trainer.out / MODEL_FILE)}
+    if env.main:
+        (trainer.out / SUMMARY_FILE).write_text(json.dumps(summary, indent=1))
+        if len(set(checksums)) > 1:
+            raise DiffshegError(f"processes ended with different parameters: {checksums}")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Train a DiffSHEG model from a JSON or TOML configuration."""
+    parser = argparse.ArgumentParser(prog="python -m diffsheg_core train", description=main.__doc__)
+    parser.add_argument("--config", required=True, help="JSON or TOML file: TrainConfig fields, "
+                        "with [data] (DataConfig) and [model] (ModelConfig overrides) tables")
+    parser.add_argument("--out", help="run folder (overrides out_dir)")
+    parser.add_argument("--steps", type=int, help="total steps (overrides steps)")
+    parser.add_argument("--device", help="auto, cpu or cuda (overrides device)")
+    args = parser.parse_args(argv)
+    cfg = TrainConfig.from_dict(read_config_file(args.config))
+    for name in ("out", "steps", "device"):
+        value = getattr(args, name)
+        if value is not None:
+            setattr(cfg, "out_dir" if name == "out" else name, value)
+    summary = train(cfg)
+    if int(os.environ.get("RANK", "0")) == 0:
+        print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,173 @@
+"""The trainer on a tiny fixture cut from the real take 2_scott_0_1_1 (BEAT motion
+capture and its audio): overfitting, resume after kill -9, torchrun with two processes."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import soundfile as sf
+import torch
+
+from diffsheg_core.bvh import read_bvh, write_bvh_data
+from diffsheg_core.checkpoints import load_model
+from diffsheg_core.data.beat import read_gesture
+from diffsheg_core.errors import DiffshegError
+from diffsheg_core.metrics import layout_array
+from diffsheg_core.motion import Motion, write_livelink_csv
+from diffsheg_core.rigs import ARKIT51
+from diffsheg_core.pipeline import generate
+from diffsheg_core.train import LOG_FILE, MODEL_FILE, STATE_FILE, SUMMARY_FILE, TrainConfig, read_config_file, train
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+REPO = Path(__file__).resolve().parents[1]
+TINY = {"latent": 32, "layers": 1, "ff": 64, "heads": 4, "style_dim": 2}
+
+
+def write_take(folder: Path, name: str, start: float, seconds: float, face: bool = False) -> None:
+    """`name`.wav and `name`.bvh (15 fps) of the real take from `start`; with `face`, also
+    `name`.csv, Live Link Face weights (smooth synthetic curves: no real ARKit capture here)."""
+    y, sr = sf.read(DATA / "beat2" / "2_scott_0_1_1.wav", dtype="float32")
+    folder.mkdir(parents=True, exist_ok=True)
+    sf.write(folder / f"{name}.wav", y[int(start * sr): int((start + seconds) * sr)], sr)
+    data = read_bvh(DATA / "beat" / "2_scott_0_1_1.bvh", fps=15.0)
+    out = data.copy()
+    out.frames = data.frames[1 + int(round(start * 15)): 1 + int(round((start + seconds) * 15))]
+    write_bvh_data(out, folder / f"{name}.bvh")
+    if face:
+        n = int(round(seconds * 60))
+        t = np.arange(n)[:, None] / 60
+        k = np.arange(len(ARKIT51))[None, :]
+        weights = 0.3 + 0.2 * np.sin(2 * np.pi * (0.5 + 0.05 * k) * t + k)
+        write_livelink_csv(Motion(fps=60.0, rig="beat", joint_names=[], rotations=np.zeros((n, 0, 3)),
+                                  face_names=list(ARKIT51), face=weights), folder / f"{name}.csv")
+
+
+def config(root: Path, out: Path, **over) -> dict:
+    cfg = {"data": {"kind": "folder", "root": str(root), "clip_len": 16, "stride": 4,
+                    "val_fraction": 0.0, "cache_dir": str(root / "cache")},
+           "model": dict(TINY), "out_dir": str(out), "steps": 30, "batch_size": 4, "lr": 1e-3,
+           "log_every": 1, "checkpoint_every": 10, "validate_every": 1000}
+    cfg.update(over)
+    return cfg
+
+
+def read_log(run: Path) -> list[dict]:
+    return [json.loads(line) for line in (run / LOG_FILE).read_text().splitlines()]
+
+
+@pytest.fixture(scope="module")
+def small_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("takes")
+    write_take(root, "talk", 12.0, 3.0)
+    return root
+
+
+def _run(args: list[str], **kw) -> subprocess.Popen:
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
+    return subprocess.Popen([sys.executable, *args], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, **kw)
+
+
+def test_resume_after_kill_continues_the_same_loss_curve(small_root, tmp_path):
+    straight, killed = tmp_path / "straight", tmp_path / "killed"
+    for run in (straight, killed):
+        (tmp_path / f"{run.name}.json").write_text(json.dumps(config(small_root, run)))
+    ref = _run(["-m", "diffsheg_core", "train", "--config", str(tmp_path / "straight.json")])
+    assert ref.wait(timeout=300) == 0, ref.stdout.read()
+
+    proc = _run(["-m", "diffsheg_core", "train", "--config", str(tmp_path / "killed.json")])
+    state = killed / STATE_FILE
+    while proc.poll() is None:
+        if state.is_file() and torch.load(state, weights_only=True)["step"] >= 20:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "training ended before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    saved = torch.load(state, weights_only=True)["step"]
+    assert saved in (20, 30)
+
+    resumed = _run(["-m", "diffsheg_core", "train", "--config", str(tmp_path / "killed.json")])
+    out = resumed.communicate(timeout=300)[0]
+    assert resumed.returncode == 0, out
+    assert f"resuming at step {saved}" in out
+    a = [r["loss"] for r in read_log(straight) if "loss" in r]
+    b = [r["loss"] for r in read_log(killed) if "loss" in r]
+    assert len(a) == len(b) == 30
+    np.testing.assert_allclose(b, a, rtol=1e-5)
+    assert json.loads((killed / SUMMARY_FILE).read_text())["step"] == 30
+
+
+def test_two_processes_with_torchrun_keep_identical_parameters(small_root, tmp_path):
+    run = tmp_path / "ddp"
+    (tmp_path / "ddp.json").write_text(json.dumps(config(small_root, run, steps=6, checkpoint_every=100)))
+    proc = _run(["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                 "-m", "diffsheg_core.train", "--config", str(tmp_path / "ddp.json"), "--device", "cpu"])
+    out = proc.communicate(timeout=300)[0]
+    assert proc.returncode == 0, out
+    summary = json.loads((run / SUMMARY_FILE).read_text())
+    assert summary["world_size"] == 2 and summary["step"] == 6
+    first, second = summary["param_checksums"]
+    assert first == second
+    bundle = load_model(run / MODEL_FILE)
+    assert bundle.config.layout == "beat" and bundle.config.latent == 32
+
+
+def test_configuration_files_and_errors(small_root, tmp_path):
+    toml = tmp_path / "run.toml"
+    toml.write_text(f'steps = 5\nlr = 0.001\n[data]\nkind = "folder"\nroot = "{small_root}"\n'
+                    '[model]\nlatent = 32\n')
+    cfg = TrainConfig.from_dict(read_config_file(toml))
+    assert cfg.steps == 5 and cfg.data.kind == "folder" and cfg.model == {"latent": 32}
+    with pytest.raises(DiffshegError, match="unknown training settings: stpes"):
+        TrainConfig.from_dict({"stpes": 5})
+    with pytest.raises(DiffshegError, match="unknown data settings: rot"):
+        TrainConfig.from_dict({"data": {"rot": "x"}})
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(DiffshegError, match="not valid JSON"):
+        read_config_file(bad)
+    with pytest.raises(DiffshegError, match="style class 0, but the model has only 0"):
+        train(TrainConfig.from_dict(config(small_root, tmp_path / "x", model={**TINY, "style_dim": 0})))
+
+
+OVERFIT = {"latent": 256, "layers": 1, "ff": 256, "heads": 4, "style_dim": 1}
+
+
+def test_tiny_model_overfits_a_clip_and_reproduces_it(tmp_path):
+    root = tmp_path / "clip"
+    write_take(root, "talk", 12.0, 16 / 15, face=True)
+    write_take(root, "talk_again", 12.0, 16 / 15, face=True)  # the same clip, as validation
+    (root / "train_test_split.csv").write_text("id,type\ntalk,train\ntalk_again,val\n")
+    cfg = config(root, tmp_path / "run", model=OVERFIT, steps=200, batch_size=32, lr=2e-3, ema_decay=0.95,
+                 log_every=50, checkpoint_every=200, validate_every=200)
+    cfg["data"].update(stride=16, stats=str(DATA / "beat"))
+    torch.set_num_threads(1)
+    summary = train(TrainConfig.from_dict(cfg))
+    assert summary["step"] == 200
+    val = [r["val_loss"] for r in read_log(tmp_path / "run") if "val_loss" in r]
+    assert val[-1] < val[0] / 10
+
+    bundle = load_model(tmp_path / "run" / MODEL_FILE)
+    assert bundle.trained and bundle.layout.name == "beat"
+    g = bundle.layout.gesture_dim
+    clip = read_gesture(root / "talk.bvh", 15.0)
+    later = read_gesture(DATA / "beat" / "2_scott_0_1_1.bvh", 15.0, source_fps=15.0)[200:216]
+
+    def distance(a: np.ndarray, b: np.ndarray) -> float:
+        return float(np.abs((a - b) / bundle.std[:g]).mean())
+
+    for seed in (0, 1):
+        motion = generate(str(root / "talk.wav"), model=bundle, seed=seed, device="cpu")
+        sample = layout_array(motion, bundle.layout)[:, :g]
+        assert len(sample) == len(clip) == 16
+        # closer to the training clip than the mean pose is, and than to another moment of the take;
+        # not yet a copy of it (see the trainer's notes in the closing report)
+        assert distance(sample, clip) < distance(bundle.mean[:g], clip)
+        assert distance(sample, clip) < 0.8 * distance(sample, later)
