@@ -11,7 +11,7 @@ from safetensors.torch import load_file
 
 from diffsheg_core import CheckpointError, generate
 from diffsheg_core.bvh import read_bvh
-from diffsheg_core.checkpoints import (ModelBundle, load_model, official_stats, save_checkpoint,
+from diffsheg_core.checkpoints import (load_model, official_stats, save_checkpoint,
                                        untrained_bundle)
 from diffsheg_core.motion import read_arkit_json
 from diffsheg_core.model import ModelConfig, UniEG
