@@ -254,7 +254,9 @@ def official_stats(dataset: str, stats_dir: Optional[str | Path],
         gesture = np.concatenate([12 + 3 * np.array(body_ids)[:, None] + np.arange(3)]).ravel()
         gesture = np.concatenate([gesture, np.arange(75, 165)])
         mean = np.concatenate([pose_mean[gesture], pose_mean[:3], stats["expression_mean"]])
-        std = np.concatenate([pose_std[gesture], pose_std[:3], stats["expression_std"]])
+        # The official SHOW data pipeline uses the jaw's *mean* as its std; the published
+        # model was trained that way, so its output is denormalised the same way.
+        std = np.concatenate([pose_std[gesture], pose_mean[:3], stats["expression_std"]])
     return mean.astype(np.float32), std.astype(np.float32)
 
 

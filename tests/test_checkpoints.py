@@ -101,9 +101,18 @@ def test_pickle_needing_code_is_refused(golden_dir, tmp_path):
         load_model(path)
 
 
-def test_show_stats_have_the_model_width(data_dir):
+def test_show_stats_follow_the_official_layout(data_dir):
     mean, std = official_stats("show", data_dir / "show")
-    assert mean.shape == std.shape == (232,) and (std > 0).all()
+    stats = np.load(data_dir / "show" / "talkshow_mean_std.npy", allow_pickle=True).item()
+    assert mean.shape == std.shape == (232,)
+    # gesture: SMPL-X joints 3, 6, 9 (body slots 2, 5, 8), 12..21, then both hands
+    assert np.allclose(mean[:3], stats["pose_mean"][12 + 6: 12 + 9], rtol=1e-6)
+    assert np.allclose(mean[9:39], stats["pose_mean"][12 + 33: 12 + 63], rtol=1e-6)
+    assert np.allclose(mean[39:129], stats["pose_mean"][75:165], rtol=1e-6)
+    # expression: jaw, then 100 FLAME coefficients; the jaw's "std" is its mean (official quirk)
+    assert np.allclose(mean[129:132], stats["pose_mean"][:3], rtol=1e-6)
+    assert np.allclose(std[129:132], stats["pose_mean"][:3], rtol=1e-6)
+    assert np.allclose(std[132:], stats["expression_std"], rtol=1e-6)
 
 
 def test_official_size_beat_end_to_end_with_random_weights(data_dir, tmp_path):
