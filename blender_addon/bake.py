@@ -18,7 +18,7 @@ from diffsheg_core.motion import Motion, resample_motion
 
 from .keying import Channel, Undo, new_action, rotation_channels, shape_key_channel, write_channels
 from .retarget import Preset, bone_quaternions, map_armature, map_shape_keys
-from .sound import add_sound_strip
+from .sound import NO_AUDIO_NOTE, add_sound_strip, audio_supported
 
 
 @dataclass
@@ -45,6 +45,7 @@ class BakeResult:
     unmatched_bones: list[str]
     unmatched_shape_keys: dict[str, list[str]]
     sound_strip: str | None
+    notes: list[str] = field(default_factory=list)
 
 
 def scene_fps(scene) -> float:
@@ -98,9 +99,12 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
             actions.append(action.name)
         if options.armature is not None:
             _set_properties(options.armature, options.preset.properties, undo)
-        strip = None
+        strip, notes = None, []
         if options.add_sound and audio_path:
-            strip = add_sound_strip(scene, audio_path, options.start_frame, undo).name
+            if audio_supported():
+                strip = add_sound_strip(scene, audio_path, options.start_frame, undo).name
+            else:
+                notes.append(NO_AUDIO_NOTE)
         if options.set_frame_range:
             _set_frame_range(scene, options.start_frame, options.start_frame + motion.n_frames - 1, undo)
     except Exception as exc:
@@ -111,7 +115,7 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
         raise DiffshegError(f"could not write the animation into the scene: {exc}") from exc
     return BakeResult(actions=actions, n_frames=motion.n_frames, n_keys=n_keys,
                       unmatched_bones=unmatched_bones, unmatched_shape_keys=unmatched_keys,
-                      sound_strip=strip)
+                      sound_strip=strip, notes=notes)
 
 
 def smooth(values: np.ndarray, sigma: float) -> np.ndarray:

@@ -1,10 +1,13 @@
 """Bulk keyframing into a new Action, on Blender 5.x layered actions or the legacy API.
 
-The API is chosen by feature detection: layered actions (slots + channelbags, 4.4+)
-when `bpy_extras.anim_utils.action_ensure_channelbag_for_slot` exists, else the
-`Action.fcurves` of 4.2-4.3. A user's Action already on the datablock is kept and
-pushed onto an NLA track, never overwritten. Keys go in with `keyframe_points.add`
-+ `foreach_set`, optionally reduced to fewer keys that stay within a tolerance.
+The API is chosen by feature detection. Actions with slots (4.4+) get a slot for the
+datablock, assigned with the Action: without it, 4.4-4.5 key the curves but nothing
+moves. F-Curves go into the slot's channelbag where
+`bpy_extras.anim_utils.action_ensure_channelbag_for_slot` exists (5.0+), else into
+`Action.fcurves` (4.2-4.3; on 4.4-4.5 the legacy API's first slot, the only one here).
+A user's Action already on the datablock is kept and pushed onto an NLA track, never
+overwritten. Keys go in with `keyframe_points.add` + `foreach_set`, optionally reduced
+to fewer keys that stay within a tolerance.
 """
 
 from __future__ import annotations
@@ -37,8 +40,12 @@ class Channel:
 Undo = Callable[[], None]
 
 
-def uses_layered_actions() -> bool:
-    return action_ensure_channelbag_for_slot is not None and "slots" in bpy.types.Action.bl_rna.properties
+def has_action_slots() -> bool:
+    return "slots" in bpy.types.Action.bl_rna.properties
+
+
+def _uses_channelbags(slot) -> bool:
+    return slot is not None and action_ensure_channelbag_for_slot is not None
 
 
 def new_action(id_data, name: str, undo: list[Undo]):
@@ -55,7 +62,7 @@ def new_action(id_data, name: str, undo: list[Undo]):
     action = bpy.data.actions.new(name)
     undo.append(lambda: bpy.data.actions.remove(action))
     slot = None
-    if uses_layered_actions():
+    if has_action_slots():
         slot = action.slots.new(id_type=id_data.id_type, name=id_data.name)
     anim.action = action
     if slot is not None:
@@ -112,7 +119,7 @@ def write_channels(action, slot, channels: list[Channel], start_frame: float,
 
 def _fcurve_factory(action, slot):
     """A function adding a grouped F-Curve to (action, slot), on either API."""
-    if slot is not None:
+    if _uses_channelbags(slot):
         bag = action_ensure_channelbag_for_slot(action, slot)
 
         def make(path, index, group, groups):
@@ -154,17 +161,21 @@ def reduce_keys(values: np.ndarray, tolerance: float) -> np.ndarray:
     return np.array(sorted(keep))
 
 
+def action_fcurves(action, slot=None) -> list:
+    """The F-Curves of `action` for `slot` (None where there are no slots), on either API."""
+    if _uses_channelbags(slot):
+        from bpy_extras.anim_utils import action_get_channelbag_for_slot
+        bag = action_get_channelbag_for_slot(action, slot)
+        return list(bag.fcurves) if bag else []
+    return list(action.fcurves)
+
+
 def fcurves_of(id_data) -> list:
     """The F-Curves of the Action (and slot) assigned to `id_data`, on either API."""
     anim = id_data.animation_data
     if anim is None or anim.action is None:
         return []
-    slot = getattr(anim, "action_slot", None)
-    if slot is not None and action_ensure_channelbag_for_slot is not None:
-        from bpy_extras.anim_utils import action_get_channelbag_for_slot
-        bag = action_get_channelbag_for_slot(anim.action, slot)
-        return list(bag.fcurves) if bag else []
-    return list(anim.action.fcurves)
+    return action_fcurves(anim.action, getattr(anim, "action_slot", None))
 
 
 def rotation_channels(bone: str, rotation_mode: str, quaternions: np.ndarray) -> list[Channel]:

@@ -92,6 +92,8 @@ def summary(result) -> str:
     for mesh, names in result.unmatched_shape_keys.items():
         if names:
             text += f"; {len(names)} face channels without a shape key on {mesh}: {', '.join(names)}"
+    for note in result.notes:
+        text += f"; {note}"
     return text
 
 

@@ -4,7 +4,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import bpy
+
 from .keying import Undo
+
+NO_AUDIO_NOTE = "no sound strip: this Blender build has no audio support (e.g. the bpy 4.x module from PyPI)"
+
+
+def audio_supported() -> bool:
+    """Whether this Blender can hold sound strips: builds without Audaspace refuse them."""
+    return bool(bpy.app.build_options.audaspace)
 
 
 def _strips(editor):

@@ -11,12 +11,12 @@ import zipfile
 
 import pytest
 
-from addon_fixtures import REPO
+from addon_fixtures import REPO, exit_before_blender_teardown  # noqa: F401 (fixture)
 
 import build_addon
 
 INSTALL = r"""
-import json, sys, bpy, addon_utils
+import json, os, sys, bpy, addon_utils
 mode, path = sys.argv[1], sys.argv[2]
 if mode == "extension":
     bpy.ops.extensions.package_install_files(filepath=path, repo="user_default", enable_on_install=True)
@@ -33,7 +33,8 @@ print("RESULT", json.dumps({
     "settings": hasattr(bpy.context.scene, "diffsheg"),
     "core": diffsheg_core.__file__,
     "presets": sys.modules[module + ".preset"].available_presets(),
-}))
+}), flush=True)
+os._exit(0)  # skip Blender's exit-time teardown: the bpy modules before 5.0 crash or hang in it
 """
 
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from addon_fixtures import (append_face, armature_pose_matrices, bpy, build_smplx_armature,
-                            import_beat_armature, mocap_motion, reset_scene,
-                            rigify_blend, set_fps, smplx_mocap_motion,  # noqa: F401 (fixture)
-                            world_direction)
+                            import_beat_armature, mocap_motion, reset_scene, set_fps,
+                            smplx_mocap_motion, world_direction)
+from addon_fixtures import exit_before_blender_teardown, rigify_blend  # noqa: F401 (fixtures)
 
 from blender_addon.bake import BakeOptions, bake_motion
 from blender_addon.preset import available_presets, find_name, load_preset, normalise_name
