@@ -13,6 +13,8 @@ continues exactly as it would have. The run folder holds:
   model.safetensors   the EMA model as a generation checkpoint (config, statistics, layout)
   log.jsonl           one line per logged step and per validation pass
   summary.json        final step, losses and a parameter checksum per rank
+With `export` set, the final EMA model is also written there (in `export_dtype`); running
+the same command again after the last step only rewrites that file.
 """
 
 from __future__ import annotations
@@ -35,10 +37,11 @@ from .checkpoints import ModelBundle, save_checkpoint
 from .data import ClipDataset, DataConfig, NormStats, load_takes, normalisation
 from .diffusion import Schedule
 from .errors import DiffshegError
-from .foppas import PRESETS
+from .foppas import PRESETS, FoppasConfig, with_overrides
 from .model import ModelConfig, UniEG
 from .pipeline import resolve_device
 
+EXPORT_DTYPES = {"float32": torch.float32, "float16": torch.float16}
 STATE_FILE = "train_state.pt"
 MODEL_FILE = "model.safetensors"
 LOG_FILE = "log.jsonl"
@@ -66,6 +69,7 @@ class TrainConfig:
     lambda_v: float = 1.0           # velocity of x0
     lambda_delta: float = 1.0       # Huber on x0
     huber_delta: float = 1.0
+    x0_weighting: str = "abar"      # abar (x0 terms weighted by abar_t per sample) or none (unweighted)
     cond_drop: float = 0.0          # classifier-free dropout probability (official SHOW: 0.2)
     precision: str = "auto"         # auto (bf16/fp16 on GPU, fp32 on CPU), fp32, bf16, fp16
     device: str = "auto"
@@ -75,7 +79,11 @@ class TrainConfig:
     validate_every: int = 1000
     val_clips: int = 256
     sampling_preset: str = "official-beat"
+    sampling: dict = field(default_factory=dict)  # FOPPAS settings over the preset, e.g. {"eta": 1.0}
     model_id: str = "diffsheg-trained"
+    export: str = ""                # also write the final EMA model here (e.g. a bundled weights file)
+    export_dtype: str = "float32"   # float32, or float16 to halve the exported file
+    card: dict = field(default_factory=dict)  # model card facts stored in the checkpoint's info
 
     @classmethod
     def from_dict(cls, values: dict) -> "TrainConfig":
@@ -163,15 +171,39 @@ def step_generator(seed: int, step: int, rank: int) -> torch.Generator:
 
 # ---------------------------------------------------------------- loss
 
+X0_WEIGHTINGS = ("abar", "none")
+
+
 def masked_mean(values: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     weight = weight.expand_as(values)
     return (values * weight).sum() / weight.sum().clamp_min(1.0)
 
 
+def x0_term_weight(schedule: Schedule, index: torch.Tensor, like: torch.Tensor, how: str) -> torch.Tensor:
+    """Per-sample weight (B, 1, 1) of the loss terms computed on the predicted x0.
+
+    x0_hat = sqrt(1/abar) x_t - sqrt(1/abar - 1) eps_hat, so its error is the noise error
+    times sqrt(1/abar - 1) (about 156 at t = 999). Unweighted, the velocity and Huber terms
+    of the noisiest samples dwarf everything else: gradient clipping then scales every step
+    down to them and the low-noise steps that finish sampling are barely learned.
+    'abar' multiplies the terms by abar_t = SNR / (1 + SNR): full weight where x0 is
+    recoverable, and at most the noise term's own scale where it is not (the squared
+    x0 error times abar is (1 - abar) times the squared noise error). 'none' is the
+    unweighted form, as the paper writes it.
+    """
+    if how == "none":
+        return torch.ones((like.shape[0], 1, 1), dtype=like.dtype, device=like.device)
+    if how != "abar":
+        raise DiffshegError(f"x0_weighting must be one of {', '.join(X0_WEIGHTINGS)}, got '{how}'")
+    abar = torch.from_numpy(schedule.alphas_cumprod).to(like.device, like.dtype)[index]
+    return abar.view(-1, 1, 1)
+
+
 def diffsheg_loss(model: torch.nn.Module, schedule: Schedule, batch: dict[str, torch.Tensor],
                   cfg: TrainConfig, gen: torch.Generator, style_dim: int, null_condition: bool
                   ) -> dict[str, torch.Tensor]:
-    """The paper's loss terms for one batch (eq. 4, 6, 7, 8)."""
+    """The paper's loss terms for one batch (eq. 4, 6, 7, 8), the x0 terms weighted as
+    `cfg.x0_weighting` says (see x0_term_weight)."""
     x0, mel, mask = batch["motion"], batch["mel"], batch["mask"].unsqueeze(1)
     b, device = x0.shape[0], x0.device
     index = torch.randint(len(schedule), (b,), generator=gen).to(device)
@@ -188,14 +220,25 @@ def diffsheg_loss(model: torch.nn.Module, schedule: Schedule, batch: dict[str, t
     eps = model(x_t, schedule.model_timesteps(index), mel, None, style,
                 schedule.x0_coefs(index, x_t), **extra).float()
     x0_hat = schedule.predict_x0(x_t, index, eps)
+    w = x0_term_weight(schedule, index, x0_hat, cfg.x0_weighting)
     loss_t = masked_mean((eps - noise) ** 2, mask)
-    loss_v = masked_mean((x0_hat.diff(dim=1) - x0.diff(dim=1)) ** 2, mask)
-    loss_d = masked_mean(F.huber_loss(x0_hat, x0, reduction="none", delta=cfg.huber_delta), mask)
+    loss_v = masked_mean(w * (x0_hat.diff(dim=1) - x0.diff(dim=1)) ** 2, mask)
+    loss_d = masked_mean(w * F.huber_loss(x0_hat, x0, reduction="none", delta=cfg.huber_delta), mask)
     total = cfg.lambda_t * loss_t + cfg.lambda_v * loss_v + cfg.lambda_delta * loss_d
     return {"loss": total, "loss_t": loss_t, "loss_v": loss_v, "loss_delta": loss_d}
 
 
 # ---------------------------------------------------------------- the trainer
+
+def sampling_config(cfg: TrainConfig) -> FoppasConfig:
+    """The FOPPAS settings the checkpoints carry: the preset with `cfg.sampling` over it."""
+    try:
+        config = with_overrides(PRESETS[cfg.sampling_preset], **cfg.sampling)
+        config.check(cfg.data.clip_len)
+    except (TypeError, ValueError) as exc:
+        raise DiffshegError(f"sampling settings {cfg.sampling}: {exc}") from exc
+    return config
+
 
 def build_model_config(cfg: TrainConfig, layout_name: str) -> ModelConfig:
     from .rigs import get_layout
@@ -218,9 +261,16 @@ class Trainer:
         self.cfg, self.env = cfg, env
         if cfg.batch_size % env.world:
             raise DiffshegError(f"batch_size {cfg.batch_size} does not split evenly over {env.world} processes")
+        if cfg.x0_weighting not in X0_WEIGHTINGS:
+            raise DiffshegError(f"x0_weighting must be one of {', '.join(X0_WEIGHTINGS)}, "
+                                f"got '{cfg.x0_weighting}'")
+        if cfg.export_dtype not in EXPORT_DTYPES:
+            raise DiffshegError(f"export_dtype must be one of {', '.join(EXPORT_DTYPES)}, "
+                                f"got '{cfg.export_dtype}'")
         if cfg.sampling_preset not in PRESETS:
             raise DiffshegError(f"unknown sampling preset '{cfg.sampling_preset}': "
                                 f"choose one of {', '.join(PRESETS)}")
+        self.sampling = sampling_config(cfg)
         self.out = Path(cfg.out_dir)
         train = load_takes(cfg.data, "train")
         val = load_takes(cfg.data, "val")
@@ -282,13 +332,15 @@ class Trainer:
         os.replace(tmp, self.out / STATE_FILE)
         save_checkpoint(self.bundle(), self.out / MODEL_FILE)
 
-    def bundle(self) -> ModelBundle:
+    def bundle(self, dtype: torch.dtype = torch.float32) -> ModelBundle:
+        """The EMA model as a generation checkpoint; float16 weights load into a float32 model."""
         ema = UniEG(self.model_cfg)
         ema.load_state_dict({k: v.cpu() for k, v in self.ema.state_dict().items()})
-        return ModelBundle(model=ema.eval(), mean=self.stats.mean, std=self.stats.std,
-                           sampling=PRESETS[self.cfg.sampling_preset], model_id=self.cfg.model_id,
-                           info={"trained_steps": self.step, "data": asdict(self.cfg.data),
-                                 "training": {k: v for k, v in asdict(self.cfg).items() if k != "data"}})
+        training = {k: v for k, v in asdict(self.cfg).items() if k not in ("data", "card")}
+        return ModelBundle(model=ema.to(dtype).eval(), mean=self.stats.mean, std=self.stats.std,
+                           sampling=self.sampling, model_id=self.cfg.model_id,
+                           info={**self.cfg.card, "trained_steps": self.step, "data": asdict(self.cfg.data),
+                                 "training": training})
 
     # -- steps
 
@@ -419,6 +471,8 @@ def _train(cfg: TrainConfig, env: Dist) -> dict:
     summary = {"step": trainer.step, "final_loss": losses.get("loss"), "world_size": env.world,
                "param_checksums": checksums, "skipped_takes": len(trainer.skipped),
                "checkpoint": str(trainer.out / MODEL_FILE)}
+    if env.main and cfg.export:
+        summary["export"] = str(save_checkpoint(trainer.bundle(EXPORT_DTYPES[cfg.export_dtype]), cfg.export))
     if env.main:
         (trainer.out / SUMMARY_FILE).write_text(json.dumps(summary, indent=1))
         if len(set(checksums)) > 1:

@@ -2,6 +2,7 @@
 formats from the real take 2_scott_0_1_1 (motion capture, SMPL-X and audio), broken
 takes included."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,8 @@ import pytest
 import soundfile as sf
 
 from diffsheg_core.bvh import bvh_to_motion, read_bvh, write_bvh_data
+from diffsheg_core.corpus.build import MANIFEST, BuildConfig, build, read_manifest
+from diffsheg_core.corpus.teacher import load_utterance
 from diffsheg_core.data import (
     ClipDataset, DataConfig, load_takes, normalisation, official_stats, window_starts,
 )
@@ -254,6 +257,54 @@ def test_folder_reader(folder_root):
     assert "talk_e.wav" in reasons["talk_e"]
 
 
+@pytest.fixture(scope="module")
+def corpus_root(tmp_path_factory):
+    """A two-sentence corpus made by the real builder, plus a failed utterance in its
+    manifest and one whose motion file is damaged."""
+    out = tmp_path_factory.mktemp("corpus")
+    text = out / "two.txt"
+    text.write_text("Peter and Bob bought a map of the big park.\n\n"
+                    "My father always opens the window before breakfast.")
+    root = out / "c"
+    build(BuildConfig(out=root, hours=12 / 3600, jobs=1, seed=3, engines=("espeak",), text_files=(text,)),
+          progress=False)
+    good = sorted(read_manifest(root).values(), key=lambda r: r["index"])
+    damaged = dict(good[0], index=len(good), wav="utt/damaged.wav", npz="utt/damaged.npz")
+    (root / damaged["wav"]).write_bytes((root / good[0]["wav"]).read_bytes())
+    (root / damaged["npz"]).write_bytes(b"PK not an npz")
+    with open(root / MANIFEST, "a") as fh:
+        fh.write(json.dumps({"index": len(good) + 1, "error": "espeak-ng rejected the text"}) + "\n")
+        fh.write(json.dumps(damaged) + "\n")
+    return root, good
+
+
+def test_corpus_reader(corpus_root, tmp_path):
+    root, good = corpus_root
+    config = DataConfig(kind="corpus", root=str(root), val_fraction=0.0, style=2, clip_len=16,
+                        cache_dir=str(tmp_path / "cache"))
+    assert config.layout is BEAT
+    train = load_takes(config, "train")
+    assert [t.name for t in train.takes] == [Path(r["wav"]).stem for r in good]
+    reasons = dict(train.skipped)
+    assert len(reasons) == 2
+    assert any("espeak-ng rejected the text" in r for r in reasons.values())
+    assert any("damaged.npz" in r and "rebuild the corpus" in r for r in reasons.values())
+
+    for take, record in zip(train.takes, good):
+        motion, _, _ = load_utterance(root / record["npz"])
+        assert take.style == 2 and take.mask.all()
+        assert abs(take.n_frames - record["frames"]) <= 1 and take.mel.shape == (take.n_frames, 128)
+        np.testing.assert_allclose(take.motion, BEAT.join(motion.rotations, motion.face)[: take.n_frames])
+    # the teacher's jaw moves with the speech, and the clips are cut and normalised
+    jaw = np.concatenate([t.motion[:, BEAT.gesture_dim + ARKIT51.index("jawOpen")] for t in train.takes])
+    assert jaw.max() > 0.2 and jaw.min() < 0.05
+    clips = ClipDataset(train.takes, 16, 8, normalisation(config, train))
+    assert len(clips) > 0 and clips[0]["motion"].shape == (16, BEAT.dim)
+    again = load_takes(config, "train")
+    np.testing.assert_array_equal(again.takes[0].mel, train.takes[0].mel)
+    assert len(list((tmp_path / "cache").glob("*.npz"))) == len(good)
+
+
 def test_bad_configuration_is_reported(tmp_path):
     with pytest.raises(DiffshegError, match="does not exist"):
         load_takes(DataConfig(kind="beat", root=str(tmp_path / "nowhere")))
@@ -262,3 +313,5 @@ def test_bad_configuration_is_reported(tmp_path):
     (tmp_path / "train_test_split.csv").write_text("name,split\nx,train\n")
     with pytest.raises(DiffshegError, match="columns 'id' and 'type'"):
         load_takes(DataConfig(kind="beat2", root=str(tmp_path)))
+    with pytest.raises(DiffshegError, match="no manifest.jsonl: build the corpus"):
+        load_takes(DataConfig(kind="corpus", root=str(tmp_path)))

@@ -13,7 +13,7 @@ from tqdm import tqdm
 
 from ..errors import DiffshegError
 from ..rigs import Layout
-from . import beat, beat2, folder
+from . import beat, beat2, corpus, folder
 from .cache import cached_take
 from .normalise import NormStats, compute_stats, official_stats
 from .sources import SPLITS, TakeSource, hashed_split
@@ -21,16 +21,17 @@ from .take import MAX_LENGTH_MISMATCH_S, Take
 
 log = logging.getLogger(__name__)
 
-READERS: dict[str, ModuleType] = {"beat": beat, "beat2": beat2, "folder": folder}
+READERS: dict[str, ModuleType] = {"beat": beat, "beat2": beat2, "folder": folder, "corpus": corpus}
 
 
 @dataclass
 class DataConfig:
     """Where the data is and how it is cut into clips.
 
-    kind: 'beat', 'beat2' or 'folder'. stats: 'train' computes normalisation statistics
-    from the training split; otherwise a folder with the official statistics files.
-    style: the style class of every take of a 'folder' dataset (BEAT names carry theirs).
+    kind: 'beat', 'beat2', 'folder' or 'corpus' (the project's synthetic speech corpus).
+    stats: 'train' computes normalisation statistics from the training split; otherwise a
+    folder with the official statistics files. style: the style class of every take of a
+    'folder' or 'corpus' dataset (BEAT names carry theirs).
     """
 
     kind: str = "beat"
