@@ -6,7 +6,8 @@ second and the real-time factor (audio seconds per wall second). Run from the re
 
     python bench/bench_generate.py [--seconds 60] [--configs small,official] [--device auto]
 
-`official` is the full-size official BEAT network (random weights) with HuBERT
+`default` is the bundled model with its own sampling preset; `small` an untrained small
+network with the official preset; `official` the full-size official BEAT network (random weights) with HuBERT
 features from a randomly initialised HuBERT-large-layout model (the real model's
 compute; needs `transformers`), sampled with the official FOPPAS preset.
 """
@@ -24,14 +25,13 @@ import torch
 
 from diffsheg_core.audio import load_audio
 from diffsheg_core.bvh import write_bvh
-from diffsheg_core.checkpoints import ModelBundle, untrained_bundle
-from diffsheg_core.foppas import PRESETS
+from diffsheg_core.checkpoints import ModelBundle, load_model, untrained_bundle
+from diffsheg_core.diffusion import Schedule
+from diffsheg_core.foppas import PRESETS, Foppas, sample_long
 from diffsheg_core.model import ModelConfig, UniEG
 from diffsheg_core.motion import write_arkit_json
 from diffsheg_core.pipeline import (make_eps_fn_factory, resolve_device, speech_features,
                                     style_onehot, to_motion)
-from diffsheg_core.diffusion import Schedule
-from diffsheg_core.foppas import Foppas, sample_long
 
 SPEECH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "audio" / "2_scott_0_3_3.wav"
 
@@ -89,7 +89,8 @@ def run(bundle: ModelBundle, audio_path: Path, device: torch.device, hubert: str
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=60.0, help="seconds of real speech (default 60)")
-    parser.add_argument("--configs", default="small,official")
+    parser.add_argument("--configs", default="default,official",
+                        help="default (bundled model), small (untrained small), official (full size)")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     args = parser.parse_args()
@@ -103,12 +104,14 @@ def main() -> None:
         sf.write(audio, samples[: int(args.seconds * sr)], sr)
         results = {}
         for name in args.configs.split(","):
-            if name == "small":
+            if name == "default":
+                results[name] = run(load_model(), audio, device, None, tmp)
+            elif name == "small":
                 results[name] = run(untrained_bundle(), audio, device, None, tmp)
             elif name == "official":
                 results[name] = run(official_bundle(), audio, device, random_hubert_large(tmp / "hubert"), tmp)
             else:
-                raise SystemExit(f"unknown configuration {name}: use small, official")
+                raise SystemExit(f"unknown configuration {name}: use default, small, official")
     print(f"device: {device} ({torch.cuda.get_device_name() if device.type == 'cuda' else 'CPU'}), "
           f"torch threads {torch.get_num_threads()}, {args.seconds:g} s of real speech")
     names = list(results)
@@ -117,9 +120,9 @@ def main() -> None:
         print(f"{key + ' (s)':<12}" + "".join(f"{results[n][key]:>14.2f}" for n in names))
     print(f"{'frames/s':<12}" + "".join(f"{results[n]['frames'] / results[n]['total']:>14.1f}" for n in names))
     print(f"{'x real time':<12}" + "".join(f"{results[n]['audio_s'] / results[n]['total']:>14.2f}" for n in names))
-    if len(names) == 2:
-        a, b = names
-        print(f"ratio {b}/{a} total time: {results[b]['total'] / results[a]['total']:.1f}x")
+    for other in names[1:]:
+        ratio = results[other]["total"] / results[names[0]]["total"]
+        print(f"ratio {other}/{names[0]} total time: {ratio:.1f}x")
 
 
 if __name__ == "__main__":

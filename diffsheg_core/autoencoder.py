@@ -188,10 +188,17 @@ def main(argv: list[str] | None = None) -> int:
         ae_cfg.steps = args.steps
     train = load_takes(data_cfg, "train")
     stats = normalisation(data_cfg, train)
-    feats, errors = train_autoencoders([t.motion for t in train.takes], train.layout,
-                                       stats.mean, stats.std, ae_cfg)
+    short = [t.name for t in train.takes if t.n_frames < ae_cfg.clip_len]
+    if short:
+        print(f"skipping {len(short)} takes shorter than the {ae_cfg.clip_len}-frame autoencoder clip: "
+              f"{', '.join(short[:5])}{' ...' if len(short) > 5 else ''}", file=sys.stderr)
+    usable = [t.motion for t in train.takes if t.n_frames >= ae_cfg.clip_len]
+    if not usable:
+        raise DiffshegError(f"no training take is at least {ae_cfg.clip_len} frames long: "
+                            "the autoencoder needs longer recordings")
+    feats, errors = train_autoencoders(usable, train.layout, stats.mean, stats.std, ae_cfg)
     feats.save(args.out)
-    print(json.dumps({"out": args.out, "takes": len(train.takes), "skipped": len(train.skipped),
+    print(json.dumps({"out": args.out, "takes": len(usable), "skipped": len(train.skipped) + len(short),
                       "reconstruction_error": errors}))
     return 0
 

@@ -26,7 +26,7 @@ from .metrics import (
     motion_curves, mouth_opening, pcm, phone_tier, phoneme_contrast, read_textgrid,
     reference_correlation, seam_smoothness, speed,
 )
-from .metrics.channels import face_channel, has_face_channels
+from .metrics.channels import face_channel, gesture_array, has_face_channels, has_mouth
 from .motion import Motion, resample_motion
 from .rigs import Layout, get_layout
 
@@ -91,14 +91,12 @@ def generate_samples(audio: Audio, model: str | None, seeds: list[int], steps: i
 
 # ---------------------------------------------------------------- per-motion metrics
 
-def _gesture(motion: Motion, layout: Layout) -> np.ndarray:
-    return layout_array(motion, layout)[:, : layout.gesture_dim]
 
 
 def motion_metrics(motion: Motion, inputs: EvalInputs, onsets: np.ndarray) -> dict[str, float]:
     """Metrics of one motion on its own (no reference needed)."""
     layout = get_layout(motion.rig)
-    gesture = _gesture(motion, layout)
+    gesture = gesture_array(motion, layout)
     fps = motion.fps
     out: dict[str, float] = {
         "BA": beat_alignment(onsets, motion_beats(gesture, fps)),
@@ -108,6 +106,8 @@ def motion_metrics(motion: Motion, inputs: EvalInputs, onsets: np.ndarray) -> di
     if inputs.clip_len and inputs.overlap is not None and motion.n_frames > inputs.clip_len:
         seams = foppas_seams(motion.n_frames, inputs.clip_len, inputs.overlap)
         out["seam acceleration / in-clip"] = seam_smoothness(gesture, fps, seams, inputs.overlap)
+    if not has_mouth(motion):  # a body-only capture: gesture metrics only
+        return out
     mouth = mouth_opening(motion)
     r, lag = envelope_correlation(mouth, fps, inputs.audio.samples, inputs.audio.sample_rate)
     out["mouth-envelope r"], out["mouth-envelope lag (s)"] = r, lag
@@ -145,25 +145,41 @@ def comparison_metrics(inputs: EvalInputs, layout: Layout) -> dict[str, float]:
         generated = feats.features(arrays)
         out["Div between clips (autoencoder latent)"] = diversity(generated["motion"])
         if inputs.reference is not None:
-            real = feats.features([layout_array(inputs.reference, layout)])
-            for part, name in (("motion", "FMD"), ("gesture", "FGD"), ("expression", "FED")):
+            ref_full = _full_reference(inputs.reference, layout)
+            # a body-only reference has no face: zeros stand in for it, and only the gesture
+            # distance (whose autoencoder never sees the face channels) is reported
+            real = feats.features([ref_full if ref_full is not None else np.concatenate(
+                [gesture_array(inputs.reference, layout),
+                 np.zeros((inputs.reference.n_frames, layout.expression_dim))], axis=1)])
+            parts = (("motion", "FMD"), ("gesture", "FGD"), ("expression", "FED")) if ref_full is not None \
+                else (("gesture", "FGD"),)
+            for part, name in parts:
                 out[name] = frechet_distance(generated[part], real[part])
     if inputs.reference is not None:
-        ref = layout_array(inputs.reference, layout)
+        ref = gesture_array(inputs.reference, layout)
         m = min(n, len(ref))
-        out["PCM gesture (delta 1.0)"] = float(np.mean([pcm(a[:m, : layout.gesture_dim], ref[:m, : layout.gesture_dim])
+        out["PCM gesture (delta 1.0)"] = float(np.mean([pcm(a[:m, : layout.gesture_dim], ref[:m])
                                                         for a in arrays]))
-        out["mouth r with reference"] = float(np.mean([
-            reference_correlation(mouth_opening(s)[:m], mouth_opening(inputs.reference)[:m], s.fps)[0]
-            for s in inputs.samples]))
+        if has_mouth(inputs.reference):
+            out["mouth r with reference"] = float(np.mean([
+                reference_correlation(mouth_opening(s)[:m], mouth_opening(inputs.reference)[:m], s.fps)[0]
+                for s in inputs.samples]))
     return out
+
+
+def _full_reference(reference: Motion, layout: Layout) -> np.ndarray | None:
+    """The reference in layout order, or None when it has no face channels (body-only)."""
+    if not has_face_channels(reference, *layout.face_names) or \
+            not all(j in reference.joint_names for j in layout.face_rotation_joints):
+        return None
+    return layout_array(reference, layout)
 
 
 def _normaliser(inputs: EvalInputs, layout: Layout) -> tuple[np.ndarray, np.ndarray]:
     if inputs.features is not None:
         g = layout.gesture_dim
         return inputs.features.mean[:g], inputs.features.std[:g]
-    base = _gesture(inputs.reference if inputs.reference is not None else inputs.samples[0], layout)
+    base = gesture_array(inputs.reference if inputs.reference is not None else inputs.samples[0], layout)
     return base.mean(axis=0), np.maximum(base.std(axis=0), 1e-4)
 
 
@@ -208,9 +224,9 @@ def write_outputs(result: dict, inputs: EvalInputs, layout: Layout, out: Path, p
         named = {inputs.labels[0]: inputs.samples[0]}
         if inputs.reference is not None:
             named[inputs.labels[1]] = inputs.reference
-        curves = {k: motion_curves((_gesture(m, layout) - mean) / std) for k, m in named.items()}
+        curves = {k: motion_curves((gesture_array(m, layout) - mean) / std) for k, m in named.items()}
         figures.append(plot_curves(curves, fps, out / "curves.png"))
-        figures.append(plot_histograms({k: speed(_gesture(m, layout), fps) for k, m in named.items()},
+        figures.append(plot_histograms({k: speed(gesture_array(m, layout), fps) for k, m in named.items()},
                                        "gesture speed (rad/s)", out / "speed_histogram.png"))
         env = speech_envelope_db(inputs.audio.samples, inputs.audio.sample_rate)
         span = int(20 * ENVELOPE_RATE)

@@ -18,6 +18,7 @@ from blender_addon.keying import action_fcurves, fcurves_of
 from blender_addon.operators import GenerationJob
 from blender_addon.preset import load_preset
 from blender_addon.sound import sound_strips
+from diffsheg_core.checkpoints import load_model
 from diffsheg_core.errors import Cancelled
 
 STEPS = 5
@@ -90,7 +91,9 @@ def _check_sound(scene, settings, start: int):
 
 def _run_operator(scene, settings):
     assert bpy.ops.diffsheg.generate() == {"FINISHED"}
-    assert "UNTRAINED" in settings.model_label  # the placeholder model is labelled as such
+    default = load_model()  # the bundled default; a placeholder would be labelled UNTRAINED
+    assert default.model_id in settings.model_label
+    assert ("UNTRAINED" in settings.model_label) == (not default.trained)
     return round(3.0 * scene.render.fps / scene.render.fps_base)
 
 

@@ -254,3 +254,25 @@ def test_evaluate_command_writes_a_report_on_the_real_take(real_take, autoencode
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(DiffshegError, match="nothing to evaluate"):
         main(["--audio", str(TAKE_WAV), "--out", str(out)])
+
+
+def test_evaluate_accepts_a_body_only_bvh_reference(tmp_path):
+    """The real BEAT capture as BVH has no face: gesture metrics and PCM, no mouth metrics."""
+    from diffsheg_core.bvh import bvh_to_motion, read_bvh
+    from diffsheg_core.evaluate import main
+    from diffsheg_core.motion import Motion
+    from diffsheg_core.rigs import ARKIT51
+
+    bvh_path = DATA / "beat" / "2_scott_0_1_1.bvh"
+    body = bvh_to_motion(read_bvh(bvh_path, fps=15.0))
+    generated = tmp_path / "gen.npz"
+    Motion(fps=15.0, rig="beat", joint_names=body.joint_names, rotations=body.rotations,
+           face_names=list(ARKIT51), face=np.zeros((body.n_frames, 51), np.float32)).save_npz(generated)
+    out = tmp_path / "report"
+    assert main(["--audio", str(TAKE_WAV), "--motion", str(generated), "--reference", str(bvh_path),
+                 "--reference-fps", "15", "--out", str(out), "--no-plots"]) == 0
+    result = json.loads((out / "metrics.json").read_text())
+    ref, cmp = result["reference"], result["comparison"]
+    assert 0.5 < ref["BA"] <= 1.0 and "mouth-envelope r" not in ref
+    assert cmp["PCM gesture (delta 1.0)"] == pytest.approx(1.0)
+    assert "mouth r with reference" not in cmp

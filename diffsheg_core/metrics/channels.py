@@ -24,6 +24,23 @@ def has_face_channels(motion: Motion, *names: str) -> bool:
     return all(n.lower() in lowered for n in names)
 
 
+def has_mouth(motion: Motion) -> bool:
+    """Whether `mouth_opening` can read this motion (a body-only capture cannot)."""
+    return has_face_channels(motion, "jawOpen") or "jaw" in motion.joint_names
+
+
+def gesture_array(motion: Motion, layout: Layout) -> np.ndarray:
+    """(T, gesture_dim) axis-angle of the layout's gesture joints, matched by name; works for
+    body-only motion (e.g. a BVH capture without a face)."""
+    missing = [j for j in layout.gesture_joints if j not in motion.joint_names]
+    if missing:
+        raise DiffshegError(
+            f"the motion (rig '{motion.rig}') lacks joints of layout '{layout.name}': "
+            f"{', '.join(missing[:8])}{' ...' if len(missing) > 8 else ''}")
+    index = [motion.joint_names.index(j) for j in layout.gesture_joints]
+    return motion.rotations[:, index].reshape(motion.n_frames, -1).astype(np.float64)
+
+
 def mouth_opening(motion: Motion) -> np.ndarray:
     """(T,) mouth opening: ARKit jawOpen, or the jaw joint's rotation angle (radians)."""
     if has_face_channels(motion, "jawOpen"):
