@@ -158,3 +158,16 @@ def test_smplx_motion_in_talkshow_layout(speech, tmp_path):
     beat_motion = generate(speech, model=untrained_bundle(), steps=2, device="cpu")
     with pytest.raises(DiffshegError, match="SMPL-X"):
         write_talkshow_npz(beat_motion, tmp_path / "beat.npz")
+
+
+def test_open_stream_matches_generate(speech, model):
+    from diffsheg_core.audio import load_audio
+    from diffsheg_core.pipeline import open_stream, speech_features, to_motion
+
+    features = speech_features(model, load_audio(speech))
+    stream = open_stream(model, seed=5, device="cpu")
+    frames = [stream.push(features[i:i + 15]) for i in range(0, len(features), 15)] + [stream.finish()]
+    streamed = to_motion(model, torch.cat(frames).numpy(), meta={})
+    offline = generate(speech, model=model, seed=5, device="cpu")
+    assert streamed.n_frames == offline.n_frames == 60
+    assert np.array_equal(streamed.rotations, offline.rotations)
