@@ -26,12 +26,10 @@ import torch
 from diffsheg_core.audio import load_audio
 from diffsheg_core.bvh import write_bvh
 from diffsheg_core.checkpoints import ModelBundle, load_model, untrained_bundle
-from diffsheg_core.diffusion import Schedule
-from diffsheg_core.foppas import PRESETS, Foppas, sample_long
+from diffsheg_core.foppas import PRESETS, sample_long
 from diffsheg_core.model import ModelConfig, UniEG
 from diffsheg_core.motion import write_arkit_json
-from diffsheg_core.pipeline import (make_eps_fn_factory, resolve_device, speech_features,
-                                    style_onehot, to_motion)
+from diffsheg_core.pipeline import build_sampling, resolve_device, speech_features, to_motion
 
 SPEECH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "audio" / "2_scott_0_3_3.wav"
 
@@ -67,8 +65,7 @@ def run(bundle: ModelBundle, audio_path: Path, device: torch.device, hubert: str
     times["features"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    sampler = Foppas(Schedule.linear(), bundle.sampling, bundle.config.clip_len, bundle.config.dim)
-    make = make_eps_fn_factory(bundle, sampler, style_onehot(bundle, 0), None, None)
+    sampler, make = build_sampling(bundle, bundle.sampling)
     out_frames = sample_long(sampler, make, cond, torch.Generator().manual_seed(0), device)
     if device.type == "cuda":
         torch.cuda.synchronize()

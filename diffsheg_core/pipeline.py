@@ -69,6 +69,20 @@ def speech_features(bundle: ModelBundle, audio: Audio, hubert_path: Optional[str
     return torch.from_numpy(np.concatenate(parts, axis=1).astype(np.float32))
 
 
+def build_sampling(bundle: ModelBundle, config: FoppasConfig, style: int = 0,
+                   guidance: Optional[float] = None, autocast: Optional[torch.dtype] = None
+                   ) -> tuple[Foppas, Callable[[torch.Tensor], EpsFn]]:
+    """The FOPPAS sampler for `bundle` with `config`, and the factory that binds the model,
+    style and guidance to one window's speech features. Bad settings raise DiffshegError."""
+    try:
+        sampler = Foppas(Schedule.linear(), config, bundle.config.clip_len, bundle.config.dim)
+    except ValueError as exc:
+        raise DiffshegError(str(exc)) from None
+    make = make_eps_fn_factory(bundle, sampler, style_onehot(bundle, style),
+                               resolve_guidance(bundle, guidance), autocast)
+    return sampler, make
+
+
 def make_eps_fn_factory(bundle: ModelBundle, sampler: Foppas, style: torch.Tensor,
                         guidance: Optional[float], autocast: Optional[torch.dtype]
                         ) -> Callable[[torch.Tensor], EpsFn]:
@@ -116,25 +130,19 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
         bundle.model.to(torch_device)
     speech = audio if isinstance(audio, Audio) else load_audio(audio, sample_rate)
     config = with_overrides(sampling or bundle.sampling, steps=steps, overlap=overlap)
-    try:
-        sampler = Foppas(Schedule.linear(), config, bundle.config.clip_len, bundle.config.dim)
-    except ValueError as exc:
-        raise DiffshegError(str(exc)) from None
-    onehot = style_onehot(bundle, style)
-    scale = resolve_guidance(bundle, guidance)
     autocast = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}.get(precision, "bad")
     if autocast == "bad" or (autocast is not None and torch_device.type != "cuda"):
         raise DiffshegError(f"precision '{precision}' is not available on {torch_device.type}: "
                             "use fp32 (or bf16/fp16 on a CUDA GPU)")
+    sampler, make_eps_fn = build_sampling(bundle, config, style, guidance, autocast)
 
     cond = speech_features(bundle, speech, hubert_path, hubert_quirk, str(torch_device))
-    make_eps_fn = make_eps_fn_factory(bundle, sampler, onehot, scale, autocast)
     generator = torch.Generator().manual_seed(int(seed))
     normalised = sample_long(sampler, make_eps_fn, cond, generator, torch_device, progress, cancel)
     return to_motion(bundle, normalised.cpu().numpy(), meta={
         "model_id": bundle.model_id, "trained": bundle.trained, "seed": int(seed),
         "audio_file": speech.path, "sample_rate": speech.sample_rate, "style": int(style),
-        "guidance": scale, "steps": config.steps, "overlap": config.overlap,
+        "guidance": resolve_guidance(bundle, guidance), "steps": config.steps, "overlap": config.overlap,
         "clip_len": bundle.config.clip_len,
         "device": str(torch_device), "software": f"diffsheg_core {__version__}",
     })
@@ -158,8 +166,5 @@ def open_stream(bundle: ModelBundle, *, seed: int = 0, style: int = 0,
     motion frames back; `to_motion` turns them into a Motion."""
     torch_device = resolve_device(device)
     bundle.model.to(torch_device)
-    sampler = Foppas(Schedule.linear(), sampling or bundle.sampling, bundle.config.clip_len,
-                     bundle.config.dim)
-    make = make_eps_fn_factory(bundle, sampler, style_onehot(bundle, style),
-                               resolve_guidance(bundle, guidance), None)
+    sampler, make = build_sampling(bundle, sampling or bundle.sampling, style, guidance)
     return FoppasStream(sampler, make, torch.Generator().manual_seed(int(seed)), torch_device)
