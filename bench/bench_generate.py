@@ -29,7 +29,8 @@ from diffsheg_core.checkpoints import ModelBundle, load_model, untrained_bundle
 from diffsheg_core.foppas import PRESETS, sample_long
 from diffsheg_core.model import ModelConfig, UniEG
 from diffsheg_core.motion import write_arkit_json
-from diffsheg_core.pipeline import build_sampling, resolve_device, speech_features, to_motion
+from diffsheg_core.devices import resolve_device
+from diffsheg_core.pipeline import build_sampling, speech_features, to_motion
 
 SPEECH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "audio" / "2_scott_0_3_3.wav"
 

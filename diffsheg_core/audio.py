@@ -26,7 +26,7 @@ import librosa
 import numpy as np
 import soundfile as sf
 
-from .errors import AudioError
+from .errors import AudioError, DiffshegError
 
 SAMPLE_SPEECH = Path(__file__).resolve().parent / "samples" / "sample_speech.wav"
 
@@ -349,18 +349,12 @@ def load_hubert(model_path: str | os.PathLike | None = None, device: str = "cpu"
 
 def _torch_device(device: str) -> Any:
     """torch.device for 'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:N'."""
-    import torch
+    from .devices import resolve_device
 
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
-        torch_device = torch.device(device)
-    except (RuntimeError, TypeError):
-        raise AudioError(f"unknown device {device!r} for HuBERT: use 'auto', 'cpu' or 'cuda'") from None
-    if torch_device.type == "cuda" and not torch.cuda.is_available():
-        raise AudioError(f"device {device!r} was requested for HuBERT but no CUDA GPU is available: "
-                         "use device='auto' or 'cpu'")
-    return torch_device
+        return resolve_device(device)
+    except DiffshegError as exc:
+        raise AudioError(f"HuBERT: {exc}") from None
 
 
 def hubert_features(

@@ -45,7 +45,8 @@ def run_generate(args: argparse.Namespace) -> int:
     from .audio import SAMPLE_SPEECH, load_audio
     from .checkpoints import load_model
     from .foppas import PRESETS
-    from .pipeline import generate, resolve_device
+    from .devices import resolve_device
+    from .pipeline import generate
 
     audio_path = args.audio or str(SAMPLE_SPEECH)
     if args.audio is None:

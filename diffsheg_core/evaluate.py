@@ -83,7 +83,8 @@ def load_reference(path: str | Path, fps: float | None = None) -> Motion:
 def generate_samples(audio: Audio, model: str | None, seeds: list[int], steps: int | None,
                      device: str) -> list[Motion]:
     from .checkpoints import load_model
-    from .pipeline import generate, resolve_device
+    from .devices import resolve_device
+    from .pipeline import generate
 
     bundle = load_model(model, device=resolve_device(device))
     return [generate(audio, model=bundle, seed=s, steps=steps, device=device) for s in seeds]

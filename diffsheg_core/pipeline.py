@@ -14,6 +14,7 @@ from . import __version__
 from .audio import Audio, hubert_features, load_audio, load_hubert, mel_features
 from .checkpoints import ModelBundle, load_model
 from .diffusion import Schedule
+from .devices import resolve_device
 from .errors import DiffshegError
 from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, sample_long, with_overrides
 from .motion import Motion
@@ -22,19 +23,6 @@ from .progress import ProgressCallback
 AudioInput = Union[str, Path, np.ndarray, Audio]
 
 _hubert_encoder = lru_cache(maxsize=1)(load_hubert)  # the 1.2 GB model is loaded once per process
-
-
-def resolve_device(device: str | torch.device = "auto") -> torch.device:
-    """'auto' picks CUDA when present, else the CPU; asking for an absent GPU is an error."""
-    name = str(device)
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise DiffshegError("device 'cuda' was requested but no CUDA GPU is available to torch: "
-                            "use device 'auto' or 'cpu', or install a CUDA build of torch (README)")
-    if name not in ("cpu",) and not name.startswith("cuda"):
-        raise DiffshegError(f"unknown device '{name}': use auto, cpu or cuda")
-    return torch.device(name)
 
 
 def style_onehot(bundle: ModelBundle, style: int) -> torch.Tensor:

@@ -39,7 +39,7 @@ from .diffusion import Schedule
 from .errors import DiffshegError
 from .foppas import PRESETS, FoppasConfig, with_overrides
 from .model import ModelConfig, UniEG
-from .pipeline import resolve_device
+from .devices import resolve_device
 
 EXPORT_DTYPES = {"float32": torch.float32, "float16": torch.float16}
 STATE_FILE = "train_state.pt"
