@@ -6,7 +6,8 @@ made here from `--audio` with `--model` and `--seeds`. A `--reference` (ground t
 a teacher: a diffsheg Motion .npz, a BEAT .bvh with an optional .json / .csv face file
 beside it, or a BEAT2 smplxflame .npz) adds FGD / FED / FMD (with `--autoencoder`), PCM,
 correlation with the reference's mouth, and the same per-motion metrics for the
-reference in a second column.
+reference in a second column. BEAT's semantic relevance annotation of the take (`--semantic`,
+or found beside a BEAT reference) adds SRGR.
 """
 
 from __future__ import annotations
@@ -21,10 +22,10 @@ import numpy as np
 from .audio import Audio, load_audio
 from .errors import DiffshegError
 from .metrics import (
-    Interval, audio_beats, beat_alignment, blink_signal, blink_stats, diversity,
-    envelope_correlation, foppas_seams, frechet_distance, layout_array, mean_jerk, motion_beats,
-    motion_curves, mouth_opening, pcm, phone_tier, phoneme_contrast, read_textgrid,
-    reference_correlation, seam_smoothness, speed,
+    Interval, SemanticSpan, audio_beats, beat_alignment, blink_signal, blink_stats, diversity,
+    envelope_correlation, find_semantic, foppas_seams, frechet_distance, layout_array, mean_jerk,
+    motion_beats, motion_curves, mouth_opening, pcm, phone_tier, phoneme_contrast, read_semantic,
+    read_textgrid, reference_correlation, seam_smoothness, semantic_weights, speed, srgr,
 )
 from .metrics.channels import face_channel, gesture_array, has_face_channels, has_mouth
 from .motion import Motion, resample_motion
@@ -37,6 +38,7 @@ class EvalInputs:
     audio: Audio
     reference: Motion | None = None
     phones: list[Interval] | None = None
+    semantic: list[SemanticSpan] | None = None  # BEAT semantic relevance of the reference take
     features: object | None = None            # autoencoder.MotionFeatures
     clip_len: int | None = None                # FOPPAS windows, for seam smoothness
     overlap: int | None = None
@@ -161,6 +163,13 @@ def comparison_metrics(inputs: EvalInputs, layout: Layout) -> dict[str, float]:
         m = min(n, len(ref))
         out["PCM gesture (delta 1.0)"] = float(np.mean([pcm(a[:m, : layout.gesture_dim], ref[:m])
                                                         for a in arrays]))
+        if inputs.semantic is not None:
+            weights = semantic_weights(inputs.semantic, m, inputs.samples[0].fps)
+            if weights.any():
+                out["SRGR gesture (delta 1.0)"] = float(np.mean([
+                    srgr(a[:m, : layout.gesture_dim], ref[:m], weights) for a in arrays]))
+            else:
+                inputs.notes.append("no semantic gesture annotated in the compared frames: no SRGR")
         if has_mouth(inputs.reference):
             out["mouth r with reference"] = float(np.mean([
                 reference_correlation(mouth_opening(s)[:m], mouth_opening(inputs.reference)[:m], s.fps)[0]
@@ -255,6 +264,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
     p.add_argument("--reference", help="ground-truth / teacher motion (.npz or .bvh)")
     p.add_argument("--reference-fps", type=float, help="the reference BVH's real frame rate when its header is stale")
+    p.add_argument("--semantic", help="BEAT semantic relevance annotation of the reference take, "
+                   "for SRGR (default: <take>.txt beside a .bvh reference or sem/<take>.txt)")
     p.add_argument("--textgrid", help="Praat TextGrid with a phone tier, for the phoneme lip-sync contrast")
     p.add_argument("--autoencoder", help="motion autoencoders (.pt) for FGD / FED / FMD")
     p.add_argument("--clip-len", type=int, help="FOPPAS window length, for seam smoothness (default: "
@@ -264,6 +275,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     args = p.parse_args(argv)
 
+    semantic = args.semantic or (find_semantic(args.reference) if args.reference else None)
+    if semantic and not args.reference:
+        raise DiffshegError("--semantic weights the comparison with a reference (SRGR): give --reference too")
+    spans = read_semantic(semantic) if semantic else None
     audio = load_audio(args.audio)
     if args.motion and args.model:
         raise DiffshegError("give either --motion files or --model, not both")
@@ -287,6 +302,8 @@ def main(argv: list[str] | None = None) -> int:
         features=features,
         clip_len=args.clip_len or meta.get("clip_len") or 34,
         overlap=args.overlap if args.overlap is not None else meta.get("overlap"),
+        semantic=spans,
+        notes=[f"semantic relevance (SRGR weights): {semantic}"] if semantic else [],
     )
     result = evaluate(inputs, args.out, plots=not args.no_plots)
     print(json.dumps({"report": str(Path(args.out) / "report.md"), **result["comparison"],

@@ -30,7 +30,10 @@ def pcm(pred: np.ndarray, target: np.ndarray, delta: float = 1.0, group: int = 3
 
 def srgr(pred: np.ndarray, target: np.ndarray, frame_weights: np.ndarray,
          delta: float = 1.0, group: int = 3) -> float:
-    """PCM with each frame weighted by its semantic relevance (BEAT's SRGR)."""
+    """PCM with each frame weighted by its semantic relevance (BEAT's SRGR), divided by the
+    total weight so that a perfect prediction scores 1 on any take. BEAT divides by the frame
+    count instead and rescales by 1 / 0.165 (its data set's mean weight): BEAT's value is this
+    one times the take's mean weight / 0.165."""
     correct = _correct(pred, target, delta, group).mean(axis=1)
     w = np.asarray(frame_weights, np.float64)
     if w.shape != correct.shape:
