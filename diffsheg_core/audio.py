@@ -20,7 +20,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Union
+from typing import Any, Callable, Union
 
 import librosa
 import numpy as np
@@ -286,6 +286,19 @@ def n_motion_frames(audio: Audio, fps: float = 15.0) -> int:
     hop = mel_hop(fps)
     n_load = _resampled_length(len(audio.samples), audio.sample_rate, LOAD_RATE)
     return _resampled_length(n_load, LOAD_RATE, MEL_RATE) // hop
+
+
+# --- the second speech input ---------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SpeechEncoding:
+    """A model's second speech input beside the mel (HuBERT, or the phonetic encoder):
+    `encode(audio, n_frames)` gives (n_frames, dim) float32; `key` names the encoder and
+    its settings, so cached features are recomputed when either changes."""
+
+    key: str
+    encode: Callable[[Audio, int], np.ndarray]
 
 
 # --- HuBERT features (optional) ------------------------------------------------

@@ -25,11 +25,13 @@ import torch
 from .errors import CheckpointError
 from .foppas import PRESETS, FoppasConfig
 from .model import ModelConfig, UniEG
+from .phonetic import PhoneticEncoder, config_metadata, encoder_from, state_tensors
 from .rigs import Layout, get_layout
 
 FORMAT = "diffsheg-core/1"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.safetensors"
+PHONETIC_PREFIX = "phonetic."
 STATS_ENV = "DIFFSHEG_OFFICIAL_STATS"
 
 
@@ -43,6 +45,7 @@ class ModelBundle:
     model_id: str = "unnamed"
     trained: bool = True
     info: dict = field(default_factory=dict)
+    phonetic: Optional[PhoneticEncoder] = None  # the speech encoder of models with speech_encoder "phonetic"
 
     @property
     def config(self) -> ModelConfig:
@@ -103,6 +106,8 @@ def save_checkpoint(bundle: ModelBundle, path: str | Path) -> Path:
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in bundle.model.state_dict().items()}
     tensors["norm.mean"] = torch.from_numpy(np.asarray(bundle.mean, dtype=np.float32))
     tensors["norm.std"] = torch.from_numpy(np.asarray(bundle.std, dtype=np.float32))
+    if bundle.phonetic is not None:
+        tensors.update(state_tensors(bundle.phonetic, PHONETIC_PREFIX))
     meta = {
         "format": FORMAT,
         "config": json.dumps(bundle.config.to_dict()),
@@ -111,6 +116,7 @@ def save_checkpoint(bundle: ModelBundle, path: str | Path) -> Path:
         "model_id": bundle.model_id,
         "trained": json.dumps(bundle.trained),
         "info": json.dumps(bundle.info, default=str),
+        **({"phonetic": config_metadata(bundle.phonetic)} if bundle.phonetic is not None else {}),
     }
     tmp = path.with_name(path.name + ".partial")
     save_file(tensors, str(tmp), metadata=meta)
@@ -144,7 +150,18 @@ def _load_ours(path: Path, device: torch.device) -> ModelBundle:
     return ModelBundle(
         model=model.to(device).eval(), mean=mean, std=std, sampling=sampling,
         guidance=json.loads(meta.get("guidance", "null")), model_id=meta.get("model_id", path.stem),
-        trained=json.loads(meta.get("trained", "true")), info=json.loads(meta.get("info", "{}")))
+        trained=json.loads(meta.get("trained", "true")), info=json.loads(meta.get("info", "{}")),
+        phonetic=_stored_phonetic(cfg, meta, tensors, path))
+
+
+def _stored_phonetic(cfg: ModelConfig, meta: dict, tensors: dict, path: Path) -> Optional[PhoneticEncoder]:
+    if not (cfg.use_hubert and cfg.speech_encoder == "phonetic"):
+        return None
+    state = {k[len(PHONETIC_PREFIX):]: v for k, v in tensors.items() if k.startswith(PHONETIC_PREFIX)}
+    if "phonetic" not in meta or not state:
+        raise CheckpointError(f"{path}: the model takes phonetic features but the file holds no phonetic "
+                              "encoder; export it again from its training run")
+    return encoder_from(meta["phonetic"], state, f"{path} (phonetic encoder)")
 
 
 # ---------------------------------------------------------------- official checkpoints

@@ -104,7 +104,8 @@ def _delegate(module: str, argv: Sequence[str]) -> int:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    delegated = {"train": "train", "evaluate": "evaluate", "train-autoencoder": "autoencoder"}
+    delegated = {"train": "train", "evaluate": "evaluate", "train-autoencoder": "autoencoder",
+                 "train-phonetic": "phonetic"}
     if argv and argv[0] in delegated:
         try:
             return _delegate(delegated[argv[0]], argv[1:])
@@ -114,11 +115,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m diffsheg_core",
                                      description="Speech-driven gesture and expression generation (DiffSHEG).")
     sub = parser.add_subparsers(dest="command", required=True,
-                                metavar="{generate,train,evaluate,train-autoencoder}")
+                                metavar="{generate,train,evaluate,train-autoencoder,train-phonetic}")
     _generate_parser(sub)
     sub.add_parser("train", help="train a model (see: train --help)")
     sub.add_parser("evaluate", help="evaluate motion against references (see: evaluate --help)")
     sub.add_parser("train-autoencoder", help="train the motion autoencoder for Fréchet distances")
+    sub.add_parser("train-phonetic", help="train the phonetic speech encoder on the synthetic corpus")
     args = parser.parse_args(argv)
     try:
         return run_generate(args)

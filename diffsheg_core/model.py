@@ -16,6 +16,9 @@ import torch.nn.functional as F
 from torch import nn
 
 
+SPEECH_ENCODERS = ("hubert", "phonetic")
+
+
 @dataclass
 class ModelConfig:
     """Sizes and switches of a UniEG network (defaults: the official BEAT model)."""
@@ -25,7 +28,8 @@ class ModelConfig:
     style_dim: int = 30           # one-hot speaker / style classes
     mel_dim: int = 128            # mel bands per motion frame
     audio_latent: int = 256       # width of the projected [mel | encoded mel] feature
-    use_hubert: bool = True       # HuBERT features (1024-d), encoded per branch to 128
+    use_hubert: bool = True       # a second speech input, encoded per branch to hubert_latent
+    speech_encoder: str = "hubert"  # its source: hubert (official, 1024-d) or phonetic (stored in the model file)
     hubert_dim: int = 1024
     hubert_latent: int = 128
     latent: int = 512
@@ -40,6 +44,11 @@ class ModelConfig:
     clip_len: int = 34            # frames per diffusion window (n_poses)
     fps: float = 15.0
     layout: str = "beat"
+
+    def __post_init__(self):
+        if self.speech_encoder not in SPEECH_ENCODERS:
+            raise ValueError(f"speech_encoder must be one of {', '.join(SPEECH_ENCODERS)}, "
+                             f"got {self.speech_encoder!r}")
 
     @property
     def dim(self) -> int:

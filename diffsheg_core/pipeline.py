@@ -11,13 +11,15 @@ import numpy as np
 import torch
 
 from . import __version__
-from .audio import Audio, hubert_features, load_audio, load_hubert, mel_features
+from .audio import Audio, SpeechEncoding, hubert_features, load_audio, load_hubert, mel_features
 from .checkpoints import ModelBundle, load_model
 from .diffusion import Schedule
 from .devices import resolve_device
 from .errors import DiffshegError
 from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, sample_long, with_overrides
+from .model import ModelConfig
 from .motion import Motion
+from .phonetic import PhoneticEncoder, fingerprint
 from .progress import ProgressCallback
 
 AudioInput = Union[str, Path, np.ndarray, Audio]
@@ -46,14 +48,32 @@ def resolve_guidance(bundle: ModelBundle, guidance: Optional[float]) -> Optional
     return scale
 
 
+def speech_encoding(config: ModelConfig, phonetic: Optional[PhoneticEncoder] = None,
+                    hubert_path: Optional[str] = None, hubert_quirk: bool = False,
+                    device: str = "cpu") -> Optional[SpeechEncoding]:
+    """The model's second speech input beside the mel (None for mel-only models): HuBERT,
+    loaded once per process, or the phonetic encoder stored with the model."""
+    if not config.use_hubert:
+        return None
+    if config.speech_encoder == "phonetic":
+        if phonetic is None:
+            raise DiffshegError("this model takes phonetic features, but no phonetic encoder came with "
+                                "it: export the model again from its training run")
+        return SpeechEncoding(f"phonetic:{fingerprint(phonetic)}", phonetic.features)
+    encoder = _hubert_encoder(hubert_path, device)
+    return SpeechEncoding(f"hubert:{hubert_path or 'cache'}:{hubert_quirk}",
+                          lambda audio, n: hubert_features(audio, n, official_quirk=hubert_quirk,
+                                                           encoder=encoder))
+
+
 def speech_features(bundle: ModelBundle, audio: Audio, hubert_path: Optional[str] = None,
                     hubert_quirk: bool = False, device: str = "cpu") -> torch.Tensor:
-    """(T, F) conditioning frames: mel, then HuBERT when the model uses it."""
+    """(T, F) conditioning frames: mel, then the second speech input when the model has one."""
     mel = mel_features(audio, fps=bundle.config.fps)
     parts = [mel]
-    if bundle.config.use_hubert:
-        parts.append(hubert_features(audio, len(mel), official_quirk=hubert_quirk,
-                                     encoder=_hubert_encoder(hubert_path, device)))
+    encoding = speech_encoding(bundle.config, bundle.phonetic, hubert_path, hubert_quirk, device)
+    if encoding is not None:
+        parts.append(encoding.encode(audio, len(mel)))
     return torch.from_numpy(np.concatenate(parts, axis=1).astype(np.float32))
 
 

@@ -20,6 +20,7 @@ the same command again after the last step only rewrites that file.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import os
@@ -39,6 +40,8 @@ from .diffusion import Schedule
 from .errors import DiffshegError
 from .foppas import PRESETS, FoppasConfig, with_overrides
 from .model import ModelConfig, UniEG
+from .phonetic import PhoneticEncoder, load_phonetic
+from .pipeline import speech_encoding
 from .devices import resolve_device
 
 EXPORT_DTYPES = {"float32": torch.float32, "float16": torch.float16}
@@ -84,6 +87,8 @@ class TrainConfig:
     export: str = ""                # also write the final EMA model here (e.g. a bundled weights file)
     export_dtype: str = "float32"   # float32, or float16 to halve the exported file
     card: dict = field(default_factory=dict)  # model card facts stored in the checkpoint's info
+    phonetic: str = ""              # phonetic encoder (.safetensors) for speech_encoder = "phonetic"
+    hubert: str = ""                # local HuBERT folder for speech_encoder = "hubert" (default: HF cache)
 
     @classmethod
     def from_dict(cls, values: dict) -> "TrainConfig":
@@ -204,20 +209,21 @@ def diffsheg_loss(model: torch.nn.Module, schedule: Schedule, batch: dict[str, t
                   ) -> dict[str, torch.Tensor]:
     """The paper's loss terms for one batch (eq. 4, 6, 7, 8), the x0 terms weighted as
     `cfg.x0_weighting` says (see x0_term_weight)."""
-    x0, mel, mask = batch["motion"], batch["mel"], batch["mask"].unsqueeze(1)
-    b, device = x0.shape[0], x0.device
+    b, device = batch["motion"].shape[0], batch["motion"].device
     index = torch.randint(len(schedule), (b,), generator=gen).to(device)
-    noise = torch.randn(x0.shape, generator=gen).to(device)
+    noise = torch.randn(batch["motion"].shape, generator=gen).to(device)
     style = F.one_hot(batch["style"], style_dim).float()
     drop = (torch.rand(b, generator=gen) < cfg.cond_drop).to(device)
     style = style * (~drop).float().unsqueeze(1)
     order = torch.argsort(~drop, stable=True)  # dropped rows first: the model nulls the first rows
-    x0, mel, mask, index, noise, style = (v[order] for v in (x0, mel, mask, index, noise, style))
+    index, noise, style = index[order], noise[order], style[order]
+    batch = {k: v[order] for k, v in batch.items()}
+    x0, mel, mask = batch["motion"], batch["mel"], batch["mask"].unsqueeze(1)
     n_null = int(drop.sum()) if null_condition else 0
 
     x_t = schedule.q_sample(x0, index, noise)
     extra = {"null_rows": n_null} if n_null else {}
-    eps = model(x_t, schedule.model_timesteps(index), mel, None, style,
+    eps = model(x_t, schedule.model_timesteps(index), mel, batch.get("extra"), style,
                 schedule.x0_coefs(index, x_t), **extra).float()
     x0_hat = schedule.predict_x0(x_t, index, eps)
     w = x0_term_weight(schedule, index, x0_hat, cfg.x0_weighting)
@@ -240,20 +246,29 @@ def sampling_config(cfg: TrainConfig) -> FoppasConfig:
     return config
 
 
-def build_model_config(cfg: TrainConfig, layout_name: str) -> ModelConfig:
-    from .rigs import get_layout
-
-    layout = get_layout(layout_name)
+def build_model_config(cfg: TrainConfig, phonetic: PhoneticEncoder | None = None) -> ModelConfig:
+    """The model settings over ModelConfig's defaults (mel only unless use_hubert is set),
+    with the layout, clip length and fps of the data and the phonetic encoder's width."""
+    layout = cfg.data.layout
     values = {"use_hubert": False, **cfg.model, "gesture_dim": layout.gesture_dim,
               "expression_dim": layout.expression_dim, "layout": layout.name,
               "clip_len": cfg.data.clip_len, "fps": cfg.data.fps}
-    if values["use_hubert"]:
-        raise DiffshegError("training with HuBERT features is not supported yet: set "
-                            "use_hubert = false in the model settings")
+    if phonetic is not None:
+        values["hubert_dim"] = phonetic.cfg.dim
     try:
         return ModelConfig.from_dict(values)
     except (TypeError, ValueError) as exc:
         raise DiffshegError(f"model settings: {exc}") from exc
+
+
+def phonetic_encoder(cfg: TrainConfig) -> PhoneticEncoder | None:
+    """The frozen phonetic encoder of a run whose model takes phonetic features."""
+    if not (cfg.model.get("use_hubert") and cfg.model.get("speech_encoder") == "phonetic"):
+        return None
+    if not cfg.phonetic:
+        raise DiffshegError("speech_encoder = \"phonetic\" needs the encoder file: set phonetic = "
+                            "\"path.safetensors\" (train one with python -m diffsheg_core train-phonetic)")
+    return load_phonetic(cfg.phonetic)
 
 
 class Trainer:
@@ -272,14 +287,16 @@ class Trainer:
                                 f"choose one of {', '.join(PRESETS)}")
         self.sampling = sampling_config(cfg)
         self.out = Path(cfg.out_dir)
-        train = load_takes(cfg.data, "train")
-        val = load_takes(cfg.data, "val")
+        self.phonetic = phonetic_encoder(cfg)
+        self.model_cfg = build_model_config(cfg, self.phonetic)
+        speech = speech_encoding(self.model_cfg, self.phonetic, cfg.hubert or None, device=str(env.device))
+        train = load_takes(cfg.data, "train", speech)
+        val = load_takes(cfg.data, "val", speech)
         self.skipped = train.skipped + val.skipped
         self.stats: NormStats = normalisation(cfg.data, train)
         self.train_set = ClipDataset(train.takes, cfg.data.clip_len, cfg.data.stride, self.stats)
         self.val_set = ClipDataset(val.takes, cfg.data.clip_len, cfg.data.clip_len, self.stats) \
             if val.takes and any(t.n_frames >= cfg.data.clip_len for t in val.takes) else None
-        self.model_cfg = build_model_config(cfg, train.layout.name)
         styles = max(t.style for t in train.takes)
         if styles >= self.model_cfg.style_dim:
             raise DiffshegError(f"the data has style class {styles}, but the model has only "
@@ -339,6 +356,7 @@ class Trainer:
         training = {k: v for k, v in asdict(self.cfg).items() if k not in ("data", "card")}
         return ModelBundle(model=ema.to(dtype).eval(), mean=self.stats.mean, std=self.stats.std,
                            sampling=self.sampling, model_id=self.cfg.model_id,
+                           phonetic=copy.deepcopy(self.phonetic).to(dtype) if self.phonetic else None,
                            info={**self.cfg.card, "trained_steps": self.step, "data": asdict(self.cfg.data),
                                  "training": training})
 
@@ -474,7 +492,10 @@ def _train(cfg: TrainConfig, env: Dist) -> dict:
     if env.main and cfg.export:
         summary["export"] = str(save_checkpoint(trainer.bundle(EXPORT_DTYPES[cfg.export_dtype]), cfg.export))
     if env.main:
-        (trainer.out / SUMMARY_FILE).write_text(json.dumps(summary, indent=1))
+        record = trainer.out / SUMMARY_FILE
+        if not losses and record.is_file():  # nothing trained in this call: keep the run's record
+            summary = {**json.loads(record.read_text()), "export": summary.get("export")}
+        record.write_text(json.dumps(summary, indent=1))
         if len(set(checksums)) > 1:
             raise DiffshegError(f"processes ended with different parameters: {checksums}")
     return summary

@@ -275,21 +275,6 @@ def test_hubert_missing_model_folder_is_reported(tmp_path):
         hubert_features(load_audio(SAMPLE_SPEECH), 10, model_path=tmp_path)
 
 
-@pytest.fixture(scope="module")
-def tiny_hubert(tmp_path_factory) -> Path:
-    """A randomly initialised HuBERT with the real layer layout but tiny widths, saved to disk."""
-    transformers = pytest.importorskip("transformers")
-    import torch
-
-    torch.manual_seed(0)
-    config = transformers.HubertConfig(
-        hidden_size=32, num_hidden_layers=2, num_attention_heads=2, intermediate_size=64,
-        conv_dim=(16,) * 7, num_conv_pos_embeddings=16, num_conv_pos_embedding_groups=2)
-    folder = tmp_path_factory.mktemp("tiny_hubert")
-    transformers.HubertModel(config).save_pretrained(folder)
-    return folder
-
-
 def test_hubert_features_with_a_real_transformers_model(tiny_hubert):
     audio = load_audio(SCOTT_24BIT)  # 68 s: runs in four 20 s chunks
     n = n_motion_frames(audio)

@@ -202,3 +202,48 @@ def test_tiny_model_overfits_a_clip_and_reproduces_it(tmp_path):
         # is (about 4x with the abar-weighted x0 terms; about 1.2x with unweighted ones)
         assert distance(sample, clip) < 0.35 * distance(bundle.mean[:g], clip)
         assert distance(sample, clip) < 0.5 * distance(sample, later)
+
+
+def test_training_with_hubert_features(small_root, tmp_path, tiny_hubert):
+    from diffsheg_core.data import load_takes
+    from diffsheg_core.pipeline import speech_encoding
+
+    model = {**TINY, "use_hubert": True, "hubert_dim": 32, "hubert_latent": 16}
+    cfg = TrainConfig.from_dict(config(small_root, tmp_path / "run", steps=3, checkpoint_every=3,
+                                       model=model, hubert=str(tiny_hubert)))
+    cfg.data.cache_dir = str(tmp_path / "cache")
+    assert train(cfg)["step"] == 3
+    bundle = load_model(tmp_path / "run" / MODEL_FILE)
+    assert bundle.config.use_hubert and bundle.config.speech_encoder == "hubert"
+    takes = load_takes(cfg.data, "train", speech_encoding(bundle.config, hubert_path=str(tiny_hubert)))
+    assert takes.takes[0].extra.shape == (takes.takes[0].n_frames, 32)  # cached with the take
+    motion = generate(str(small_root / "talk.wav"), model=bundle, hubert_path=str(tiny_hubert),
+                      steps=3, device="cpu")
+    assert motion.n_frames == 45 and np.isfinite(motion.rotations).all()
+
+
+def test_training_with_the_phonetic_encoder_bundles_it(small_root, tmp_path):
+    from diffsheg_core.phonetic import PhoneticConfig, PhoneticEncoder, save_phonetic
+
+    torch.manual_seed(0)
+    encoder = PhoneticEncoder(PhoneticConfig(channels=16, dilations=(1,))).eval()
+    save_phonetic(encoder, tmp_path / "phonetic.safetensors", {})
+    model = {**TINY, "use_hubert": True, "speech_encoder": "phonetic", "hubert_latent": 16}
+    settings = config(small_root, tmp_path / "run", steps=3, checkpoint_every=3, model=model,
+                      phonetic=str(tmp_path / "phonetic.safetensors"),
+                      export=str(tmp_path / "export.safetensors"), export_dtype="float16")
+    first = train(TrainConfig.from_dict(settings))
+    exported = load_model(first["export"])
+    assert exported.config.hubert_dim == encoder.cfg.dim and exported.phonetic is not None
+    audio = str(small_root / "talk.wav")
+    from diffsheg_core.audio import load_audio
+
+    speech = load_audio(audio)
+    np.testing.assert_allclose(exported.phonetic.features(speech, 45), encoder.features(speech, 45), atol=2e-3)
+    assert generate(audio, model=exported, steps=3, device="cpu").n_frames == 45
+
+    again = train(TrainConfig.from_dict(settings))  # at the final step: only exports again
+    record = json.loads((tmp_path / "run" / SUMMARY_FILE).read_text())
+    assert again["step"] == 3 and record["final_loss"] == first["final_loss"] is not None
+    with pytest.raises(DiffshegError, match="needs the encoder file"):
+        train(TrainConfig.from_dict({**settings, "phonetic": "", "out_dir": str(tmp_path / "other")}))

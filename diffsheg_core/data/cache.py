@@ -33,14 +33,17 @@ def _save(path: Path, take: Take) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
     with os.fdopen(fd, "wb") as fh:
-        np.savez(fh, name=take.name, motion=take.motion, mel=take.mel, style=take.style, mask=take.mask)
+        extra = {} if take.extra is None else {"extra": take.extra}
+        np.savez(fh, name=take.name, motion=take.motion, mel=take.mel, style=take.style, mask=take.mask,
+                 **extra)
     os.replace(tmp, path)
 
 
 def _load(path: Path) -> Take | None:
     try:
         with np.load(path, allow_pickle=False) as z:
-            return Take(str(z["name"]), z["motion"], z["mel"], int(z["style"]), z["mask"])
+            return Take(str(z["name"]), z["motion"], z["mel"], int(z["style"]), z["mask"],
+                        z["extra"] if "extra" in z.files else None)
     except (OSError, KeyError, ValueError):
         return None
 

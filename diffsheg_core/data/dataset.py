@@ -11,6 +11,7 @@ from types import ModuleType
 
 from tqdm import tqdm
 
+from ..audio import SpeechEncoding, load_audio
 from ..errors import DiffshegError
 from ..rigs import Layout
 from . import beat, beat2, corpus, folder
@@ -77,24 +78,35 @@ def find_sources(config: DataConfig, split: str) -> list[TakeSource]:
     return [s for s in sources if s.split == split]
 
 
-def load_takes(config: DataConfig, split: str = "train") -> TakeSet:
-    """Read (or take from the cache) every take of `split`; broken takes are logged and skipped."""
+def load_takes(config: DataConfig, split: str = "train", speech: SpeechEncoding | None = None) -> TakeSet:
+    """Read (or take from the cache) every take of `split`; broken takes are logged and
+    skipped. `speech`: the model's second speech input, computed for every take."""
     reader = config.reader()
     result = TakeSet(reader.LAYOUT, [])
     settings = f"{config.kind}|{config.fps}|{config.style}|{config.max_length_mismatch}"
+    if speech is not None:
+        settings += f"|{speech.key}"
     for source in tqdm(find_sources(config, split), desc=f"reading {split} takes", unit="take",
                        disable=None, leave=False):
         try:
             if source.missing:
                 raise DiffshegError(f"{source.name}: missing {', '.join(source.missing)}")
             take = cached_take(config.cache_dir, source.paths, settings,
-                               lambda: reader.read_take(source, config))
+                               lambda: with_speech(reader.read_take(source, config), source, speech))
         except DiffshegError as exc:
             result.skipped.append((source.name, str(exc)))
             log.warning("skipped take %s", exc)
             continue
         result.takes.append(take)
     return result
+
+
+def with_speech(take: Take, source: TakeSource, speech: SpeechEncoding | None) -> Take:
+    """`take` with its second speech input, computed from the take's audio (every reader
+    aligns frame i of the take with time i / fps of its audio file)."""
+    if speech is not None:
+        take.extra = speech.encode(load_audio(source.files["audio"]), take.n_frames)
+    return take
 
 
 def normalisation(config: DataConfig, train: TakeSet) -> NormStats:

@@ -22,13 +22,15 @@ class TakeError(DiffshegError):
 class Take:
     """motion: (T, D) float32 in layout order (gesture then expression), at the layout's fps;
     mel: (T, 128) float32 features of the same frames; mask: (D,) bool, False for channels
-    the recording does not hold (e.g. no face capture); style: speaker / style class."""
+    the recording does not hold (e.g. no face capture); style: speaker / style class;
+    extra: (T, E) the model's second speech input (HuBERT or phonetic), when it has one."""
 
     name: str
     motion: np.ndarray
     mel: np.ndarray
     style: int
     mask: np.ndarray
+    extra: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:

@@ -20,7 +20,8 @@ def window_starts(n_frames: int, clip_len: int, stride: int) -> list[int]:
 
 class ClipDataset(Dataset):
     """Every window of every take. Items: motion (L, D) normalised, mel (L, 128),
-    style (int), mask (D,) float (1 where the take holds the channel)."""
+    style (int), mask (D,) float (1 where the take holds the channel), and extra (L, E)
+    when the takes carry a second speech input."""
 
     def __init__(self, takes: list[Take], clip_len: int, stride: int, stats: NormStats):
         self.takes = takes
@@ -40,9 +41,12 @@ class ClipDataset(Dataset):
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         take_i, start = self.index[i]
         take, end = self.takes[take_i], start + self.clip_len
-        return {
+        item = {
             "motion": torch.from_numpy(self._normalised[take_i][start:end]),
             "mel": torch.from_numpy(take.mel[start:end]),
             "style": torch.tensor(take.style, dtype=torch.long),
             "mask": torch.from_numpy(take.mask.astype(np.float32)),
         }
+        if take.extra is not None:
+            item["extra"] = torch.from_numpy(take.extra[start:end])
+        return item

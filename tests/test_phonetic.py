@@ -1,0 +1,101 @@
+"""The phonetic encoder: phone labels per frame, the stacked features' alignment, training
+on real synthesised speech with exact phone timings, and storage inside model files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from diffsheg_core.audio import SAMPLE_SPEECH, load_audio, n_motion_frames
+from diffsheg_core.checkpoints import ModelBundle, load_model, save_checkpoint
+from diffsheg_core.corpus.build import BuildConfig, build
+from diffsheg_core.corpus.phones import Phone
+from diffsheg_core.errors import CheckpointError
+from diffsheg_core.foppas import PRESETS
+from diffsheg_core.model import ModelConfig, UniEG
+from diffsheg_core.phonetic import (
+    PHONES, PhoneticConfig, PhoneticEncoder, corpus_utterances, evaluate_phonetic, frame_labels,
+    labelled_mels, load_phonetic, main, save_phonetic,
+)
+from diffsheg_core.pipeline import generate, speech_features
+
+SENTENCES = (
+    "Peter and Bob bought a map of the big park.",
+    "My mother met a man by the pub in March.",
+    "Please put the pepper back on the top shelf.",
+    "Bring me both books about maps and boats.",
+)
+
+
+def test_frame_labels_follow_phone_times():
+    phones = [Phone("SIL", 0.0, 0.1), Phone("M", 0.1, 0.2), Phone("AA", 0.2, 0.4)]
+    labels = frame_labels(phones, 30, 60.0)
+    assert [PHONES[i] for i in labels[[0, 5, 6, 11, 12, 23, 24, 29]]] == \
+        ["SIL", "SIL", "M", "M", "AA", "AA", "SIL", "SIL"]
+
+
+def test_features_stack_four_recogniser_frames_per_motion_frame():
+    torch.manual_seed(0)
+    encoder = PhoneticEncoder(PhoneticConfig(channels=16, dilations=(1,))).eval()
+    audio = load_audio(SAMPLE_SPEECH)
+    n = n_motion_frames(audio)
+    post = encoder.posteriors(audio)
+    feats = encoder.features(audio, n)
+    assert post.shape[1] == len(PHONES) and abs(len(post) - 4 * n) <= 2
+    assert feats.shape == (n, 4 * len(PHONES)) and feats.dtype == np.float32
+    np.testing.assert_allclose(feats.reshape(n, 4, -1).sum(-1), 1.0, atol=1e-5)
+    i = n // 2  # motion frame i (at i / 15 s) holds recogniser frames 4i-2 .. 4i+1
+    np.testing.assert_allclose(feats[i].reshape(4, -1), post[4 * i - 2: 4 * i + 2], atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def tiny_corpus(tmp_path_factory):
+    out = tmp_path_factory.mktemp("phonetic_corpus")
+    text = out / "texts.txt"
+    text.write_text("\n\n".join(SENTENCES))
+    build(BuildConfig(out=out / "c", hours=24 / 3600, jobs=1, seed=1, engines=("espeak",),
+                      text_files=(text,)), progress=False)
+    return out / "c"
+
+
+def test_trained_encoder_recognises_bilabials(tiny_corpus, tmp_path, capsys):
+    torch.set_num_threads(2)
+    out = tmp_path / "phonetic.safetensors"
+    assert main(["--corpus", str(tiny_corpus), "--out", str(out), "--epochs", "120"]) == 0
+    assert '"train_utterances"' in capsys.readouterr().out
+    encoder = load_phonetic(out)
+    data = labelled_mels(corpus_utterances(tiny_corpus, "train", 0.1), encoder.cfg)
+    scores = evaluate_phonetic(encoder, data)
+    assert scores["frame_accuracy"] > 0.6
+    assert scores["p_bilabial_at_bilabials"] > 4 * scores["p_bilabial_at_other_phones"]
+
+
+def _phonetic_bundle() -> ModelBundle:
+    torch.manual_seed(0)
+    encoder = PhoneticEncoder(PhoneticConfig(channels=16, dilations=(1,))).eval()
+    cfg = ModelConfig(latent=32, layers=1, ff=64, heads=4, style_dim=1, use_hubert=True,
+                      speech_encoder="phonetic", hubert_dim=encoder.cfg.dim, hubert_latent=16)
+    d = cfg.dim
+    return ModelBundle(model=UniEG(cfg).eval(), mean=np.zeros(d, np.float32), std=np.ones(d, np.float32),
+                       sampling=PRESETS["no-resample"], model_id="phonetic-test", phonetic=encoder)
+
+
+def test_model_files_carry_their_phonetic_encoder(tmp_path):
+    bundle = _phonetic_bundle()
+    path = save_checkpoint(bundle, tmp_path / "m.safetensors")
+    loaded = load_model(path)
+    assert loaded.phonetic is not None and loaded.config.speech_encoder == "phonetic"
+    audio = load_audio(SAMPLE_SPEECH)
+    torch.testing.assert_close(speech_features(loaded, audio), speech_features(bundle, audio))
+    assert speech_features(loaded, audio).shape[1] == 128 + 4 * len(PHONES)
+    assert generate(audio, model=loaded, steps=3, device="cpu").n_frames == n_motion_frames(audio)
+
+    save_checkpoint(ModelBundle(**{**bundle.__dict__, "phonetic": None}), tmp_path / "bare.safetensors")
+    with pytest.raises(CheckpointError, match="holds no phonetic encoder"):
+        load_model(tmp_path / "bare.safetensors")
+    save_phonetic(bundle.phonetic, tmp_path / "p.safetensors", {})
+    with pytest.raises(CheckpointError, match="not a phonetic encoder"):
+        load_phonetic(path)
+    with pytest.raises(CheckpointError, match="train-phonetic"):
+        load_phonetic(tmp_path / "absent.safetensors")
