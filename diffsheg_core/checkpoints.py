@@ -98,11 +98,33 @@ def load_state_strict(model: torch.nn.Module, state: dict[str, torch.Tensor], so
 
 # ---------------------------------------------------------------- our format
 
-def save_checkpoint(bundle: ModelBundle, path: str | Path) -> Path:
+def write_safetensors(tensors: dict[str, torch.Tensor], meta: dict[str, str], path: str | Path) -> Path:
+    """Write atomically: a run killed mid-write leaves the previous file, not a broken one."""
     from safetensors.torch import save_file
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial")
+    save_file(tensors, str(tmp), metadata=meta)
+    os.replace(tmp, path)
+    return path
+
+
+def read_safetensors(path: Path, fix: str) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
+    """Metadata and tensors of a safetensors file; a damaged file raises CheckpointError
+    ending in `fix`."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file
+
+    try:
+        with safe_open(str(path), framework="pt") as fh:
+            meta = fh.metadata() or {}
+        return meta, load_file(str(path))
+    except Exception as exc:  # safetensors raises several types for damaged files
+        raise CheckpointError(f"{path}: cannot read this safetensors file ({exc}); {fix}") from exc
+
+
+def save_checkpoint(bundle: ModelBundle, path: str | Path) -> Path:
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in bundle.model.state_dict().items()}
     tensors["norm.mean"] = torch.from_numpy(np.asarray(bundle.mean, dtype=np.float32))
     tensors["norm.std"] = torch.from_numpy(np.asarray(bundle.std, dtype=np.float32))
@@ -118,23 +140,11 @@ def save_checkpoint(bundle: ModelBundle, path: str | Path) -> Path:
         "info": json.dumps(bundle.info, default=str),
         **({"phonetic": config_metadata(bundle.phonetic)} if bundle.phonetic is not None else {}),
     }
-    tmp = path.with_name(path.name + ".partial")
-    save_file(tensors, str(tmp), metadata=meta)
-    os.replace(tmp, path)
-    return path
+    return write_safetensors(tensors, meta, path)
 
 
 def _load_ours(path: Path, device: torch.device) -> ModelBundle:
-    from safetensors import safe_open
-    from safetensors.torch import load_file
-
-    try:
-        with safe_open(str(path), framework="pt") as fh:
-            meta = fh.metadata() or {}
-        tensors = load_file(str(path))
-    except Exception as exc:  # safetensors raises several types for damaged files
-        raise CheckpointError(f"{path}: cannot read this safetensors file ({exc}); "
-                              "it may be truncated: download or export it again") from exc
+    meta, tensors = read_safetensors(path, "it may be truncated: download or export it again")
     if meta.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a diffsheg-core checkpoint (format tag "
                               f"{meta.get('format')!r}, expected {FORMAT!r})")
@@ -155,7 +165,7 @@ def _load_ours(path: Path, device: torch.device) -> ModelBundle:
 
 
 def _stored_phonetic(cfg: ModelConfig, meta: dict, tensors: dict, path: Path) -> Optional[PhoneticEncoder]:
-    if not (cfg.use_hubert and cfg.speech_encoder == "phonetic"):
+    if not cfg.phonetic_input:
         return None
     state = {k[len(PHONETIC_PREFIX):]: v for k, v in tensors.items() if k.startswith(PHONETIC_PREFIX)}
     if "phonetic" not in meta or not state:

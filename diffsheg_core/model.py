@@ -55,6 +55,11 @@ class ModelConfig:
         return self.gesture_dim + self.expression_dim
 
     @property
+    def phonetic_input(self) -> bool:
+        """The second speech input is the phonetic encoder's (stored with the model)."""
+        return self.use_hubert and self.speech_encoder == "phonetic"
+
+    @property
     def time_embed_dim(self) -> int:
         return 4 * self.latent
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
 import sys
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -152,31 +151,20 @@ def encoder_from(metadata: str, tensors: dict[str, torch.Tensor], source: str) -
 
 
 def save_phonetic(encoder: PhoneticEncoder, path: str | Path, info: dict) -> Path:
-    from safetensors.torch import save_file
+    from .checkpoints import write_safetensors
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    save_file(state_tensors(encoder), str(tmp),
-              metadata={"format": FORMAT, "config": config_metadata(encoder), "info": json.dumps(info)})
-    os.replace(tmp, path)
-    return path
+    return write_safetensors(state_tensors(encoder), {
+        "format": FORMAT, "config": config_metadata(encoder), "info": json.dumps(info)}, path)
 
 
 def load_phonetic(path: str | Path) -> PhoneticEncoder:
-    from safetensors import safe_open
-    from safetensors.torch import load_file
+    from .checkpoints import read_safetensors
 
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no such phonetic encoder file; train one with "
                               "python -m diffsheg_core train-phonetic")
-    try:
-        with safe_open(str(path), framework="pt") as fh:
-            meta = fh.metadata() or {}
-        tensors = load_file(str(path))
-    except Exception as exc:  # safetensors raises several types for damaged files
-        raise CheckpointError(f"{path}: cannot read this safetensors file ({exc})") from exc
+    meta, tensors = read_safetensors(path, "train the encoder again (python -m diffsheg_core train-phonetic)")
     if meta.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a phonetic encoder (format {meta.get('format')!r})")
     return encoder_from(meta["config"], tensors, str(path))

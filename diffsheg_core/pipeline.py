@@ -55,7 +55,7 @@ def speech_encoding(config: ModelConfig, phonetic: Optional[PhoneticEncoder] = N
     loaded once per process, or the phonetic encoder stored with the model."""
     if not config.use_hubert:
         return None
-    if config.speech_encoder == "phonetic":
+    if config.phonetic_input:
         if phonetic is None:
             raise DiffshegError("this model takes phonetic features, but no phonetic encoder came with "
                                 "it: export the model again from its training run")

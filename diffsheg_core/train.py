@@ -246,24 +246,22 @@ def sampling_config(cfg: TrainConfig) -> FoppasConfig:
     return config
 
 
-def build_model_config(cfg: TrainConfig, phonetic: PhoneticEncoder | None = None) -> ModelConfig:
+def build_model_config(cfg: TrainConfig) -> ModelConfig:
     """The model settings over ModelConfig's defaults (mel only unless use_hubert is set),
-    with the layout, clip length and fps of the data and the phonetic encoder's width."""
+    with the layout, clip length and fps of the data."""
     layout = cfg.data.layout
     values = {"use_hubert": False, **cfg.model, "gesture_dim": layout.gesture_dim,
               "expression_dim": layout.expression_dim, "layout": layout.name,
               "clip_len": cfg.data.clip_len, "fps": cfg.data.fps}
-    if phonetic is not None:
-        values["hubert_dim"] = phonetic.cfg.dim
     try:
         return ModelConfig.from_dict(values)
     except (TypeError, ValueError) as exc:
         raise DiffshegError(f"model settings: {exc}") from exc
 
 
-def phonetic_encoder(cfg: TrainConfig) -> PhoneticEncoder | None:
+def phonetic_encoder(cfg: TrainConfig, model_cfg: ModelConfig) -> PhoneticEncoder | None:
     """The frozen phonetic encoder of a run whose model takes phonetic features."""
-    if not (cfg.model.get("use_hubert") and cfg.model.get("speech_encoder") == "phonetic"):
+    if not model_cfg.phonetic_input:
         return None
     if not cfg.phonetic:
         raise DiffshegError("speech_encoder = \"phonetic\" needs the encoder file: set phonetic = "
@@ -287,8 +285,10 @@ class Trainer:
                                 f"choose one of {', '.join(PRESETS)}")
         self.sampling = sampling_config(cfg)
         self.out = Path(cfg.out_dir)
-        self.phonetic = phonetic_encoder(cfg)
-        self.model_cfg = build_model_config(cfg, self.phonetic)
+        self.model_cfg = build_model_config(cfg)
+        self.phonetic = phonetic_encoder(cfg, self.model_cfg)
+        if self.phonetic is not None:
+            self.model_cfg = replace(self.model_cfg, hubert_dim=self.phonetic.cfg.dim)
         speech = speech_encoding(self.model_cfg, self.phonetic, cfg.hubert or None, device=str(env.device))
         train = load_takes(cfg.data, "train", speech)
         val = load_takes(cfg.data, "val", speech)
