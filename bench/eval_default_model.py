@@ -165,7 +165,8 @@ def summary_table(results: dict[str, dict]) -> str:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--model", help="checkpoint (default: the bundled model)")
-    p.add_argument("--corpus", default=str(REPO.parent / "corpus" / "v1"))
+    p.add_argument("--corpus", default=str(REPO.parent / "corpus" / "v2"),
+                   help="corpus whose val split is the held-out speech (default ../corpus/v2)")
     p.add_argument("--autoencoder", help="autoencoders (.pt) for FGD / FED / FMD")
     p.add_argument("--seconds", type=float, default=60.0, help="held-out corpus speech to evaluate on")
     p.add_argument("--out", default="out/eval-default")

@@ -171,7 +171,9 @@ def open_stream(bundle: ModelBundle, *, seed: int = 0, style: int = 0,
                 device: str = "auto") -> FoppasStream:
     """A `FoppasStream` for live use: push (n, F) speech features from `speech_features`
     (computed on audio chunks whose lengths are multiples of 1/fps s), get normalised
-    motion frames back; `to_motion` turns them into a Motion."""
+    motion frames back; `to_motion` turns them into a Motion. For a model with the phonetic
+    encoder, compute the features over a buffer of the last few seconds and push its newest
+    frames: the encoder looks 0.53 s either side and takes off the level of what it is given."""
     torch_device = resolve_device(device)
     bundle.model.to(torch_device)
     sampler, make = build_sampling(bundle, sampling or bundle.sampling, style, guidance)

@@ -17,7 +17,7 @@ from diffsheg_core.corpus.__main__ import main
 from diffsheg_core.corpus.augment import SAMPLE_RATE, AugmentSpec, augment
 from diffsheg_core.corpus.build import BuildConfig, build, make_utterance, read_manifest, utterance_specs
 from diffsheg_core.corpus.phones import SILENCE, check_phones, phones_from_textgrid
-from diffsheg_core.corpus.synthesis import VoiceSpec, festival_available, synthesize
+from diffsheg_core.corpus.synthesis import FLITE_VOICES, VoiceSpec, engine_available, synthesize
 from diffsheg_core.corpus.teacher import load_utterance, teach
 from diffsheg_core.corpus.texts import fortune_files, load_texts, split_utterances
 from diffsheg_core.errors import DiffshegError
@@ -52,7 +52,8 @@ def _rms(samples: np.ndarray, sr: int, start: float, end: float) -> float:
     return float(np.sqrt(np.mean(seg.astype(np.float64) ** 2)))
 
 
-def _check_timings_fit_speech(synth) -> None:
+def _check_timings_fit_speech(synth, stops: tuple[str, ...] = ("P", "B"),
+                              closure: tuple[float, float] = (0.0, 0.4)) -> None:
     phones = synth.phones
     check_phones(phones)
     assert phones[-1].end == pytest.approx(synth.duration, abs=0.02)
@@ -62,10 +63,10 @@ def _check_timings_fit_speech(synth) -> None:
               for p in phones[1:-1] if p.label == SILENCE and p.end - p.start > 0.06]
     assert pauses, "the two sentences should be separated by a pause"
     # exact timings: the synthesiser's pauses are (nearly) silent in its audio, and so is
-    # the first part (the closure) of every p and b
+    # the first part (the closure) of every p and b (`stops`, the `closure` part of each)
     assert np.mean(pauses) < 0.05 * np.mean(vowels)
-    closures = [_rms(synth.samples, synth.sample_rate, p.start, p.start + 0.4 * (p.end - p.start))
-                for p in phones if p.label in ("P", "B")]
+    closures = [_rms(synth.samples, synth.sample_rate, p.start + closure[0] * (p.end - p.start),
+                     p.start + closure[1] * (p.end - p.start)) for p in phones if p.label in stops]
     assert np.mean(closures) < 0.2 * np.mean(vowels)
     assert any(p.stress == 1 for p in phones if p.is_vowel)
 
@@ -75,10 +76,30 @@ def test_espeak_gives_exact_phone_timings_and_stress():
     _check_timings_fit_speech(synth)
 
 
-@pytest.mark.skipif(not festival_available(), reason="festival is not installed")
+@pytest.mark.skipif(not engine_available("festival"), reason="festival is not installed")
 def test_festival_gives_exact_phone_timings_and_stress():
     synth = synthesize(" ".join(SENTENCES), VoiceSpec("festival", "kal_diphone"))
     _check_timings_fit_speech(synth)
+
+
+@pytest.mark.skipif(not engine_available("flite"), reason="flite is not installed")
+@pytest.mark.parametrize("name", FLITE_VOICES)
+def test_flite_gives_exact_phone_timings_and_stress(name):
+    synth = synthesize(" ".join(SENTENCES), VoiceSpec("flite", name, stretch=1.1, f0_shift=0.9))
+    # flite's parametric voices keep voicing through the closure of b (slt about as loud
+    # as a vowel), as festival's HTS voice does, and start a stop with the transition into
+    # it: p is silent from a quarter of its length on
+    _check_timings_fit_speech(synth, stops=("P",), closure=(0.25, 0.6))
+    slower = synthesize(" ".join(SENTENCES), VoiceSpec("flite", name, stretch=1.3))
+    assert slower.duration > 1.1 * synth.duration
+
+
+def test_unknown_voices_and_engines_are_named():
+    with pytest.raises(DiffshegError, match="unknown speech engine 'mbrola'"):
+        synthesize("Hello.", VoiceSpec("mbrola", "us1"))
+    if engine_available("flite"):
+        with pytest.raises(DiffshegError, match="flite has no voice 'cmu_us_nobody'"):
+            synthesize("Hello.", VoiceSpec("flite", "cmu_us_nobody"))
 
 
 def test_augmentation_retimes_phones():
@@ -94,6 +115,18 @@ def test_augmentation_retimes_phones():
     assert [p.label for p in after] == [p.label for p in before]
     assert [p.start for p in after] == pytest.approx([(p.start + 0.3) / 1.1 for p in before])
     assert np.isfinite(y).all() and np.abs(y).max() < 1.0
+
+
+@pytest.mark.skipif(not engine_available("flite"), reason="flite is not installed")
+def test_band_limits_apply_to_a_16khz_voice_pitched_down():
+    synth = synthesize(SENTENCES[0], VoiceSpec("flite", "cmu_us_rms"))
+    assert synth.sample_rate == SAMPLE_RATE
+    spec = AugmentSpec(pad=(0.1, 0.1), pitch_cents=-380.0, band=(150.0, 7400.0), level_db=-25.0)
+    y, phones = augment(synth.samples, synth.sample_rate, synth.phones, spec, np.random.default_rng(0))
+    assert len(y) / SAMPLE_RATE == pytest.approx(synth.duration + 0.2, abs=0.01)
+    spectrum = np.abs(np.fft.rfft(y)) ** 2
+    freqs = np.fft.rfftfreq(len(y), 1 / SAMPLE_RATE)
+    assert spectrum[freqs > 7800].sum() < 0.01 * spectrum[(freqs > 300) & (freqs < 3000)].sum()
 
 
 def test_texts_are_cut_into_utterances(tmp_path):

@@ -58,7 +58,7 @@ def _arm_columns() -> list[int]:
 def test_bundled_weights_load(bundle):
     assert DEFAULT_WEIGHTS.is_file()
     assert DEFAULT_WEIGHTS.stat().st_size <= 25 * 2**20
-    assert bundle.trained and bundle.model_id == "diffsheg-default-v2"
+    assert bundle.trained and bundle.model_id == "diffsheg-default-v3"
     cfg = bundle.config
     assert cfg.layout == "beat" and cfg.fps == 15.0 and cfg.clip_len == 34
     assert cfg.use_hubert and cfg.speech_encoder == "phonetic" and bundle.phonetic is not None
@@ -102,9 +102,9 @@ def test_lips_close_for_bilabials_in_real_speech(bundle):
     phones = phone_tier(read_textgrid(TAKE_TEXTGRID))
     motion = generate(take, model=bundle, seed=0, device="cpu")
     jaw = phoneme_contrast(mouth_opening(motion), motion.fps, phones)
-    assert jaw["n_bilabial"] >= 20 and jaw["ratio"] > 1.15  # model card, whole take: 1.56
+    assert jaw["n_bilabial"] >= 20 and jaw["ratio"] > 1.15  # model card, whole take: 1.72
     close = phoneme_contrast(face_channel(motion, "mouthClose"), motion.fps, phones)
-    assert close["bilabial"] - close["open"] > 0.04  # model card, whole take: 0.11
+    assert close["bilabial"] - close["open"] > 0.04  # model card, whole take: 0.13
 
     # the phonetic encoder hears p/b/m in a real voice (it was trained on synthetic ones)
     post = bundle.phonetic.posteriors(take)

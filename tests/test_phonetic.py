@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from diffsheg_core.audio import SAMPLE_SPEECH, load_audio, n_motion_frames
+from diffsheg_core.audio import SAMPLE_SPEECH, Audio, load_audio, n_motion_frames
 from diffsheg_core.checkpoints import ModelBundle, load_model, save_checkpoint
 from diffsheg_core.corpus.build import BuildConfig, build
 from diffsheg_core.corpus.phones import Phone
@@ -16,8 +16,9 @@ from diffsheg_core.foppas import PRESETS
 from diffsheg_core.model import ModelConfig, UniEG
 from diffsheg_core.phonetic import (
     PHONES, PhoneticConfig, PhoneticEncoder, corpus_utterances, evaluate_phonetic, frame_labels,
-    labelled_mels, load_phonetic, main, save_phonetic,
+    labelled_mels, load_phonetic, log_mel, main, save_phonetic,
 )
+from diffsheg_core.errors import DiffshegError
 from diffsheg_core.pipeline import generate, speech_features
 
 SENTENCES = (
@@ -33,6 +34,26 @@ def test_frame_labels_follow_phone_times():
     labels = frame_labels(phones, 30, 60.0)
     assert [PHONES[i] for i in labels[[0, 5, 6, 11, 12, 23, 24, 29]]] == \
         ["SIL", "SIL", "M", "M", "AA", "AA", "SIL", "SIL"]
+
+
+def test_utterance_normalisation_takes_the_recording_level_out(data_dir):
+    """A real voice 10 dB louder (or through another microphone gain) gives the same input."""
+    speech = load_audio(data_dir / "beat2" / "2_scott_0_1_1.wav")
+    louder = Audio(speech.samples * np.sqrt(10.0), speech.sample_rate)
+    cfg, raw = PhoneticConfig(), PhoneticConfig(normalise="none")
+    assert cfg.normalise == "utterance"
+    a, b = log_mel(speech, cfg), log_mel(louder, cfg)
+    assert np.abs(a.mean(axis=1)).max() < 1e-4
+    # where the voice is well above the 1e-5 floor the raw level moves by exactly 1 (10 dB);
+    # normalised, by the share of floored frames only
+    voiced = log_mel(speech, raw) > -3.0
+    shift = log_mel(louder, raw) - log_mel(speech, raw)
+    assert np.abs(shift[voiced] - 1.0).max() < 0.01
+    assert np.abs(a - b)[voiced].mean() < 0.3
+    # encoders saved before the option existed saw raw levels
+    assert PhoneticConfig.from_dict({"channels": 16}).normalise == "none"
+    with pytest.raises(DiffshegError, match="normalise must be one of utterance, none"):
+        PhoneticConfig(normalise="global")
 
 
 def test_features_stack_four_recogniser_frames_per_motion_frame():

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
-# Debian packages the project uses outside Python: espeak-ng (sample speech, corpus),
-# sox (corpus augmentation). Festival voices and fortunes are optional extras for
+# Debian packages the project uses outside Python: espeak-ng and flite (sample speech,
+# corpus), sox (corpus augmentation). Festival voices and fortunes are optional extras for
 # building the full training corpus: pass --corpus to install them too.
 set -euo pipefail
-packages=(espeak-ng sox)
+packages=(espeak-ng flite sox)
 if [ "${1:-}" = "--corpus" ]; then
   packages+=(festival festvox-kallpc16k festvox-kdlpc16k festvox-us-slt-hts fortunes)
 fi

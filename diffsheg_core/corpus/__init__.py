@@ -4,8 +4,8 @@ utterance in the `beat` layout.
 
     python -m diffsheg_core.corpus build --out DIR --hours H
 
-Modules: `texts` (Debian's fortunes as utterances), `synthesis` with `espeak` and
-`festival` (speech and timed phones), `phones` (the shared ARPAbet form, TextGrids),
+Modules: `texts` (Debian's fortunes as utterances), `synthesis` with `espeak`,
+`festival` and `flite` (speech and timed phones), `phones` (the shared ARPAbet form, TextGrids),
 `augment` (pitch, tempo, reverb, band limits, noise, level), `prosody` (accents),
 `visemes` and `face` (the procedural face), `gestures` (phrases of the real capture placed
 on accents), `teacher` (all of it as a Motion; utterance files), `build` (the parallel,

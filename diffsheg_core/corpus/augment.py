@@ -65,9 +65,12 @@ def _sox_effects(spec: AugmentSpec) -> list[str]:
     if spec.reverb is not None:
         reverberance, room, wet = spec.reverb
         fx += ["reverb", f"{reverberance:.1f}", "50", f"{room:.1f}", "100", "0", f"{wet:.1f}"]
+    # band limits at the corpus rate: `pitch` down lowers sox's working rate, and a 16 kHz
+    # voice (flite) shifted down would put the low-pass above that rate's Nyquist frequency
+    fx += ["rate", "-v", str(SAMPLE_RATE)]
     if spec.band is not None:
         fx += ["highpass", f"{spec.band[0]:.0f}", "lowpass", f"{spec.band[1]:.0f}"]
-    return fx + ["rate", "-v", str(SAMPLE_RATE)]
+    return fx
 
 
 def _sox(samples: np.ndarray, sample_rate: int, effects: list[str]) -> np.ndarray:

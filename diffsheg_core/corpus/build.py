@@ -19,7 +19,7 @@ import soundfile as sf
 from ..audio import Audio
 from ..errors import DiffshegError
 from .augment import SAMPLE_RATE, AugmentSpec, augment, random_augment
-from .synthesis import VoiceSpec, festival_available, random_voice, synthesize
+from .synthesis import ENGINES, VoiceSpec, engine_available, random_voice, synthesize
 from .teacher import TEACHER_VERSION, save_utterance, teach
 from .texts import load_texts
 
@@ -35,7 +35,7 @@ class BuildConfig:
     hours: float
     jobs: int = 2
     seed: int = 0
-    engines: tuple[str, ...] = ("espeak", "festival")
+    engines: tuple[str, ...] = ENGINES
     text_files: tuple[Path, ...] | None = None
     mocap: Path | None = None
 
@@ -120,10 +120,13 @@ def read_manifest(out: Path) -> dict[int, dict]:
 
 
 def _engines(config: BuildConfig) -> tuple[str, ...]:
-    engines = tuple(e for e in config.engines if e != "festival" or festival_available())
+    unknown = [e for e in config.engines if e not in ENGINES]
+    if unknown:
+        raise DiffshegError(f"unknown speech engine {', '.join(unknown)}: use some of {', '.join(ENGINES)}")
+    engines = tuple(e for e in config.engines if engine_available(e))
     if not engines:
-        raise DiffshegError("no speech synthesiser available: install espeak-ng "
-                            "(and optionally festival with festvox-kallpc16k)")
+        raise DiffshegError("no speech synthesiser available: run `bash tools/install_system_packages.sh "
+                            "--corpus` (espeak-ng, festival and flite)")
     return engines
 
 

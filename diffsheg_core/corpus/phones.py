@@ -1,5 +1,5 @@
 """Timed phones in one shared alphabet (ARPAbet without stress digits, `SIL` for pauses),
-whatever made them: espeak-ng, festival, or a forced aligner's TextGrid."""
+whatever made them: espeak-ng, festival, flite, or a forced aligner's TextGrid."""
 
 from __future__ import annotations
 
@@ -59,7 +59,7 @@ _ESPEAK = {
     "*": "R", "l#": "L", "z#": "Z", "s#": "S", "w#": "W",
 }
 
-# festival's US phone set (radio) -> ARPAbet.
+# festival's US phone set (radio, also flite's) -> ARPAbet.
 _FESTIVAL = {
     "ax": "AH", "axr": "ER", "el": "L", "em": "M", "en": "N", "dx": "T", "hv": "HH",
     "ix": "IH", "nx": "N", "pau": SILENCE, "h#": SILENCE, "brth": SILENCE, "#": SILENCE,

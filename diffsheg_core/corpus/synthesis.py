@@ -1,8 +1,9 @@
 """Speech synthesis with timed phones: the voices the corpus draws from and one entry
-point, `synthesize`, over the espeak-ng and festival back ends."""
+point, `synthesize`, over the espeak-ng, festival and flite back ends."""
 
 from __future__ import annotations
 
+import ctypes.util
 import shutil
 from dataclasses import dataclass
 
@@ -35,7 +36,8 @@ FESTIVAL_VOICES = ("kal_diphone", "ked_diphone", "cmu_us_slt_arctic_hts")
 class VoiceSpec:
     """A voice and its speaking style. `rate` (words per minute), `pitch` and
     `pitch_range` (0-100) and `word_gap` (10 ms units) are espeak-ng parameters;
-    festival voices use `stretch` (duration factor) instead."""
+    festival and flite voices use `stretch` (duration factor) instead, flite also
+    `f0_shift` (pitch factor)."""
 
     engine: str
     name: str
@@ -44,6 +46,7 @@ class VoiceSpec:
     pitch_range: int = 50
     word_gap: int = 0
     stretch: float = 1.0
+    f0_shift: float = 1.0
 
 
 @dataclass
@@ -60,16 +63,36 @@ class Synthesis:
         return len(self.samples) / self.sample_rate
 
 
-def festival_available() -> bool:
-    return shutil.which("festival") is not None
+FLITE_VOICES = ("cmu_us_rms", "cmu_us_slt", "cmu_us_awb")
+"""Flite's clustergen voices in Debian's flite package: US male, US female, Scottish male."""
+
+ENGINES = ("espeak", "festival", "flite")
+
+_ENGINE_WEIGHTS = {"espeak": 0.4, "festival": 0.25, "flite": 0.35}
+"""How often each engine speaks when all are allowed: espeak-ng brings the most voices and
+accents, festival and flite (statistical parametric voices) sound nearer a human voice."""
 
 
-def random_voice(rng: np.random.Generator, engines: tuple[str, ...] = ("espeak", "festival")) -> VoiceSpec:
-    """Draw a voice and speaking style. Festival, whose voices sound more natural (the HTS
-    voice most), is drawn a third of the time when allowed, HTS for half of those."""
-    if "festival" in engines and ("espeak" not in engines or rng.random() < 1 / 3):
+def engine_available(engine: str) -> bool:
+    """Whether a synthesiser's program or library is installed (espeak-ng is checked when
+    it first speaks: it is always installed with the project's system packages)."""
+    if engine == "festival":
+        return shutil.which("festival") is not None
+    if engine == "flite":
+        return ctypes.util.find_library("flite") is not None
+    return engine == "espeak"
+
+
+def random_voice(rng: np.random.Generator, engines: tuple[str, ...] = ENGINES) -> VoiceSpec:
+    """Draw an engine (by `_ENGINE_WEIGHTS` among `engines`), a voice and a speaking style."""
+    weights = np.array([_ENGINE_WEIGHTS[e] for e in engines])
+    engine = engines[int(rng.choice(len(engines), p=weights / weights.sum()))]
+    if engine == "festival":
         return VoiceSpec("festival", str(rng.choice(FESTIVAL_VOICES, p=[0.25, 0.25, 0.5])),
                          stretch=float(rng.uniform(0.85, 1.25)))
+    if engine == "flite":
+        return VoiceSpec("flite", str(rng.choice(FLITE_VOICES)), stretch=float(rng.uniform(0.85, 1.25)),
+                         f0_shift=float(rng.uniform(0.85, 1.2)))
     accent = str(rng.choice(ESPEAK_ACCENTS))
     variant = str(rng.choice(ESPEAK_VARIANTS))
     return VoiceSpec(
@@ -87,6 +110,8 @@ def synthesize(text: str, voice: VoiceSpec) -> Synthesis:
         from .espeak import synthesize as speak
     elif voice.engine == "festival":
         from .festival import synthesize as speak
+    elif voice.engine == "flite":
+        from .flite import synthesize as speak
     else:
-        raise DiffshegError(f"unknown speech engine {voice.engine!r}: use 'espeak' or 'festival'")
+        raise DiffshegError(f"unknown speech engine {voice.engine!r}: use one of {', '.join(ENGINES)}")
     return speak(text, voice)
