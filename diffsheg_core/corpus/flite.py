@@ -56,7 +56,7 @@ class _Engine:
             getattr(lib, fn).restype, getattr(lib, fn).argtypes = res, args
         lib.flite_init()
         self.lib = lib
-        self.voices: dict[str, ctypes.c_void_p] = {}
+        self.voices: dict[str, int] = {}
 
     def voice(self, name: str) -> int:
         if name not in self.voices:
@@ -67,7 +67,10 @@ class _Engine:
                                     f"{_INSTALL}") from exc
             register = getattr(vox_lib, f"register_{name}")
             register.restype, register.argtypes = ctypes.c_void_p, [ctypes.c_char_p]
-            self.voices[name] = register(None)
+            voice = register(None)
+            if not voice:
+                raise DiffshegError(f"flite could not load its voice {name!r}: {_INSTALL}")
+            self.voices[name] = voice
         return self.voices[name]
 
     def run(self, voice: VoiceSpec, text: str) -> tuple[np.ndarray, int, list[tuple[str, float, int]]]:
