@@ -11,7 +11,7 @@ from pathlib import Path
 import soundfile as sf
 
 from ..errors import DiffshegError
-from .phones import Phone, VOWELS, extend_to, from_festival, merge_silences
+from .phones import extend_to, from_festival_segments, merge_silences
 from .synthesis import Synthesis, VoiceSpec
 
 _SCRIPT = """
@@ -54,16 +54,9 @@ def synthesize(text: str, voice: VoiceSpec) -> Synthesis:
             raise DiffshegError(f"festival failed with voice {voice.name!r} (is its festvox package "
                                 f"installed?): {run.stderr.strip()[-300:]}")
         samples, sr = sf.read(wave, dtype="float32", always_2d=True)
-    phones, start = [], 0.0
-    for line in run.stdout.splitlines():
-        parts = line.split()
-        if len(parts) != 4 or parts[0] != "SEG":
-            continue
-        label, end = from_festival(parts[1]), float(parts[2])
-        if end > start:
-            stress = (1 if parts[3] == "1" else 0) if label in VOWELS else 0
-            phones.append(Phone(label, start, end, stress))
-            start = end
+    lines = [line.split() for line in run.stdout.splitlines()]
+    phones = from_festival_segments([(parts[1], float(parts[2]), parts[3] == "1")
+                                     for parts in lines if len(parts) == 4 and parts[0] == "SEG"])
     if not phones:
         raise DiffshegError(f"festival printed no segments for {text[:40]!r}")
     # the wave runs on for part of a pitch period after the last segment's end

@@ -13,7 +13,7 @@ import ctypes.util
 import numpy as np
 
 from ..errors import DiffshegError
-from .phones import Phone, VOWELS, extend_to, from_festival, merge_silences
+from .phones import extend_to, from_festival_segments, merge_silences
 from .synthesis import FLITE_VOICES, Synthesis, VoiceSpec
 
 _INSTALL = "run `apt-get install flite` (Debian/Ubuntu) and retry"
@@ -73,8 +73,8 @@ class _Engine:
             self.voices[name] = voice
         return self.voices[name]
 
-    def run(self, voice: VoiceSpec, text: str) -> tuple[np.ndarray, int, list[tuple[str, float, int]]]:
-        """Samples, sample rate and (segment, end time, stress) of `text` spoken by `voice`."""
+    def run(self, voice: VoiceSpec, text: str) -> tuple[np.ndarray, int, list[tuple[str, float, bool]]]:
+        """Samples, sample rate and (segment, end time, in a stressed syllable) of `text`."""
         vox = self.voice(voice.name)
         features = ctypes.cast(vox, ctypes.POINTER(_Voice)).contents.features
         self.lib.flite_feat_set_float(features, b"duration_stretch", voice.stretch)
@@ -90,7 +90,7 @@ class _Engine:
             while item:
                 stress = self.lib.ffeature_string(item, b"R:SylStructure.parent.stress") or b"0"
                 segments.append((self.lib.item_feat_string(item, b"name").decode(),
-                                 float(self.lib.item_feat_float(item, b"end")), int(stress == b"1")))
+                                 float(self.lib.item_feat_float(item, b"end")), stress == b"1"))
                 item = self.lib.item_next(item)
             return samples, int(wave.sample_rate), segments
         finally:
@@ -106,12 +106,7 @@ def synthesize(text: str, voice: VoiceSpec) -> Synthesis:
     if _engine is None:
         _engine = _Engine()
     samples, sr, segments = _engine.run(voice, text)
-    phones, start = [], 0.0
-    for name, end, stress in segments:
-        if end > start:
-            label = from_festival(name)
-            phones.append(Phone(label, start, end, stress if label in VOWELS else 0))
-            start = end
+    phones = from_festival_segments(segments)
     if not phones or len(samples) == 0:
         raise DiffshegError(f"flite produced no speech for {text[:40]!r}")
     return Synthesis(samples, sr, extend_to(merge_silences(phones), len(samples) / sr), voice)

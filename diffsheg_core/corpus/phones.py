@@ -89,6 +89,19 @@ def from_festival(symbol: str) -> str:
     return label
 
 
+def from_festival_segments(segments: list[tuple[str, float, bool]]) -> list[Phone]:
+    """Phones from festival / flite segments given as (name, end time, in a stressed
+    syllable), in order; each starts where the one before ended, empty ones are dropped,
+    and only vowels keep the stress."""
+    phones, start = [], 0.0
+    for name, end, stressed in segments:
+        if end > start:
+            label = from_festival(name)
+            phones.append(Phone(label, start, end, int(stressed) if label in VOWELS else 0))
+            start = end
+    return phones
+
+
 _ARPA_STRESS = re.compile(r"^([A-Z]+)([012])?$")
 
 
