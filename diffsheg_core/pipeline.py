@@ -97,6 +97,8 @@ def make_eps_fn_factory(bundle: ModelBundle, sampler: Foppas, style: torch.Tenso
     """Bind model, style and guidance; the result binds one window's speech features."""
     cfg, sched, device = bundle.config, sampler.schedule, bundle.device
     style = style.to(device)
+    if guidance == 1.0:  # uncond + 1 * (cond - uncond) is the conditioned pass alone: skip the null pass
+        guidance = None
 
     def make(cond: torch.Tensor) -> EpsFn:
         mel = cond[..., : cfg.mel_dim]

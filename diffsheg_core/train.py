@@ -29,12 +29,13 @@ import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.distributed as dist
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from .checkpoints import ModelBundle, save_checkpoint
+from .checkpoints import ModelBundle, load_model, load_state_strict, save_checkpoint
 from .data import ClipDataset, DataConfig, NormStats, load_takes, normalisation
 from .diffusion import Schedule
 from .errors import DiffshegError
@@ -74,6 +75,8 @@ class TrainConfig:
     huber_delta: float = 1.0
     x0_weighting: str = "abar"      # abar (x0 terms weighted by abar_t per sample) or none (unweighted)
     cond_drop: float = 0.0          # classifier-free dropout probability (official SHOW: 0.2)
+    guidance: float | None = None   # default guidance scale stored in the checkpoints (guided models)
+    init_from: str = ""             # start from this checkpoint's weights (fine-tuning; see init_weights)
     precision: str = "auto"         # auto (bf16/fp16 on GPU, fp32 on CPU), fp32, bf16, fp16
     device: str = "auto"
     seed: int = 0
@@ -105,17 +108,41 @@ class TrainConfig:
         return cls(data=DataConfig(**data), **values)
 
 
-def read_config_file(path: str | Path) -> dict:
-    """A JSON (.json) or TOML (any other suffix) file as a dict."""
+def read_config_file(path: str | Path, _chain: tuple[Path, ...] = ()) -> dict:
+    """A JSON (.json) or TOML (any other suffix) file as a dict.
+
+    A top-level `extends = "other.toml"` (relative to this file) starts from that file's
+    settings; this file's values replace them, table by table (so a fine-tuning run can
+    name only what differs from its base run).
+    """
     path = Path(path)
     if not path.is_file():
         raise DiffshegError(f"{path}: no such configuration file")
     try:
         if path.suffix.lower() == ".json":
-            return json.loads(path.read_text(encoding="utf-8"))
-        return tomllib.loads(path.read_text(encoding="utf-8"))
+            values = json.loads(path.read_text(encoding="utf-8"))
+        else:
+            values = tomllib.loads(path.read_text(encoding="utf-8"))
     except (ValueError, tomllib.TOMLDecodeError) as exc:
         raise DiffshegError(f"{path}: not valid {'JSON' if path.suffix == '.json' else 'TOML'} ({exc})") from exc
+    base = values.pop("extends", None)
+    if base is None:
+        return values
+    if not isinstance(base, str):
+        raise DiffshegError(f"{path}: extends must be a file name, got {base!r}")
+    base_path = (path.parent / base).resolve()
+    if base_path in _chain or base_path == path.resolve():
+        raise DiffshegError(f"{path}: extends {base}, which extends it back")
+    return merge_settings(read_config_file(base_path, (*_chain, path.resolve())), values)
+
+
+def merge_settings(base: dict, over: dict) -> dict:
+    """`base` with `over`'s values, merged into nested tables rather than replacing them."""
+    merged = dict(base)
+    for key, value in over.items():
+        both_tables = isinstance(value, dict) and isinstance(merged.get(key), dict)
+        merged[key] = merge_settings(merged[key], value) if both_tables else value
+    return merged
 
 
 # ---------------------------------------------------------------- processes and devices
@@ -214,7 +241,8 @@ def diffsheg_loss(model: torch.nn.Module, schedule: Schedule, batch: dict[str, t
     noise = torch.randn(batch["motion"].shape, generator=gen).to(device)
     style = F.one_hot(batch["style"], style_dim).float()
     drop = (torch.rand(b, generator=gen) < cfg.cond_drop).to(device)
-    style = style * (~drop).float().unsqueeze(1)
+    if not null_condition:  # without a null speech condition, the dropout drops the style
+        style = style * (~drop).float().unsqueeze(1)
     order = torch.argsort(~drop, stable=True)  # dropped rows first: the model nulls the first rows
     index, noise, style = index[order], noise[order], style[order]
     batch = {k: v[order] for k, v in batch.items()}
@@ -259,6 +287,21 @@ def build_model_config(cfg: TrainConfig) -> ModelConfig:
         raise DiffshegError(f"model settings: {exc}") from exc
 
 
+def default_guidance(cfg: TrainConfig, model_cfg: ModelConfig) -> float | None:
+    """The guidance scale the run's checkpoints generate with by default."""
+    if model_cfg.classifier_free and cfg.cond_drop <= 0:
+        raise DiffshegError("classifier_free = true needs cond_drop above 0 (e.g. 0.15), or the null "
+                            "condition is never trained")
+    if cfg.guidance is None:
+        return None
+    if not model_cfg.classifier_free:
+        raise DiffshegError("guidance needs a model with a null condition: set classifier_free = true "
+                            "in [model] and cond_drop above 0")
+    if not 0.0 <= cfg.guidance <= 10.0:
+        raise DiffshegError(f"guidance must be between 0 and 10, got {cfg.guidance}")
+    return float(cfg.guidance)
+
+
 def phonetic_encoder(cfg: TrainConfig, model_cfg: ModelConfig) -> PhoneticEncoder | None:
     """The frozen phonetic encoder of a run whose model takes phonetic features."""
     if not model_cfg.phonetic_input:
@@ -286,6 +329,7 @@ class Trainer:
         self.sampling = sampling_config(cfg)
         self.out = Path(cfg.out_dir)
         self.model_cfg = build_model_config(cfg)
+        self.guidance = default_guidance(cfg, self.model_cfg)
         self.phonetic = phonetic_encoder(cfg, self.model_cfg)
         if self.phonetic is not None:
             self.model_cfg = replace(self.model_cfg, hubert_dim=self.phonetic.cfg.dim)
@@ -307,12 +351,16 @@ class Trainer:
         self.ema = UniEG(self.model_cfg).to(env.device).eval()
         self.ema.load_state_dict(self.model.state_dict())
         self.ema.requires_grad_(False)
-        self.ddp = torch.nn.parallel.DistributedDataParallel(self.model) if env.world > 1 else self.model
+        # a rank whose batch drew no null rows leaves the null condition without a gradient
+        self.ddp = torch.nn.parallel.DistributedDataParallel(
+            self.model, find_unused_parameters=self.model_cfg.classifier_free) if env.world > 1 else self.model
         self.opt = torch.optim.AdamW(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         self.amp = autocast_dtype(cfg.precision, env.device)
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp == torch.float16)
         self.schedule = Schedule.linear()
         self.step = 0
+        if cfg.init_from:
+            self.init_weights(cfg.init_from)
 
     # -- state
 
@@ -341,6 +389,29 @@ class Trainer:
         self.step = int(state["step"])
         return True
 
+    def init_weights(self, path: str) -> None:
+        """Model and EMA from a generation checkpoint of the same network on the same data.
+
+        The one difference allowed is a learned null condition (classifier_free) that the
+        checkpoint lacks: it keeps its fresh initialisation, so an unguided model can be
+        fine-tuned into a guided one.
+        """
+        source = load_model(path)
+        theirs, ours = source.config.to_dict(), self.model_cfg.to_dict()
+        differ = sorted(k for k in ours if k != "classifier_free" and theirs.get(k) != ours[k])
+        if differ:
+            raise DiffshegError(f"init_from {path}: its model differs in {', '.join(differ)}; "
+                                "make the [model] settings match it")
+        if source.mean.shape != self.stats.mean.shape or not (
+                np.allclose(source.mean, self.stats.mean, atol=1e-4)
+                and np.allclose(source.std, self.stats.std, atol=1e-4)):
+            raise DiffshegError(f"init_from {path}: it was trained with other normalisation statistics, "
+                                "so on other data; train on the data it was trained on")
+        state = {**self.model.state_dict(),
+                 **{k: v.float() for k, v in source.model.state_dict().items()}}
+        load_state_strict(self.model, state, f"init_from {path}")
+        self.ema.load_state_dict(self.model.state_dict())
+
     def save(self) -> None:
         """Training state, then the generation checkpoint, each written atomically."""
         self.out.mkdir(parents=True, exist_ok=True)
@@ -355,7 +426,7 @@ class Trainer:
         ema.load_state_dict({k: v.cpu() for k, v in self.ema.state_dict().items()})
         training = {k: v for k, v in asdict(self.cfg).items() if k not in ("data", "card")}
         return ModelBundle(model=ema.to(dtype).eval(), mean=self.stats.mean, std=self.stats.std,
-                           sampling=self.sampling, model_id=self.cfg.model_id,
+                           sampling=self.sampling, guidance=self.guidance, model_id=self.cfg.model_id,
                            phonetic=copy.deepcopy(self.phonetic).to(dtype) if self.phonetic else None,
                            info={**self.cfg.card, "trained_steps": self.step, "data": asdict(self.cfg.data),
                                  "training": training})

@@ -102,6 +102,19 @@ def test_unknown_voices_and_engines_are_named():
             synthesize("Hello.", VoiceSpec("flite", "cmu_us_nobody"))
 
 
+def test_a_requested_engine_that_is_not_installed_stops_the_build(tmp_path, monkeypatch):
+    """The corpus would silently change its voice mix: the build names the engine instead."""
+    import diffsheg_core.corpus.build as build_module
+
+    monkeypatch.setattr(build_module, "engine_available", lambda engine: engine != "festival")
+    config = BuildConfig(out=tmp_path / "c", hours=1 / 3600, jobs=1, engines=("espeak", "festival"))
+    with pytest.raises(DiffshegError, match="festival is not installed: .*--corpus.*--engines espeak$"):
+        build(config, progress=False)
+    assert not (tmp_path / "c").exists()
+    with pytest.raises(DiffshegError, match="unknown speech engine mbrola"):
+        build(BuildConfig(out=tmp_path / "c", hours=1 / 3600, engines=("mbrola",)), progress=False)
+
+
 def test_augmentation_retimes_phones():
     synth = synthesize(SENTENCES[0], VoiceSpec("espeak", "en-us"))
     spec = AugmentSpec(pad=(0.3, 0.2), pitch_cents=200.0, tempo=1.1, reverb=(40.0, 60.0, -4.0),

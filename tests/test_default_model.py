@@ -58,7 +58,8 @@ def _arm_columns() -> list[int]:
 def test_bundled_weights_load(bundle):
     assert DEFAULT_WEIGHTS.is_file()
     assert DEFAULT_WEIGHTS.stat().st_size <= 25 * 2**20
-    assert bundle.trained and bundle.model_id == "diffsheg-default-v3"
+    assert bundle.trained and bundle.model_id == "diffsheg-default-v4"
+    assert bundle.config.classifier_free and bundle.guidance == 2.0  # generation is guided by default
     cfg = bundle.config
     assert cfg.layout == "beat" and cfg.fps == 15.0 and cfg.clip_len == 34
     assert cfg.use_hubert and cfg.speech_encoder == "phonetic" and bundle.phonetic is not None
@@ -102,9 +103,13 @@ def test_lips_close_for_bilabials_in_real_speech(bundle):
     phones = phone_tier(read_textgrid(TAKE_TEXTGRID))
     motion = generate(take, model=bundle, seed=0, device="cpu")
     jaw = phoneme_contrast(mouth_opening(motion), motion.fps, phones)
-    assert jaw["n_bilabial"] >= 20 and jaw["ratio"] > 1.15  # model card, whole take: 1.72
+    assert jaw["n_bilabial"] >= 20 and jaw["ratio"] > 1.8  # model card, whole take: 2.29
     close = phoneme_contrast(face_channel(motion, "mouthClose"), motion.fps, phones)
-    assert close["bilabial"] - close["open"] > 0.04  # model card, whole take: 0.13
+    assert close["bilabial"] - close["open"] > 0.1  # model card, whole take: 0.19
+
+    # the default guidance is what shuts the jaw at p/b/m (unguided, 30 s: 1.50 against 2.15)
+    unguided = generate(take, model=bundle, seed=0, device="cpu", guidance=1.0)
+    assert phoneme_contrast(mouth_opening(unguided), unguided.fps, phones)["ratio"] < jaw["ratio"] - 0.3
 
     # the phonetic encoder hears p/b/m in a real voice (it was trained on synthetic ones)
     post = bundle.phonetic.posteriors(take)

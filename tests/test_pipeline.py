@@ -171,3 +171,22 @@ def test_open_stream_matches_generate(speech, model):
     offline = generate(speech, model=model, seed=5, device="cpu")
     assert streamed.n_frames == offline.n_frames == 60
     assert np.array_equal(streamed.rotations, offline.rotations)
+
+
+def test_guidance_one_is_the_conditioned_pass_alone(speech):
+    cfg = ModelConfig(classifier_free=True, use_hubert=False, latent=32, layers=1, ff=64, heads=4,
+                      style_dim=1, mel_dim=128)
+    torch.manual_seed(0)
+    bundle = ModelBundle(model=UniEG(cfg).eval(), mean=np.zeros(cfg.dim, np.float32),
+                         std=np.ones(cfg.dim, np.float32), sampling=PRESETS["no-resample"],
+                         guidance=1.0, model_id="tiny-guided", trained=False)
+    x = torch.randn(1, cfg.clip_len, cfg.dim)
+    mel = torch.rand(1, cfg.clip_len, cfg.mel_dim)
+    coefs = (torch.full((1, 1, 1), 2.0), torch.full((1, 1, 1), 1.5))
+    step = torch.tensor([500])
+    with torch.no_grad():
+        guided = bundle.model(x, step, mel, None, torch.ones(1, 1), coefs, 1.0)
+        alone = bundle.model(x, step, mel, None, torch.ones(1, 1), coefs, None)
+    torch.testing.assert_close(guided, alone, atol=1e-5, rtol=1e-5)
+    motion = generate(speech, model=bundle, steps=3, device="cpu")
+    assert motion.meta["guidance"] == 1.0 and np.isfinite(motion.face).all()

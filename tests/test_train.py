@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +24,10 @@ from diffsheg_core.motion import Motion, write_livelink_csv
 from diffsheg_core.rigs import ARKIT51
 from diffsheg_core.pipeline import generate
 from diffsheg_core.diffusion import Schedule
+from diffsheg_core.model import UniEG
 from diffsheg_core.train import (
-    LOG_FILE, MODEL_FILE, STATE_FILE, SUMMARY_FILE, TrainConfig, read_config_file, train, x0_term_weight,
+    LOG_FILE, MODEL_FILE, STATE_FILE, SUMMARY_FILE, Dist, TrainConfig, Trainer, diffsheg_loss,
+    read_config_file, train, x0_term_weight,
 )
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
@@ -247,3 +250,76 @@ def test_training_with_the_phonetic_encoder_bundles_it(small_root, tmp_path):
     assert again["step"] == 3 and record["final_loss"] == first["final_loss"] is not None
     with pytest.raises(DiffshegError, match="needs the encoder file"):
         train(TrainConfig.from_dict({**settings, "phonetic": "", "out_dir": str(tmp_path / "other")}))
+
+
+def test_fine_tuning_an_unguided_run_into_a_guided_model_with_torchrun(small_root, tmp_path):
+    """init_from starts from another run's weights (the null condition starts fresh), and two
+    processes train the null condition even when one of them draws no dropped rows."""
+    base = tmp_path / "base"
+    train(TrainConfig.from_dict(config(small_root, base, steps=5, checkpoint_every=5)))
+    guided_model = {**TINY, "classifier_free": True}
+    settings = config(small_root, tmp_path / "guided", steps=6, checkpoint_every=100, cond_drop=0.3,
+                      guidance=1.5, init_from=str(base / MODEL_FILE), model=guided_model)
+
+    start = Trainer(TrainConfig.from_dict(settings), Dist())
+    source = load_model(base / MODEL_FILE).model.state_dict()
+    for name, value in start.ema.state_dict().items():
+        if "null_cond_emb" not in name:
+            torch.testing.assert_close(value, source[name], msg=name)
+
+    (tmp_path / "guided.json").write_text(json.dumps(settings))
+    proc = _run(["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                 "-m", "diffsheg_core.train", "--config", str(tmp_path / "guided.json"), "--device", "cpu"])
+    out = proc.communicate(timeout=300)[0]
+    assert proc.returncode == 0, out
+    first, second = json.loads((tmp_path / "guided" / SUMMARY_FILE).read_text())["param_checksums"]
+    assert first == second
+    bundle = load_model(tmp_path / "guided" / MODEL_FILE)
+    assert bundle.config.classifier_free and bundle.guidance == 1.5
+    motion = generate(str(small_root / "talk.wav"), model=bundle, steps=2, device="cpu")
+    assert motion.meta["guidance"] == 1.5 and np.isfinite(motion.rotations).all()
+
+    with pytest.raises(DiffshegError, match="its model differs in latent"):
+        Trainer(TrainConfig.from_dict({**settings, "model": {**guided_model, "latent": 48}}), Dist())
+    with pytest.raises(DiffshegError, match="guidance needs a model with a null condition"):
+        Trainer(TrainConfig.from_dict({**settings, "model": dict(TINY), "init_from": ""}), Dist())
+    with pytest.raises(DiffshegError, match="needs cond_drop above 0"):
+        Trainer(TrainConfig.from_dict({**settings, "cond_drop": 0.0}), Dist())
+
+
+def test_speech_dropout_keeps_the_style_of_guided_models(small_root, tmp_path):
+    """Guided sampling runs its null pass with the real style, so the rows trained on the
+    null condition keep theirs; without a null condition the dropout drops the style."""
+    seen = {}
+
+    class Recording(UniEG):
+        def forward(self, *args, **kwargs):
+            seen["style"], seen["null_rows"] = args[4].clone(), kwargs.get("null_rows", 0)
+            return super().forward(*args, **kwargs)
+
+    cfg = TrainConfig.from_dict(config(small_root, tmp_path / "x", cond_drop=1.0,
+                                       model={**TINY, "classifier_free": True}))
+    trainer = Trainer(cfg, Dist())
+    batch = trainer.batch(trainer.train_set, torch.arange(4))
+    for null_condition, style_sum, null_rows in ((True, 4.0, 4), (False, 0.0, 0)):
+        model = Recording(replace(trainer.model_cfg, classifier_free=null_condition))
+        diffsheg_loss(model, trainer.schedule, batch, cfg, torch.Generator().manual_seed(0),
+                      trainer.model_cfg.style_dim, null_condition)
+        assert float(seen["style"].sum()) == style_sum and seen["null_rows"] == null_rows
+
+
+def test_a_configuration_extends_its_base_table_by_table(tmp_path):
+    (tmp_path / "base.toml").write_text('steps = 8000\nlr = 7e-4\nexport = "w.safetensors"\n'
+                                        '[data]\nkind = "corpus"\nroot = "c"\n[model]\nlatent = 192\nlayers = 3\n')
+    (tmp_path / "tune").mkdir()
+    (tmp_path / "tune" / "guided.toml").write_text('extends = "../base.toml"\nsteps = 2000\ncond_drop = 0.15\n'
+                                                   '[model]\nclassifier_free = true\n')
+    cfg = TrainConfig.from_dict(read_config_file(tmp_path / "tune" / "guided.toml"))
+    assert (cfg.steps, cfg.lr, cfg.cond_drop, cfg.export) == (2000, 7e-4, 0.15, "w.safetensors")
+    assert cfg.model == {"latent": 192, "layers": 3, "classifier_free": True} and cfg.data.root == "c"
+    (tmp_path / "base.toml").write_text('extends = "tune/guided.toml"\n')
+    with pytest.raises(DiffshegError, match="extends it back"):
+        read_config_file(tmp_path / "tune" / "guided.toml")
+    (tmp_path / "odd.toml").write_text("extends = 3\n")
+    with pytest.raises(DiffshegError, match="extends must be a file name"):
+        read_config_file(tmp_path / "odd.toml")

@@ -123,11 +123,15 @@ def _engines(config: BuildConfig) -> tuple[str, ...]:
     unknown = [e for e in config.engines if e not in ENGINES]
     if unknown:
         raise DiffshegError(f"unknown speech engine {', '.join(unknown)}: use some of {', '.join(ENGINES)}")
-    engines = tuple(e for e in config.engines if engine_available(e))
-    if not engines:
-        raise DiffshegError("no speech synthesiser available: run `bash tools/install_system_packages.sh "
-                            "--corpus` (espeak-ng, festival and flite)")
-    return engines
+    if not config.engines:
+        raise DiffshegError(f"no speech engine named: use some of {', '.join(ENGINES)}")
+    missing = [e for e in config.engines if not engine_available(e)]
+    if missing:
+        present = [e for e in config.engines if e not in missing]
+        leave_out = f", or build without them: --engines {','.join(present)}" if present else ""
+        raise DiffshegError(f"speech engine {', '.join(missing)} is not installed: run `bash "
+                            f"tools/install_system_packages.sh --corpus`{leave_out}")
+    return tuple(config.engines)
 
 
 def _size_bytes(out: Path) -> int:
@@ -142,9 +146,9 @@ def build(config: BuildConfig, progress: bool = True) -> dict:
         raise DiffshegError(f"--hours must be positive, got {config.hours}")
     if config.jobs < 1:
         raise DiffshegError(f"--jobs must be at least 1, got {config.jobs}")
+    engines = _engines(config)
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
-    engines = _engines(config)
     texts = load_texts(list(config.text_files) if config.text_files else None)
     done = read_manifest(out)
     target = config.hours * 3600.0
