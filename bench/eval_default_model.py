@@ -182,7 +182,8 @@ def main() -> int:
 
     results: dict[str, dict] = {}
     wav, teacher, grid = heldout_set(Path(args.corpus), args.seconds, out)
-    results["heldout"] = evaluate("heldout", wav, samples_for(bundle, wav, out / "motion", "heldout", args.guidance), out,
+    heldout = samples_for(bundle, wav, out / "motion", "heldout", args.guidance)
+    results["heldout"] = evaluate("heldout", wav, heldout, out,
                                   ["--reference", str(teacher), "--textgrid", str(grid), *ae])
     teacher_motion = teach_files(TAKE_WAV, TAKE_TEXTGRID)
     take_teacher = teacher_motion.save_npz(out / "motion" / "take_teacher.npz")

@@ -359,8 +359,6 @@ class Trainer:
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp == torch.float16)
         self.schedule = Schedule.linear()
         self.step = 0
-        if cfg.init_from:
-            self.init_weights(cfg.init_from)
 
     # -- state
 
@@ -369,6 +367,15 @@ class Trainer:
                 "optimizer": self.opt.state_dict(), "scaler": self.scaler.state_dict(),
                 "model_config": json.dumps(self.model_cfg.to_dict()),
                 "mean": torch.from_numpy(self.stats.mean), "std": torch.from_numpy(self.stats.std)}
+
+    def begin(self) -> bool:
+        """Resume from the run folder's state, or else start from `init_from` when it is set.
+        Returns whether the run resumed."""
+        if self.resume():
+            return True
+        if self.cfg.init_from:
+            self.init_weights(self.cfg.init_from)
+        return False
 
     def resume(self) -> bool:
         path = self.out / STATE_FILE
@@ -516,7 +523,7 @@ def train(cfg: TrainConfig) -> dict:
 
 def _train(cfg: TrainConfig, env: Dist) -> dict:
     trainer = Trainer(cfg, env)
-    resumed = trainer.resume()
+    resumed = trainer.begin()
     log = RunLog(trainer.out / LOG_FILE, trainer.step if resumed else 0, env.main)
     if env.main:
         for name, reason in trainer.skipped:

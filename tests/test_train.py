@@ -262,6 +262,7 @@ def test_fine_tuning_an_unguided_run_into_a_guided_model_with_torchrun(small_roo
                       guidance=1.5, init_from=str(base / MODEL_FILE), model=guided_model)
 
     start = Trainer(TrainConfig.from_dict(settings), Dist())
+    assert not start.begin()
     source = load_model(base / MODEL_FILE).model.state_dict()
     for name, value in start.ema.state_dict().items():
         if "null_cond_emb" not in name:
@@ -280,11 +281,15 @@ def test_fine_tuning_an_unguided_run_into_a_guided_model_with_torchrun(small_roo
     assert motion.meta["guidance"] == 1.5 and np.isfinite(motion.rotations).all()
 
     with pytest.raises(DiffshegError, match="its model differs in latent"):
-        Trainer(TrainConfig.from_dict({**settings, "model": {**guided_model, "latent": 48}}), Dist())
+        Trainer(TrainConfig.from_dict({**settings, "model": {**guided_model, "latent": 48},
+                                       "out_dir": str(tmp_path / "other")}), Dist()).begin()
     with pytest.raises(DiffshegError, match="guidance needs a model with a null condition"):
         Trainer(TrainConfig.from_dict({**settings, "model": dict(TINY), "init_from": ""}), Dist())
     with pytest.raises(DiffshegError, match="needs cond_drop above 0"):
         Trainer(TrainConfig.from_dict({**settings, "cond_drop": 0.0}), Dist())
+
+    (base / MODEL_FILE).rename(base / "moved.safetensors")  # a finished run no longer needs its start
+    assert train(TrainConfig.from_dict(settings))["step"] == 6
 
 
 def test_speech_dropout_keeps_the_style_of_guided_models(small_root, tmp_path):
