@@ -103,13 +103,13 @@ def test_lips_close_for_bilabials_in_real_speech(bundle):
     phones = phone_tier(read_textgrid(TAKE_TEXTGRID))
     motion = generate(take, model=bundle, seed=0, device="cpu")
     jaw = phoneme_contrast(mouth_opening(motion), motion.fps, phones)
-    assert jaw["n_bilabial"] >= 20 and jaw["ratio"] > 1.8  # model card, whole take: 2.29
+    assert jaw["n_bilabial"] >= 20 and jaw["ratio"] > 1.8  # 30 s: 2.07-2.28 over seeds 0-3; whole take: 2.44
     close = phoneme_contrast(face_channel(motion, "mouthClose"), motion.fps, phones)
-    assert close["bilabial"] - close["open"] > 0.1  # model card, whole take: 0.19
+    assert close["bilabial"] - close["open"] > 0.1  # 30 s: 0.20-0.21; whole take: 0.21
 
-    # the default guidance is what shuts the jaw at p/b/m (unguided, 30 s: 1.50 against 2.15)
+    # the default guidance shuts the jaw further at p/b/m (30 s, seeds 0-3: unguided 0.30-0.45 lower)
     unguided = generate(take, model=bundle, seed=0, device="cpu", guidance=1.0)
-    assert phoneme_contrast(mouth_opening(unguided), unguided.fps, phones)["ratio"] < jaw["ratio"] - 0.3
+    assert phoneme_contrast(mouth_opening(unguided), unguided.fps, phones)["ratio"] < jaw["ratio"] - 0.15
 
     # the phonetic encoder hears p/b/m in a real voice (it was trained on synthetic ones)
     post = bundle.phonetic.posteriors(take)
