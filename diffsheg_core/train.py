@@ -288,7 +288,8 @@ def build_model_config(cfg: TrainConfig) -> ModelConfig:
 
 
 def default_guidance(cfg: TrainConfig, model_cfg: ModelConfig) -> float | None:
-    """The guidance scale the run's checkpoints generate with by default."""
+    """The guidance scale the run's checkpoints generate with by default; refuses settings
+    under which the null condition would never be trained or could not be used."""
     if model_cfg.classifier_free and cfg.cond_drop <= 0:
         raise DiffshegError("classifier_free = true needs cond_drop above 0 (e.g. 0.15), or the null "
                             "condition is never trained")

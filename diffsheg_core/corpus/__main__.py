@@ -24,7 +24,7 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=int, default=0, help="corpus seed (default 0)")
     b.add_argument("--engines", default="espeak,festival,flite",
                    help="synthesisers to use, comma-separated (default espeak,festival,flite; "
-                        "those not installed are left out)")
+                        "each must be installed)")
     b.add_argument("--text", type=Path, nargs="*", help="text files instead of Debian's fortunes")
     b.add_argument("--mocap", type=Path, help="BEAT BVH take for gestures (default: shared/data/beat)")
     t = sub.add_parser("teach", help="teacher motion for a recording and its TextGrid")
