@@ -83,12 +83,13 @@ def heldout_set(corpus: Path, seconds: float, out: Path) -> tuple[Path, Path, Pa
     return wav, teacher.save_npz(out / "heldout_teacher.npz"), write_textgrid(phones, t, out / "heldout.TextGrid")
 
 
-def samples_for(bundle, audio_path: Path, out: Path, name: str, guidance: float | None) -> list[str]:
+def samples_for(bundle, audio_path: Path, out: Path, name: str, scales: dict) -> list[str]:
+    """Samples for each seed; `scales` holds generate()'s guidance and skip_guidance."""
     paths = []
     for seed in SEEDS:
         path = out / f"{name}_seed{seed}.npz"
         if not path.is_file():  # a rerun reuses the samples it already made
-            generate(str(audio_path), model=bundle, seed=seed, device="cpu", guidance=guidance).save_npz(path)
+            generate(str(audio_path), model=bundle, seed=seed, device="cpu", **scales).save_npz(path)
         paths.append(str(path))
     return paths
 
@@ -113,18 +114,16 @@ def evaluate(name: str, audio: Path, motion: list[str], out: Path, extra: list[s
     return json.loads((out / name / "metrics.json").read_text())
 
 
-def generation_seconds(bundle, threads: int, guidance: float | None, seconds: float = 60.0,
-                       repeats: int = 3) -> float:
+def generation_seconds(bundle, threads: int, scales: dict, seconds: float = 60.0, repeats: int = 3) -> float:
     """Best of `repeats` wall times of generate() on `seconds` of real speech."""
     torch.set_num_threads(threads)
     audio = load_audio(TIMING_SPEECH)
     cut = Audio(audio.samples[: int(seconds * audio.sample_rate)], audio.sample_rate, audio.path)
-    generate(Audio(cut.samples[: 3 * cut.sample_rate], cut.sample_rate), model=bundle, device="cpu",
-             guidance=guidance)
+    generate(Audio(cut.samples[: 3 * cut.sample_rate], cut.sample_rate), model=bundle, device="cpu", **scales)
     best = float("inf")
     for _ in range(repeats):
         start = time.perf_counter()
-        generate(cut, model=bundle, device="cpu", guidance=guidance)
+        generate(cut, model=bundle, device="cpu", **scales)
         best = min(best, time.perf_counter() - start)
     return best
 
@@ -172,6 +171,7 @@ def main() -> int:
     p.add_argument("--autoencoder", help="autoencoders (.pt) for FGD / FED / FMD")
     p.add_argument("--seconds", type=float, default=60.0, help="held-out corpus speech to evaluate on")
     p.add_argument("--guidance", type=float, help="classifier-free scale (default: the model's own)")
+    p.add_argument("--skip-guidance", type=float, help="gesture skip-guidance scale (default: the model's own)")
     p.add_argument("--out", default="out/eval-default")
     args = p.parse_args()
     torch.set_num_threads(1)  # robust when other processes share the CPU; timing below uses 1 and 2
@@ -182,13 +182,14 @@ def main() -> int:
 
     results: dict[str, dict] = {}
     wav, teacher, grid = heldout_set(Path(args.corpus), args.seconds, out)
-    heldout = samples_for(bundle, wav, out / "motion", "heldout", args.guidance)
+    scales = {"guidance": args.guidance, "skip_guidance": args.skip_guidance}
+    heldout = samples_for(bundle, wav, out / "motion", "heldout", scales)
     results["heldout"] = evaluate("heldout", wav, heldout, out,
                                   ["--reference", str(teacher), "--textgrid", str(grid), *ae])
     teacher_motion = teach_files(TAKE_WAV, TAKE_TEXTGRID)
     take_teacher = teacher_motion.save_npz(out / "motion" / "take_teacher.npz")
     mocap = ["--reference", str(mocap_reference(teacher_motion, out / "motion"))]
-    take = samples_for(bundle, TAKE_WAV, out / "motion", "take", args.guidance)
+    take = samples_for(bundle, TAKE_WAV, out / "motion", "take", scales)
     on_take = ["--textgrid", str(TAKE_TEXTGRID), *ae]
     results["take_teacher"] = evaluate("take_teacher", TAKE_WAV, take, out,
                                        ["--reference", str(take_teacher), *on_take])
@@ -197,15 +198,16 @@ def main() -> int:
     for recording in RECORDINGS:
         results[recording.stem] = evaluate(recording.stem, recording,
                                            samples_for(bundle, recording, out / "motion", recording.stem,
-                                                       args.guidance), out, ae)
-    seconds = {threads: generation_seconds(bundle, threads, args.guidance) for threads in (1, 2)}
+                                                       scales), out, ae)
+    seconds = {threads: generation_seconds(bundle, threads, scales) for threads in (1, 2)}
     guidance = bundle.guidance if args.guidance is None else args.guidance
-    summary = {"model": bundle.model_id, "guidance": guidance, "generate_60s_seconds_by_threads": seconds,
-               "results": results}
+    skip = bundle.skip_guidance if args.skip_guidance is None else args.skip_guidance
+    summary = {"model": bundle.model_id, "guidance": guidance, "skip_guidance": skip,
+               "generate_60s_seconds_by_threads": seconds, "results": results}
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     timing = ", ".join(f"{s:.2f} s with {t} thread(s)" for t, s in seconds.items())
     text = (f"# Evaluation of {bundle.model_id}\n\n60 s of speech generated in {timing} "
-            f"(preset as shipped), guidance {guidance}.\n\n{summary_table(results)}\n")
+            f"(preset as shipped), guidance {guidance}, skip guidance {skip}.\n\n{summary_table(results)}\n")
     (out / "summary.md").write_text(text)
     print(text)
     return 0

@@ -48,6 +48,7 @@ def generate_kwargs(settings) -> dict:
         "overlap": settings.overlap or None,
         "style": settings.style,
         "guidance": settings.guidance or None,
+        "skip_guidance": settings.gesture_energy if settings.set_gesture_energy else None,
         "device": settings.device_arg(),
     }
 

@@ -65,6 +65,11 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
         col.prop(s, "overlap")
         col.prop(s, "style")
         col.prop(s, "guidance")
+        row = col.row(align=True)
+        row.prop(s, "set_gesture_energy", text="")
+        energy = row.row(align=True)
+        energy.active = s.set_gesture_energy
+        energy.prop(s, "gesture_energy")
         col.prop(s, "device")
         col.label(text=f"Runs on: {device_label(s.device)}")
 

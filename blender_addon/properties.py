@@ -55,6 +55,11 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
     style: IntProperty(name="Style", default=0, min=0, description="speaker style index of the model")
     guidance: FloatProperty(name="Guidance", default=0.0, min=0.0, max=10.0,
                             description="classifier-free guidance scale; 0 = the model's default")
+    set_gesture_energy: BoolProperty(name="Set gesture energy", default=False,
+                                     description="use your own gesture energy instead of the model's default")
+    gesture_energy: FloatProperty(name="Gesture energy", default=0.1, min=0.0, max=1.0,
+                                  description="skip-guidance scale of the gestures: higher gives larger, "
+                                              "livelier gestures; 0 = off")
     start_frame: IntProperty(name="Start frame", default=1, description="frame of the first key and the sound strip")
     device: EnumProperty(name="Device", default="AUTO", items=[
         ("AUTO", "Auto", "a CUDA GPU when there is one, else the CPU"),

@@ -4,7 +4,7 @@ A `ModelBundle` is everything generation needs besides audio: the network, its
 normalisation statistics, its default sampling settings and where it came from.
 
 Our format is a safetensors file (no pickle): tensors `model.*`, `norm.mean`,
-`norm.std`, and JSON metadata (config, sampling, guidance, model id, model card).
+`norm.std`, and JSON metadata (config, sampling, guidance scales, model id, model card).
 Official checkpoints are torch pickles holding the state dict under `encoder`; they
 are read with `weights_only=True` and loaded strictly.
 """
@@ -42,6 +42,7 @@ class ModelBundle:
     std: np.ndarray
     sampling: FoppasConfig
     guidance: Optional[float] = None  # default classifier-free scale (None: unguided)
+    skip_guidance: Optional[float] = None  # default gesture skip-guidance scale (None: off; see UniEG)
     model_id: str = "unnamed"
     trained: bool = True
     info: dict = field(default_factory=dict)
@@ -135,6 +136,7 @@ def save_checkpoint(bundle: ModelBundle, path: str | Path) -> Path:
         "config": json.dumps(bundle.config.to_dict()),
         "sampling": json.dumps(asdict(bundle.sampling)),
         "guidance": json.dumps(bundle.guidance),
+        "skip_guidance": json.dumps(bundle.skip_guidance),
         "model_id": bundle.model_id,
         "trained": json.dumps(bundle.trained),
         "info": json.dumps(bundle.info, default=str),
@@ -159,7 +161,8 @@ def _load_ours(path: Path, device: torch.device) -> ModelBundle:
     load_state_strict(model, state, str(path))
     return ModelBundle(
         model=model.to(device).eval(), mean=mean, std=std, sampling=sampling,
-        guidance=json.loads(meta.get("guidance", "null")), model_id=meta.get("model_id", path.stem),
+        guidance=json.loads(meta.get("guidance", "null")),
+        skip_guidance=json.loads(meta.get("skip_guidance", "null")), model_id=meta.get("model_id", path.stem),
         trained=json.loads(meta.get("trained", "true")), info=json.loads(meta.get("info", "{}")),
         phonetic=_stored_phonetic(cfg, meta, tensors, path))
 

@@ -31,6 +31,9 @@ def _generate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", choices=sorted(PRESETS), help="FOPPAS settings preset")
     p.add_argument("--style", type=int, default=0, help="style / speaker id (default %(default)s)")
     p.add_argument("--guidance", type=float, help="classifier-free guidance scale (guided models only)")
+    p.add_argument("--skip-guidance", type=float,
+                   help="gesture skip-guidance scale, 0-1: larger, livelier gestures; 0 turns it off "
+                        "(default: the model's)")
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
     p.add_argument("--precision", default="fp32", choices=["fp32", "bf16", "fp16"])
     p.add_argument("--hubert", help="local folder of facebook/hubert-large-ls960-ft (models that use HuBERT)")
@@ -68,7 +71,7 @@ def run_generate(args: argparse.Namespace) -> int:
     cancel = threading.Event()
     try:
         result = generate(speech, model=bundle, seed=args.seed, steps=args.steps, overlap=args.overlap,
-                          style=args.style, guidance=args.guidance,
+                          style=args.style, guidance=args.guidance, skip_guidance=args.skip_guidance,
                           sampling=PRESETS[args.preset] if args.preset else None,
                           device=str(device), precision=args.precision, hubert_path=args.hubert,
                           hubert_quirk=args.hubert_official_quirk, progress=on_progress, cancel=cancel)

@@ -48,6 +48,14 @@ def resolve_guidance(bundle: ModelBundle, guidance: Optional[float]) -> Optional
     return scale
 
 
+def resolve_skip_guidance(bundle: ModelBundle, skip_guidance: Optional[float]) -> Optional[float]:
+    """The gesture skip-guidance scale to sample with: the model's default for None, off for 0."""
+    scale = bundle.skip_guidance if skip_guidance is None else float(skip_guidance)
+    if scale is not None and not 0.0 <= scale <= 1.0:
+        raise DiffshegError(f"skip guidance scale must be between 0 and 1, got {scale}")
+    return scale or None
+
+
 def speech_encoding(config: ModelConfig, phonetic: Optional[PhoneticEncoder] = None,
                     hubert_path: Optional[str] = None, hubert_quirk: bool = False,
                     device: str = "cpu") -> Optional[SpeechEncoding]:
@@ -78,23 +86,25 @@ def speech_features(bundle: ModelBundle, audio: Audio, hubert_path: Optional[str
 
 
 def build_sampling(bundle: ModelBundle, config: FoppasConfig, style: int = 0,
-                   guidance: Optional[float] = None, autocast: Optional[torch.dtype] = None
+                   guidance: Optional[float] = None, autocast: Optional[torch.dtype] = None,
+                   skip_guidance: Optional[float] = None
                    ) -> tuple[Foppas, Callable[[torch.Tensor], EpsFn]]:
     """The FOPPAS sampler for `bundle` with `config`, and the factory that binds the model,
-    style and guidance to one window's speech features. Bad settings raise DiffshegError."""
+    style and guidance scales to one window's speech features. Bad settings raise DiffshegError."""
     try:
         sampler = Foppas(Schedule.linear(), config, bundle.config.clip_len, bundle.config.dim)
     except ValueError as exc:
         raise DiffshegError(str(exc)) from None
     make = make_eps_fn_factory(bundle, sampler, style_onehot(bundle, style),
-                               resolve_guidance(bundle, guidance), autocast)
+                               resolve_guidance(bundle, guidance), autocast,
+                               resolve_skip_guidance(bundle, skip_guidance))
     return sampler, make
 
 
 def make_eps_fn_factory(bundle: ModelBundle, sampler: Foppas, style: torch.Tensor,
-                        guidance: Optional[float], autocast: Optional[torch.dtype]
-                        ) -> Callable[[torch.Tensor], EpsFn]:
-    """Bind model, style and guidance; the result binds one window's speech features."""
+                        guidance: Optional[float], autocast: Optional[torch.dtype],
+                        skip_guidance: Optional[float] = None) -> Callable[[torch.Tensor], EpsFn]:
+    """Bind model, style and guidance scales; the result binds one window's speech features."""
     cfg, sched, device = bundle.config, sampler.schedule, bundle.device
     style = style.to(device)
     if guidance == 1.0:  # uncond + 1 * (cond - uncond) is the conditioned pass alone: skip the null pass
@@ -109,7 +119,7 @@ def make_eps_fn_factory(bundle: ModelBundle, sampler: Foppas, style: torch.Tenso
             idx = torch.tensor([index], device=device)
             with torch.autocast(device.type, dtype=autocast, enabled=autocast is not None):
                 eps = bundle.model(x, sched.model_timesteps(idx), mel, hubert, style,
-                                   sched.x0_coefs(idx, x), guidance)
+                                   sched.x0_coefs(idx, x), guidance, skip_guidance=skip_guidance)
             return eps.float()
 
         return eps_fn
@@ -120,8 +130,8 @@ def make_eps_fn_factory(bundle: ModelBundle, sampler: Foppas, style: torch.Tenso
 def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
              model: Union[None, str, Path, ModelBundle] = None, seed: int = 0,
              overlap: Optional[int] = None, steps: Optional[int] = None, style: int = 0,
-             guidance: Optional[float] = None, sampling: Optional[FoppasConfig] = None,
-             device: str = "auto", precision: str = "fp32",
+             guidance: Optional[float] = None, skip_guidance: Optional[float] = None,
+             sampling: Optional[FoppasConfig] = None, device: str = "auto", precision: str = "fp32",
              hubert_path: Optional[str] = None, hubert_quirk: bool = False,
              progress: Optional[ProgressCallback] = None,
              cancel: Optional[threading.Event] = None) -> Motion:
@@ -129,6 +139,8 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
 
     audio: a file path, an array (with `sample_rate`) or a loaded `Audio`.
     model: None for the bundled default, a checkpoint path, or a loaded `ModelBundle`.
+    guidance / skip_guidance: classifier-free and gesture skip-guidance scales (None: the
+    model's defaults; 1 and 0 turn them off).
     sampling: FOPPAS settings (default: the model's); `steps` / `overlap` override them.
     precision: 'fp32', or 'bf16' / 'fp16' autocast on CUDA.
     progress: called after every diffusion step; cancel: checked before every step.
@@ -144,7 +156,7 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     if autocast == "bad" or (autocast is not None and torch_device.type != "cuda"):
         raise DiffshegError(f"precision '{precision}' is not available on {torch_device.type}: "
                             "use fp32 (or bf16/fp16 on a CUDA GPU)")
-    sampler, make_eps_fn = build_sampling(bundle, config, style, guidance, autocast)
+    sampler, make_eps_fn = build_sampling(bundle, config, style, guidance, autocast, skip_guidance)
 
     cond = speech_features(bundle, speech, hubert_path, hubert_quirk, str(torch_device))
     generator = torch.Generator().manual_seed(int(seed))
@@ -152,7 +164,9 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     return to_motion(bundle, normalised.cpu().numpy(), meta={
         "model_id": bundle.model_id, "trained": bundle.trained, "seed": int(seed),
         "audio_file": speech.path, "sample_rate": speech.sample_rate, "style": int(style),
-        "guidance": resolve_guidance(bundle, guidance), "steps": config.steps, "overlap": config.overlap,
+        "guidance": resolve_guidance(bundle, guidance),
+        "skip_guidance": resolve_skip_guidance(bundle, skip_guidance),
+        "steps": config.steps, "overlap": config.overlap,
         "clip_len": bundle.config.clip_len,
         "device": str(torch_device), "software": f"diffsheg_core {__version__}",
     })
@@ -169,8 +183,8 @@ def to_motion(bundle: ModelBundle, normalised: np.ndarray, meta: dict) -> Motion
 
 
 def open_stream(bundle: ModelBundle, *, seed: int = 0, style: int = 0,
-                guidance: Optional[float] = None, sampling: Optional[FoppasConfig] = None,
-                device: str = "auto") -> FoppasStream:
+                guidance: Optional[float] = None, skip_guidance: Optional[float] = None,
+                sampling: Optional[FoppasConfig] = None, device: str = "auto") -> FoppasStream:
     """A `FoppasStream` for live use: push (n, F) speech features from `speech_features`
     (computed on audio chunks whose lengths are multiples of 1/fps s), get normalised
     motion frames back; `to_motion` turns them into a Motion. For a model with the phonetic
@@ -178,5 +192,6 @@ def open_stream(bundle: ModelBundle, *, seed: int = 0, style: int = 0,
     frames: the encoder looks 0.53 s either side and takes off the level of what it is given."""
     torch_device = resolve_device(device)
     bundle.model.to(torch_device)
-    sampler, make = build_sampling(bundle, sampling or bundle.sampling, style, guidance)
+    sampler, make = build_sampling(bundle, sampling or bundle.sampling, style, guidance,
+                                   skip_guidance=skip_guidance)
     return FoppasStream(sampler, make, torch.Generator().manual_seed(int(seed)), torch_device)

@@ -76,6 +76,7 @@ class TrainConfig:
     x0_weighting: str = "abar"      # abar (x0 terms weighted by abar_t per sample) or none (unweighted)
     cond_drop: float = 0.0          # classifier-free dropout probability (official SHOW: 0.2)
     guidance: float | None = None   # default guidance scale stored in the checkpoints (guided models)
+    skip_guidance: float | None = None  # default gesture skip-guidance scale stored in the checkpoints
     init_from: str = ""             # start from this checkpoint's weights (fine-tuning; see init_weights)
     precision: str = "auto"         # auto (bf16/fp16 on GPU, fp32 on CPU), fp32, bf16, fp16
     device: str = "auto"
@@ -324,6 +325,8 @@ class Trainer:
         if cfg.export_dtype not in EXPORT_DTYPES:
             raise DiffshegError(f"export_dtype must be one of {', '.join(EXPORT_DTYPES)}, "
                                 f"got '{cfg.export_dtype}'")
+        if cfg.skip_guidance is not None and not 0.0 <= cfg.skip_guidance <= 1.0:
+            raise DiffshegError(f"skip_guidance must be between 0 and 1, got {cfg.skip_guidance}")
         if cfg.sampling_preset not in PRESETS:
             raise DiffshegError(f"unknown sampling preset '{cfg.sampling_preset}': "
                                 f"choose one of {', '.join(PRESETS)}")
@@ -434,7 +437,8 @@ class Trainer:
         ema.load_state_dict({k: v.cpu() for k, v in self.ema.state_dict().items()})
         training = {k: v for k, v in asdict(self.cfg).items() if k not in ("data", "card")}
         return ModelBundle(model=ema.to(dtype).eval(), mean=self.stats.mean, std=self.stats.std,
-                           sampling=self.sampling, guidance=self.guidance, model_id=self.cfg.model_id,
+                           sampling=self.sampling, guidance=self.guidance,
+                           skip_guidance=self.cfg.skip_guidance, model_id=self.cfg.model_id,
                            phonetic=copy.deepcopy(self.phonetic).to(dtype) if self.phonetic else None,
                            info={**self.cfg.card, "trained_steps": self.step, "data": asdict(self.cfg.data),
                                  "training": training})

@@ -262,3 +262,18 @@ def test_save_and_reopen_keeps_keys_and_sound(speech, tmp_path):
     assert len(fcurves_of(face.data.shape_keys)) == 51
     _check_sound(scene, scene.diffsheg, 5)
     assert scene.diffsheg.seed == 1234 and scene.diffsheg.preset == "beat"
+
+
+def test_gesture_energy_is_the_models_default_until_set(speech):
+    from blender_addon.operators import generate_kwargs
+
+    settings = reset_scene().diffsheg
+    assert generate_kwargs(settings)["skip_guidance"] is None  # the model's own scale
+    settings.set_gesture_energy = True
+    settings.gesture_energy = 0.0
+    assert generate_kwargs(settings)["skip_guidance"] == 0.0  # off
+    settings.gesture_energy = 0.25
+    assert generate_kwargs(settings)["skip_guidance"] == 0.25
+    settings.steps, settings.device = STEPS, "CPU"
+    motion = diffsheg_core.generate(str(speech), **generate_kwargs(settings))
+    assert motion.meta["skip_guidance"] == 0.25

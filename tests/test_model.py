@@ -85,3 +85,39 @@ def test_gesture_branch_sees_detached_expression_x0():
     with torch.no_grad():
         eps_a, eps_b = model(x, *args), model(x2, *args)
     assert not torch.allclose(eps_a[..., :141], eps_b[..., :141])
+
+
+class _NoAttention(torch.nn.Module):
+    def forward(self, h, emb):
+        return h
+
+
+def test_skip_guidance_steers_gestures_away_from_the_branch_without_self_attention():
+    """eps_gesture + s (eps_gesture - eps_gesture without its self-attention blocks); the
+    expression branch keeps its classifier-free guidance, the gesture branch drops it."""
+    torch.manual_seed(0)
+    model = UniEG(ModelConfig(**SMALL, use_hubert=False, classifier_free=True)).eval()
+    for p in model.parameters():  # wake the zero-initialised layers up
+        torch.nn.init.normal_(p, std=0.05)
+    x = torch.randn(2, 8, model.cfg.dim)
+    args = (torch.tensor([400, 700]), torch.rand(2, 8, 128), None, torch.eye(30)[:2],
+            (torch.full((2, 1, 1), 2.0), torch.full((2, 1, 1), 1.5)))
+    seen = []
+    model.encoder_ges.register_forward_pre_hook(lambda mod, inputs: seen.append(inputs))
+    g = model.cfg.gesture_dim
+    with torch.no_grad():
+        guided = model(x, *args, guidance=2.0)
+        skipped = model(x, *args, guidance=2.0, skip_guidance=0.5)
+        branch_inputs = seen[-1][:6]  # gesture, timesteps, speech, hubert, expression x0, style
+        cond = model.encoder_ges(*branch_inputs, None)
+        blocks = model.encoder_ges.temporal_decoder_blocks
+        attention = [layer.sa_block for layer in blocks]
+        for layer in blocks:
+            layer.sa_block = _NoAttention()
+        without = model.encoder_ges(*branch_inputs, None)
+        for layer, sa in zip(blocks, attention):
+            layer.sa_block = sa
+    torch.testing.assert_close(skipped[..., g:], guided[..., g:])
+    torch.testing.assert_close(skipped[..., :g], cond + 0.5 * (cond - without))
+    assert seen[-1][6] is None  # no classifier-free pass in the gesture branch
+    assert not torch.allclose(cond, without)

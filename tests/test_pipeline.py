@@ -82,7 +82,7 @@ def test_cancel_between_steps(speech, model):
 @pytest.mark.parametrize("kwargs,match", [
     (dict(style=30), "style"), (dict(style=-1), "style"), (dict(guidance=2.0), "guidance"),
     (dict(overlap=34), "overlap"), (dict(steps=0), "steps"), (dict(precision="bf16"), "precision"),
-    (dict(device="tpu"), "device"),
+    (dict(device="tpu"), "device"), (dict(skip_guidance=1.5), "skip guidance scale must be between 0 and 1"),
 ])
 def test_bad_settings_are_refused(speech, model, kwargs, match):
     with pytest.raises(DiffshegError, match=match):
@@ -190,3 +190,21 @@ def test_guidance_one_is_the_conditioned_pass_alone(speech):
     torch.testing.assert_close(guided, alone, atol=1e-5, rtol=1e-5)
     motion = generate(speech, model=bundle, steps=3, device="cpu")
     assert motion.meta["guidance"] == 1.0 and np.isfinite(motion.face).all()
+
+
+def test_skip_guidance_defaults_to_the_models_and_zero_turns_it_off(speech):
+    cfg = ModelConfig(use_hubert=False, latent=32, layers=1, ff=64, heads=4, style_dim=1, mel_dim=128)
+    torch.manual_seed(0)
+    model = UniEG(cfg).eval()
+    for p in model.parameters():  # wake the zero-initialised layers up: attention must matter
+        torch.nn.init.normal_(p, std=0.05)
+    bundle = ModelBundle(model=model, mean=np.zeros(cfg.dim, np.float32), std=np.ones(cfg.dim, np.float32),
+                         sampling=PRESETS["no-resample"], skip_guidance=0.3, model_id="tiny-skip",
+                         trained=False)
+    default = generate(speech, model=bundle, steps=3, device="cpu")
+    assert default.meta["skip_guidance"] == 0.3
+    same = generate(speech, model=bundle, steps=3, device="cpu", skip_guidance=0.3)
+    assert np.array_equal(same.rotations, default.rotations)
+    off = generate(speech, model=bundle, steps=3, device="cpu", skip_guidance=0.0)
+    assert off.meta["skip_guidance"] is None and not np.allclose(off.rotations, default.rotations)
+    assert np.array_equal(off.face, default.face)  # it steers the gestures only

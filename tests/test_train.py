@@ -259,7 +259,7 @@ def test_fine_tuning_an_unguided_run_into_a_guided_model_with_torchrun(small_roo
     train(TrainConfig.from_dict(config(small_root, base, steps=5, checkpoint_every=5)))
     guided_model = {**TINY, "classifier_free": True}
     settings = config(small_root, tmp_path / "guided", steps=6, checkpoint_every=100, cond_drop=0.3,
-                      guidance=1.5, init_from=str(base / MODEL_FILE), model=guided_model)
+                      guidance=1.5, skip_guidance=0.2, init_from=str(base / MODEL_FILE), model=guided_model)
 
     start = Trainer(TrainConfig.from_dict(settings), Dist())
     assert not start.begin()
@@ -276,7 +276,7 @@ def test_fine_tuning_an_unguided_run_into_a_guided_model_with_torchrun(small_roo
     first, second = json.loads((tmp_path / "guided" / SUMMARY_FILE).read_text())["param_checksums"]
     assert first == second
     bundle = load_model(tmp_path / "guided" / MODEL_FILE)
-    assert bundle.config.classifier_free and bundle.guidance == 1.5
+    assert bundle.config.classifier_free and bundle.guidance == 1.5 and bundle.skip_guidance == 0.2
     motion = generate(str(small_root / "talk.wav"), model=bundle, steps=2, device="cpu")
     assert motion.meta["guidance"] == 1.5 and np.isfinite(motion.rotations).all()
 
@@ -287,6 +287,8 @@ def test_fine_tuning_an_unguided_run_into_a_guided_model_with_torchrun(small_roo
         Trainer(TrainConfig.from_dict({**settings, "model": dict(TINY), "init_from": ""}), Dist())
     with pytest.raises(DiffshegError, match="needs cond_drop above 0"):
         Trainer(TrainConfig.from_dict({**settings, "cond_drop": 0.0}), Dist())
+    with pytest.raises(DiffshegError, match="skip_guidance must be between 0 and 1"):
+        Trainer(TrainConfig.from_dict({**settings, "skip_guidance": 2.0}), Dist())
 
     (base / MODEL_FILE).rename(base / "moved.safetensors")  # a finished run no longer needs its start
     assert train(TrainConfig.from_dict(settings))["step"] == 6
