@@ -48,12 +48,18 @@ def resolve_guidance(bundle: ModelBundle, guidance: Optional[float]) -> Optional
     return scale
 
 
+def check_skip_guidance(scale: float) -> float:
+    if not 0.0 <= scale <= 1.0:
+        raise DiffshegError(f"skip guidance scale must be between 0 and 1, got {scale}")
+    return float(scale)
+
+
 def resolve_skip_guidance(bundle: ModelBundle, skip_guidance: Optional[float]) -> Optional[float]:
     """The gesture skip-guidance scale to sample with: the model's default for None, off for 0."""
-    scale = bundle.skip_guidance if skip_guidance is None else float(skip_guidance)
-    if scale is not None and not 0.0 <= scale <= 1.0:
-        raise DiffshegError(f"skip guidance scale must be between 0 and 1, got {scale}")
-    return scale or None
+    scale = bundle.skip_guidance if skip_guidance is None else skip_guidance
+    if scale is None:
+        return None
+    return check_skip_guidance(scale) or None  # 0 turns it off
 
 
 def speech_encoding(config: ModelConfig, phonetic: Optional[PhoneticEncoder] = None,

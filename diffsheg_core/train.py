@@ -42,7 +42,7 @@ from .errors import DiffshegError
 from .foppas import PRESETS, FoppasConfig, with_overrides
 from .model import ModelConfig, UniEG
 from .phonetic import PhoneticEncoder, load_phonetic
-from .pipeline import speech_encoding
+from .pipeline import check_skip_guidance, speech_encoding
 from .devices import resolve_device
 
 EXPORT_DTYPES = {"float32": torch.float32, "float16": torch.float16}
@@ -325,8 +325,8 @@ class Trainer:
         if cfg.export_dtype not in EXPORT_DTYPES:
             raise DiffshegError(f"export_dtype must be one of {', '.join(EXPORT_DTYPES)}, "
                                 f"got '{cfg.export_dtype}'")
-        if cfg.skip_guidance is not None and not 0.0 <= cfg.skip_guidance <= 1.0:
-            raise DiffshegError(f"skip_guidance must be between 0 and 1, got {cfg.skip_guidance}")
+        if cfg.skip_guidance is not None:
+            check_skip_guidance(cfg.skip_guidance)
         if cfg.sampling_preset not in PRESETS:
             raise DiffshegError(f"unknown sampling preset '{cfg.sampling_preset}': "
                                 f"choose one of {', '.join(PRESETS)}")
