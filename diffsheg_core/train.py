@@ -579,8 +579,12 @@ def _train(cfg: TrainConfig, env: Dist) -> dict:
         if not losses and record.is_file():  # nothing trained in this call: keep the run's record
             summary = {**json.loads(record.read_text()), "export": summary.get("export")}
         record.write_text(json.dumps(summary, indent=1))
-        if len(set(checksums)) > 1:
-            raise DiffshegError(f"processes ended with different parameters: {checksums}")
+    if env.world > 1:
+        # every process leaves together: a gloo process that tears down while rank 0 is
+        # still writing files can abort ("terminate called without an active exception")
+        dist.barrier()
+    if len(set(checksums)) > 1:
+        raise DiffshegError(f"processes ended with different parameters: {checksums}")
     return summary
 
 
