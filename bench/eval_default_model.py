@@ -34,7 +34,7 @@ from diffsheg_core.corpus.teacher import load_utterance, teach_files
 from diffsheg_core.data import DataConfig
 from diffsheg_core.data.dataset import find_sources
 from diffsheg_core.motion import Motion
-from diffsheg_core.pipeline import generate
+from diffsheg_core.pipeline import generate, resolve_guidance, resolve_skip_guidance
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -200,8 +200,8 @@ def main() -> int:
                                            samples_for(bundle, recording, out / "motion", recording.stem,
                                                        scales), out, ae)
     seconds = {threads: generation_seconds(bundle, threads, scales) for threads in (1, 2)}
-    guidance = bundle.guidance if args.guidance is None else args.guidance
-    skip = bundle.skip_guidance if args.skip_guidance is None else args.skip_guidance
+    guidance = resolve_guidance(bundle, args.guidance)
+    skip = resolve_skip_guidance(bundle, args.skip_guidance)
     summary = {"model": bundle.model_id, "guidance": guidance, "skip_guidance": skip,
                "generate_60s_seconds_by_threads": seconds, "results": results}
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
