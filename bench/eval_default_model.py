@@ -22,6 +22,7 @@ import json
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +35,7 @@ from diffsheg_core.corpus.teacher import load_utterance, teach_files
 from diffsheg_core.data import DataConfig
 from diffsheg_core.data.dataset import find_sources
 from diffsheg_core.motion import Motion
-from diffsheg_core.pipeline import generate, resolve_guidance, resolve_skip_guidance
+from diffsheg_core.pipeline import generate, resolve_guidance, resolve_skip_guidance, uses_prior
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -84,7 +85,7 @@ def heldout_set(corpus: Path, seconds: float, out: Path) -> tuple[Path, Path, Pa
 
 
 def samples_for(bundle, audio_path: Path, out: Path, name: str, scales: dict) -> list[str]:
-    """Samples for each seed; `scales` holds generate()'s guidance and skip_guidance."""
+    """Samples for each seed; `scales` holds generate()'s guidance, skip_guidance and sampling."""
     paths = []
     for seed in SEEDS:
         path = out / f"{name}_seed{seed}.npz"
@@ -172,6 +173,8 @@ def main() -> int:
     p.add_argument("--seconds", type=float, default=60.0, help="held-out corpus speech to evaluate on")
     p.add_argument("--guidance", type=float, help="classifier-free scale (default: the model's own)")
     p.add_argument("--skip-guidance", type=float, help="gesture skip-guidance scale (default: the model's own)")
+    p.add_argument("--no-prior", action="store_true",
+                   help="later FOPPAS windows from pure noise instead of the model's gesture prior")
     p.add_argument("--out", default="out/eval-default")
     args = p.parse_args()
     torch.set_num_threads(1)  # robust when other processes share the CPU; timing below uses 1 and 2
@@ -182,7 +185,8 @@ def main() -> int:
 
     results: dict[str, dict] = {}
     wav, teacher, grid = heldout_set(Path(args.corpus), args.seconds, out)
-    scales = {"guidance": args.guidance, "skip_guidance": args.skip_guidance}
+    sampling = replace(bundle.sampling, prior_start=not args.no_prior)
+    scales = {"guidance": args.guidance, "skip_guidance": args.skip_guidance, "sampling": sampling}
     heldout = samples_for(bundle, wav, out / "motion", "heldout", scales)
     results["heldout"] = evaluate("heldout", wav, heldout, out,
                                   ["--reference", str(teacher), "--textgrid", str(grid), *ae])
@@ -202,12 +206,14 @@ def main() -> int:
     seconds = {threads: generation_seconds(bundle, threads, scales) for threads in (1, 2)}
     guidance = resolve_guidance(bundle, args.guidance)
     skip = resolve_skip_guidance(bundle, args.skip_guidance)
-    summary = {"model": bundle.model_id, "guidance": guidance, "skip_guidance": skip,
+    prior = uses_prior(bundle, sampling)
+    summary = {"model": bundle.model_id, "guidance": guidance, "skip_guidance": skip, "gesture_prior": prior,
                "generate_60s_seconds_by_threads": seconds, "results": results}
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     timing = ", ".join(f"{s:.2f} s with {t} thread(s)" for t, s in seconds.items())
     text = (f"# Evaluation of {bundle.model_id}\n\n60 s of speech generated in {timing} "
-            f"(preset as shipped), guidance {guidance}, skip guidance {skip}.\n\n{summary_table(results)}\n")
+            f"(preset as shipped), guidance {guidance}, skip guidance {skip}, "
+            f"gesture prior {'on' if prior else 'off'}.\n\n{summary_table(results)}\n")
     (out / "summary.md").write_text(text)
     print(text)
     return 0

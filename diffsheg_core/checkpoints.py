@@ -4,7 +4,8 @@ A `ModelBundle` is everything generation needs besides audio: the network, its
 normalisation statistics, its default sampling settings and where it came from.
 
 Our format is a safetensors file (no pickle): tensors `model.*`, `norm.mean`,
-`norm.std`, and JSON metadata (config, sampling, guidance scales, model id, model card).
+`norm.std`, optionally `phonetic.*` (the phonetic encoder) and `prior.*` (the gesture
+prior), and JSON metadata (config, sampling, guidance scales, model id, model card).
 Official checkpoints are torch pickles holding the state dict under `encoder`; they
 are read with `weights_only=True` and loaded strictly.
 """
@@ -26,6 +27,7 @@ from .errors import CheckpointError
 from .foppas import PRESETS, FoppasConfig
 from .model import ModelConfig, UniEG
 from .phonetic import PhoneticEncoder, config_metadata, encoder_from, state_tensors
+from .prior import GesturePrior
 from .rigs import Layout, get_layout
 
 FORMAT = "diffsheg-core/1"
@@ -47,6 +49,7 @@ class ModelBundle:
     trained: bool = True
     info: dict = field(default_factory=dict)
     phonetic: Optional[PhoneticEncoder] = None  # the speech encoder of models with speech_encoder "phonetic"
+    prior: Optional[GesturePrior] = None  # where later FOPPAS windows start from (see prior.py)
 
     @property
     def config(self) -> ModelConfig:
@@ -131,6 +134,8 @@ def save_checkpoint(bundle: ModelBundle, path: str | Path) -> Path:
     tensors["norm.std"] = torch.from_numpy(np.asarray(bundle.std, dtype=np.float32))
     if bundle.phonetic is not None:
         tensors.update(state_tensors(bundle.phonetic, PHONETIC_PREFIX))
+    if bundle.prior is not None:
+        tensors.update(bundle.prior.tensors())
     meta = {
         "format": FORMAT,
         "config": json.dumps(bundle.config.to_dict()),
@@ -164,7 +169,7 @@ def _load_ours(path: Path, device: torch.device) -> ModelBundle:
         guidance=json.loads(meta.get("guidance", "null")),
         skip_guidance=json.loads(meta.get("skip_guidance", "null")), model_id=meta.get("model_id", path.stem),
         trained=json.loads(meta.get("trained", "true")), info=json.loads(meta.get("info", "{}")),
-        phonetic=_stored_phonetic(cfg, meta, tensors, path))
+        phonetic=_stored_phonetic(cfg, meta, tensors, path), prior=_stored_prior(cfg, tensors, path))
 
 
 def _stored_phonetic(cfg: ModelConfig, meta: dict, tensors: dict, path: Path) -> Optional[PhoneticEncoder]:
@@ -175,6 +180,15 @@ def _stored_phonetic(cfg: ModelConfig, meta: dict, tensors: dict, path: Path) ->
         raise CheckpointError(f"{path}: the model takes phonetic features but the file holds no phonetic "
                               "encoder; export it again from its training run")
     return encoder_from(meta["phonetic"], state, f"{path} (phonetic encoder)")
+
+
+def _stored_prior(cfg: ModelConfig, tensors: dict, path: Path) -> Optional[GesturePrior]:
+    prior = GesturePrior.from_tensors(tensors, str(path))
+    if prior is not None and (prior.dims != cfg.gesture_dim or prior.max_len < cfg.clip_len):
+        raise CheckpointError(f"{path}: its gesture prior covers {prior.dims} channels over "
+                              f"{prior.max_len} frames, but the model has {cfg.gesture_dim} gesture "
+                              f"channels in {cfg.clip_len}-frame windows; export it again")
+    return prior
 
 
 # ---------------------------------------------------------------- official checkpoints

@@ -6,6 +6,7 @@ import argparse
 import sys
 import threading
 import time
+from dataclasses import replace
 from typing import Optional, Sequence
 
 from .errors import DiffshegError
@@ -29,6 +30,9 @@ def _generate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, help="DDIM steps (default: the model's, 25)")
     p.add_argument("--overlap", type=int, help="FOPPAS overlap frames (default: the model's)")
     p.add_argument("--preset", choices=sorted(PRESETS), help="FOPPAS settings preset")
+    p.add_argument("--no-prior", action="store_true",
+                   help="start later FOPPAS windows from pure noise, as in the paper, instead of from "
+                        "the model's gesture prior (models that have one)")
     p.add_argument("--style", type=int, default=0, help="style / speaker id (default %(default)s)")
     p.add_argument("--guidance", type=float, help="classifier-free guidance scale (guided models only)")
     p.add_argument("--skip-guidance", type=float,
@@ -68,11 +72,14 @@ def run_generate(args: argparse.Namespace) -> int:
         bar.set_postfix_str(f"clip {p.clip + 1}/{p.n_clips}", refresh=False)
         bar.update(int(p.fraction * 1000) - bar.n)
 
+    sampling = PRESETS[args.preset] if args.preset else bundle.sampling
+    if args.no_prior:
+        sampling = replace(sampling, prior_start=False)
     cancel = threading.Event()
     try:
         result = generate(speech, model=bundle, seed=args.seed, steps=args.steps, overlap=args.overlap,
                           style=args.style, guidance=args.guidance, skip_guidance=args.skip_guidance,
-                          sampling=PRESETS[args.preset] if args.preset else None,
+                          sampling=sampling,
                           device=str(device), precision=args.precision, hubert_path=args.hubert,
                           hubert_quirk=args.hubert_official_quirk, progress=on_progress, cancel=cancel)
     except KeyboardInterrupt:

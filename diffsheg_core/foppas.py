@@ -7,6 +7,9 @@ frames re-noised to the level of the step), with RePaint's resampling jumps, and
 during the last steps the known overlap is cross-faded linearly into the generated
 one. A shorter last window runs at its own length.
 
+A later window starts at `later_start` from pure noise, as in the paper, or, given a
+`Proposal`, from a draw that continues the overlap, noised to that level (see prior.py).
+
 The sampler is model-agnostic: it calls `eps_fn(x_t, index)` for a window, where
 `index` is the step in the respaced schedule. `FoppasStream` takes conditioning
 frames as they arrive and returns motion frames as soon as they are final.
@@ -23,8 +26,14 @@ import torch
 from .diffusion import Schedule
 from .progress import Progress, ProgressCallback, check_cancel
 
+PROPOSAL_STREAM = 0x5EED0F9A0D  # mixed into the seed of the proposal's generator
+
 EpsFn = Callable[[torch.Tensor, int], torch.Tensor]
 """(x_t of shape (1, L, D), schedule index) -> predicted noise (1, L, D)."""
+
+Proposal = Callable[[torch.Tensor, int, torch.Generator], torch.Tensor]
+"""(known overlap frames (n, D), window length, generator) -> a (length, C) draw of the
+first C <= D channels; the others start from pure noise as without a proposal."""
 
 
 @dataclass(frozen=True)
@@ -40,6 +49,7 @@ class FoppasConfig:
     blend_below: float = 0.2           # ... those landing at noise level sqrt(1 - abar) below this
     reference_renoise: bool = True     # jump back with the beta of the current index, as the official code
     eta: float = 0.0                   # 0: deterministic DDIM
+    prior_start: bool = True           # later windows start from the model's gesture prior, if it has one
 
     def check(self, clip_len: int) -> None:
         """Raise ValueError naming any setting that cannot work with `clip_len`-frame windows."""
@@ -115,12 +125,14 @@ def plan_windows(n_frames: int, clip_len: int, overlap: int) -> list[tuple[int, 
 class Foppas:
     """Samples one window at a time with a fixed schedule, settings and window size."""
 
-    def __init__(self, schedule: Schedule, config: FoppasConfig, clip_len: int, dim: int):
+    def __init__(self, schedule: Schedule, config: FoppasConfig, clip_len: int, dim: int,
+                 proposal: Optional[Proposal] = None):
         config.check(clip_len)
         self.schedule = schedule.respaced(config.steps)
         self.config = config
         self.clip_len = clip_len
         self.dim = dim
+        self.proposal = proposal
 
     def times(self, has_known: bool) -> list[int]:
         if not has_known:
@@ -129,14 +141,22 @@ class Foppas:
 
     def sample_window(self, eps_fn: EpsFn, length: int, known: Optional[torch.Tensor],
                       generator: torch.Generator, device: torch.device,
-                      on_step: Callable[[int, int], None] = lambda step, n: None) -> torch.Tensor:
-        """Sample a (1, length, dim) window; `known` (1, overlap, dim) fixes its first frames."""
+                      on_step: Callable[[int, int], None] = lambda step, n: None,
+                      proposal_generator: Optional[torch.Generator] = None) -> torch.Tensor:
+        """Sample a (1, length, dim) window; `known` (1, overlap, dim) fixes its first frames.
+        The proposal draws from its own generator, so the noise of every channel it does not
+        cover is the same as without it."""
         cfg, sched = self.config, self.schedule
 
         def randn(*shape: int) -> torch.Tensor:
             return torch.randn(*shape, generator=generator).to(device)
 
         x = randn(1, length, self.dim)
+        if known is not None and self.proposal is not None:
+            own = generator if proposal_generator is None else proposal_generator
+            draw = self.proposal(known[0], length, own).to(device).unsqueeze(0)
+            c = draw.shape[-1]
+            x[..., :c] = sched.q_sample(draw, torch.tensor([cfg.start_index]), x[..., :c])
         times = self.times(known is not None)
         n_calls, call = model_calls(times), 0
         if known is not None:
@@ -176,6 +196,8 @@ class FoppasStream:
         self.sampler = sampler
         self.make_eps_fn = make_eps_fn
         self.generator = generator
+        # a second stream for the proposal, seeded from the first's seed
+        self.proposal_generator = torch.Generator().manual_seed(generator.initial_seed() ^ PROPOSAL_STREAM)
         self.device = device
         self.progress = progress
         self.cancel = cancel
@@ -221,7 +243,8 @@ class FoppasStream:
             return base_fn(x, index)
 
         base_fn = self.make_eps_fn(cond)
-        window = self.sampler.sample_window(eps_fn, length, known, self.generator, self.device, on_step)
+        window = self.sampler.sample_window(eps_fn, length, known, self.generator, self.device, on_step,
+                                            self.proposal_generator)
         self._window += 1
         keep = length - overlap if length == self.sampler.clip_len else length
         self._tail = window[:, keep:] if keep < length else None

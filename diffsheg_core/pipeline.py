@@ -91,6 +91,11 @@ def speech_features(bundle: ModelBundle, audio: Audio, hubert_path: Optional[str
     return torch.from_numpy(np.concatenate(parts, axis=1).astype(np.float32))
 
 
+def uses_prior(bundle: ModelBundle, config: FoppasConfig) -> bool:
+    """Whether later windows start from the model's gesture prior (it has one and `config` asks)."""
+    return bundle.prior is not None and config.prior_start
+
+
 def build_sampling(bundle: ModelBundle, config: FoppasConfig, style: int = 0,
                    guidance: Optional[float] = None, autocast: Optional[torch.dtype] = None,
                    skip_guidance: Optional[float] = None
@@ -98,7 +103,8 @@ def build_sampling(bundle: ModelBundle, config: FoppasConfig, style: int = 0,
     """The FOPPAS sampler for `bundle` with `config`, and the factory that binds the model,
     style and guidance scales to one window's speech features. Bad settings raise DiffshegError."""
     try:
-        sampler = Foppas(Schedule.linear(), config, bundle.config.clip_len, bundle.config.dim)
+        sampler = Foppas(Schedule.linear(), config, bundle.config.clip_len, bundle.config.dim,
+                         proposal=bundle.prior.propose if uses_prior(bundle, config) else None)
     except ValueError as exc:
         raise DiffshegError(str(exc)) from None
     make = make_eps_fn_factory(bundle, sampler, style_onehot(bundle, style),
@@ -172,7 +178,7 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
         "audio_file": speech.path, "sample_rate": speech.sample_rate, "style": int(style),
         "guidance": resolve_guidance(bundle, guidance),
         "skip_guidance": resolve_skip_guidance(bundle, skip_guidance),
-        "steps": config.steps, "overlap": config.overlap,
+        "steps": config.steps, "overlap": config.overlap, "prior_start": uses_prior(bundle, config),
         "clip_len": bundle.config.clip_len,
         "device": str(torch_device), "software": f"diffsheg_core {__version__}",
     })

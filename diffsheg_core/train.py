@@ -43,6 +43,7 @@ from .foppas import PRESETS, FoppasConfig, with_overrides
 from .model import ModelConfig, UniEG
 from .phonetic import PhoneticEncoder, load_phonetic
 from .pipeline import check_skip_guidance, speech_encoding
+from .prior import GesturePrior
 from .devices import resolve_device
 
 EXPORT_DTYPES = {"float32": torch.float32, "float16": torch.float16}
@@ -265,6 +266,13 @@ def diffsheg_loss(model: torch.nn.Module, schedule: Schedule, batch: dict[str, t
 
 # ---------------------------------------------------------------- the trainer
 
+def fit_prior(takes: list, stats: NormStats, model_cfg: ModelConfig) -> GesturePrior | None:
+    """The gesture prior of the training takes that hold every gesture channel (None if none does)."""
+    g = model_cfg.gesture_dim
+    full = [stats.normalise(t.motion) for t in takes if t.mask[:g].all() and t.n_frames >= model_cfg.clip_len]
+    return GesturePrior.fit(full, g, model_cfg.clip_len) if full else None
+
+
 def sampling_config(cfg: TrainConfig) -> FoppasConfig:
     """The FOPPAS settings the checkpoints carry: the preset with `cfg.sampling` over it."""
     try:
@@ -363,6 +371,7 @@ class Trainer:
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp == torch.float16)
         self.schedule = Schedule.linear()
         self.step = 0
+        self._prior: GesturePrior | None = None  # fitted when first exported, with the statistics in use
 
     # -- state
 
@@ -436,10 +445,13 @@ class Trainer:
         ema = UniEG(self.model_cfg)
         ema.load_state_dict({k: v.cpu() for k, v in self.ema.state_dict().items()})
         training = {k: v for k, v in asdict(self.cfg).items() if k not in ("data", "card")}
+        if self._prior is None:
+            self._prior = fit_prior(self.train_set.takes, self.stats, self.model_cfg)
         return ModelBundle(model=ema.to(dtype).eval(), mean=self.stats.mean, std=self.stats.std,
                            sampling=self.sampling, guidance=self.guidance,
                            skip_guidance=self.cfg.skip_guidance, model_id=self.cfg.model_id,
                            phonetic=copy.deepcopy(self.phonetic).to(dtype) if self.phonetic else None,
+                           prior=self._prior,
                            info={**self.cfg.card, "trained_steps": self.step, "data": asdict(self.cfg.data),
                                  "training": training})
 

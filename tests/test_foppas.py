@@ -173,3 +173,57 @@ def test_stream_equals_offline_and_emits_early(model):
 def test_bad_overlap_is_refused():
     with pytest.raises(ValueError, match="overlap"):
         Foppas(Schedule.linear(), FoppasConfig(overlap=34), 34, 4)
+
+
+def test_later_windows_start_from_the_proposal_noised_to_the_start_level():
+    """Given a proposal, a later window's first model input is q(x_start | draw); the first
+    window and a sampler without a proposal start from pure noise."""
+    config = PRESETS["official-beat"]
+    calls = []
+
+    def proposal(known: torch.Tensor, length: int, generator: torch.Generator) -> torch.Tensor:
+        calls.append((tuple(known.shape), length))
+        return torch.full((length, 4), 50.0)
+
+    def first_inputs(sampler: Foppas) -> list[float]:
+        means = []
+
+        def make(cond):
+            seen = []
+
+            def eps_fn(x, index):
+                if not seen:
+                    seen.append(True)
+                    means.append(float(x[0, config.overlap:].mean()))
+                return torch.zeros_like(x)
+            return eps_fn
+        sample_long(sampler, make, torch.zeros(34 + 30 + 20, 1), torch.Generator().manual_seed(0), CPU)
+        return means
+
+    with_draw = first_inputs(Foppas(Schedule.linear(), config, 34, 4, proposal=proposal))
+    assert calls == [((config.overlap, 4), 34), ((config.overlap, 4), 24)]  # the last window is short
+    level = float(np.sqrt(Schedule.linear().respaced(config.steps).alphas_cumprod[config.start_index]))
+    assert abs(with_draw[0]) < 0.5  # the first window: noise
+    for mean in with_draw[1:]:
+        assert abs(mean - 50.0 * level) < 0.5
+    without = first_inputs(Foppas(Schedule.linear(), config, 34, 4))
+    assert all(abs(m) < 0.5 for m in without)
+
+
+def test_a_proposal_of_some_channels_leaves_the_others_noise_unchanged():
+    """The proposal draws from its own generator: the channels it does not cover get the
+    same noise as without it, so they come out the same."""
+    config = PRESETS["official-beat"]
+
+    def run(proposal) -> torch.Tensor:
+        sampler = Foppas(Schedule.linear(), config, 34, 4, proposal=proposal)
+        make = lambda cond: lambda x, i: 0.1 * x  # any model that treats the channels apart
+        return sample_long(sampler, make, torch.zeros(80, 1), torch.Generator().manual_seed(3), CPU)
+
+    def two_channels(known, length, generator):
+        return torch.cat([known[:, :2], torch.randn(length - len(known), 2, generator=generator)])
+
+    plain, proposed = run(None), run(two_channels)
+    assert torch.equal(plain[:, 2:], proposed[:, 2:])
+    assert torch.equal(plain[:30, :2], proposed[:30, :2])  # the first window has no proposal
+    assert not torch.allclose(plain[30:, :2], proposed[30:, :2])

@@ -3,16 +3,19 @@
 import subprocess
 import sys
 import threading
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import soundfile as sf
 import torch
 
-from diffsheg_core import AudioError, Cancelled, DiffshegError, Motion, generate
-from diffsheg_core.checkpoints import ModelBundle, untrained_bundle
+from diffsheg_core import AudioError, Cancelled, CheckpointError, DiffshegError, Motion, generate
+from diffsheg_core.checkpoints import ModelBundle, load_model, save_checkpoint, untrained_bundle
+from diffsheg_core.data.beat import read_gesture
 from diffsheg_core.foppas import PRESETS
 from diffsheg_core.model import ModelConfig, UniEG
+from diffsheg_core.prior import GesturePrior
 from diffsheg_core.rigs import ARKIT51, BEAT_JOINTS, SMPLX_EXPRESSION
 
 
@@ -160,10 +163,21 @@ def test_smplx_motion_in_talkshow_layout(speech, tmp_path):
         write_talkshow_npz(beat_motion, tmp_path / "beat.npz")
 
 
-def test_open_stream_matches_generate(speech, model):
+@pytest.fixture(scope="module")
+def prior_model(model, data_dir):
+    """The untrained model with a gesture prior fitted to a real capture."""
+    gestures = read_gesture(data_dir / "beat" / "2_scott_0_1_1.bvh", 15.0, source_fps=15.0)
+    g = model.config.gesture_dim
+    prior = GesturePrior.fit([(gestures - model.mean[:g]) / model.std[:g]], g, model.config.clip_len)
+    return replace(model, prior=prior)
+
+
+@pytest.mark.parametrize("with_prior", [False, True])
+def test_open_stream_matches_generate(speech, model, prior_model, with_prior):
     from diffsheg_core.audio import load_audio
     from diffsheg_core.pipeline import open_stream, speech_features, to_motion
 
+    model = prior_model if with_prior else model
     features = speech_features(model, load_audio(speech))
     stream = open_stream(model, seed=5, device="cpu")
     frames = [stream.push(features[i:i + 15]) for i in range(0, len(features), 15)] + [stream.finish()]
@@ -208,3 +222,34 @@ def test_skip_guidance_defaults_to_the_models_and_zero_turns_it_off(speech):
     off = generate(speech, model=bundle, steps=3, device="cpu", skip_guidance=0.0)
     assert off.meta["skip_guidance"] is None and not np.allclose(off.rotations, default.rotations)
     assert np.array_equal(off.face, default.face)  # it steers the gestures only
+
+
+def test_later_windows_start_from_the_models_gesture_prior(speech, prior_model, tmp_path):
+    """With a gesture prior, the windows after the first start from its draws: the first
+    window is the same as without one, the rest differ; the prior is saved with the model
+    and the CLI's --no-prior turns it off."""
+    bundle = prior_model
+    with_prior = generate(speech, model=bundle, steps=3, device="cpu")
+    without = generate(speech, model=bundle, steps=3, device="cpu",
+                       sampling=replace(bundle.sampling, prior_start=False))
+    assert with_prior.meta["prior_start"] and not without.meta["prior_start"]
+    first = bundle.config.clip_len - bundle.sampling.overlap
+    assert np.array_equal(with_prior.rotations[:first], without.rotations[:first])
+    assert not np.allclose(with_prior.rotations[first:], without.rotations[first:])
+
+    path = save_checkpoint(bundle, tmp_path / "with_prior.safetensors")
+    loaded = load_model(path)
+    assert torch.equal(loaded.prior.autocov, bundle.prior.autocov)
+    again = generate(speech, model=loaded, steps=3, device="cpu")
+    assert np.array_equal(again.rotations, with_prior.rotations)
+    out = tmp_path / "off.npz"
+    result = subprocess.run([sys.executable, "-m", "diffsheg_core", "generate", str(speech), "-o", str(out),
+                             "--checkpoint", str(path), "--steps", "3", "--device", "cpu", "--no-prior"],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert Motion.load_npz(out).meta["prior_start"] is False
+
+    cut = GesturePrior(bundle.prior.mean[:10], bundle.prior.axes[:10, :10], bundle.prior.autocov[:10])
+    save_checkpoint(replace(bundle, prior=cut), tmp_path / "bad_prior.safetensors")
+    with pytest.raises(CheckpointError, match="gesture prior covers 10 channels"):
+        load_model(tmp_path / "bad_prior.safetensors")

@@ -277,8 +277,10 @@ def test_fine_tuning_an_unguided_run_into_a_guided_model_with_torchrun(small_roo
     assert first == second
     bundle = load_model(tmp_path / "guided" / MODEL_FILE)
     assert bundle.config.classifier_free and bundle.guidance == 1.5 and bundle.skip_guidance == 0.2
+    # the export carries the gesture prior of the training motion, and generation uses it
+    assert (bundle.prior.dims, bundle.prior.max_len) == (bundle.config.gesture_dim, bundle.config.clip_len)
     motion = generate(str(small_root / "talk.wav"), model=bundle, steps=2, device="cpu")
-    assert motion.meta["guidance"] == 1.5 and np.isfinite(motion.rotations).all()
+    assert motion.meta["guidance"] == 1.5 and motion.meta["prior_start"] and np.isfinite(motion.rotations).all()
 
     with pytest.raises(DiffshegError, match="its model differs in latent"):
         Trainer(TrainConfig.from_dict({**settings, "model": {**guided_model, "latent": 48},

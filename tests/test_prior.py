@@ -1,0 +1,93 @@
+"""The gesture prior (diffsheg_core/prior.py), fitted to real motion capture: continuations
+of held-out frames look like the capture in spread, speed and continuity."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from diffsheg_core.data.beat import read_gesture
+from diffsheg_core.errors import DiffshegError
+from diffsheg_core.prior import GesturePrior
+
+REAL_BVH = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "beat" / "2_scott_0_1_1.bvh"
+CLIP, KNOWN, FACE = 34, 4, 5
+
+
+@pytest.fixture(scope="module")
+def capture() -> tuple[np.ndarray, np.ndarray]:
+    """Normalised gesture channels of the real take, plus FACE channels the prior does not
+    draw: the first 80 % to fit on, the rest held out."""
+    gestures = read_gesture(REAL_BVH, 15.0, source_fps=15.0)
+    gestures = (gestures - gestures.mean(0)) / np.maximum(gestures.std(0), 1e-3)
+    motion = np.concatenate([gestures, np.ones((len(gestures), FACE))], axis=1)
+    cut = int(0.8 * len(motion))
+    return motion[:cut], motion[cut:]
+
+
+@pytest.fixture(scope="module")
+def prior(capture) -> GesturePrior:
+    return GesturePrior.fit([capture[0]], capture[0].shape[1] - FACE, CLIP)
+
+
+def _continuations(prior: GesturePrior, held: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(real windows, drawn windows) for every window start in the held-out frames."""
+    gen = torch.Generator().manual_seed(seed)
+    real = np.stack([held[s: s + CLIP] for s in range(0, len(held) - CLIP, 8)])
+    drawn = np.stack([prior.propose(torch.from_numpy(w[:KNOWN]).float(), CLIP, gen).numpy() for w in real])
+    return real, drawn
+
+
+def test_continuations_move_like_the_capture(prior, capture):
+    real, drawn = _continuations(prior, capture[1])
+    g = prior.dims
+    new_real, new_drawn = real[:, KNOWN:, :g], drawn[:, KNOWN:]
+    spread = lambda w: float(w.std(axis=(0, 1)).mean())
+    speed = lambda w: float(np.abs(np.diff(w, axis=1)).mean())
+    # seeds 0-2 measure: spread 1.01-1.05x, frame-to-frame speed 1.45x, first step 1.5x
+    assert 0.75 < spread(new_drawn) / spread(new_real) < 1.33
+    # smooth (white noise of that spread would move 5x faster), a little rougher than the capture
+    assert 0.6 < speed(new_drawn) / speed(new_real) < 1.8
+    # the draw continues from the last known frame without a jump
+    jump = np.abs(drawn[:, KNOWN] - drawn[:, KNOWN - 1]).mean()
+    assert jump < 2 * speed(new_real)
+    # and the posture of its next half second follows the known frames (0.51-0.54x the
+    # distance to the known frames of another window)
+    posture = new_drawn[:, :8].mean(1)
+    near = np.abs(posture - real[:, :KNOWN, :g].mean(1)).mean()
+    other = np.abs(posture - np.roll(real[:, :KNOWN, :g].mean(1), 7, axis=0)).mean()
+    assert near < 0.7 * other
+
+
+def test_known_frames_kept_and_only_the_gesture_channels_drawn(prior, capture):
+    known = torch.from_numpy(capture[1][:KNOWN]).float()
+    draw = prior.propose(known, CLIP, torch.Generator().manual_seed(0))
+    assert draw.shape == (CLIP, prior.dims) and draw.dtype == torch.float32
+    assert torch.equal(draw[:KNOWN], known[:, : prior.dims])
+    again = prior.propose(known, CLIP, torch.Generator().manual_seed(0))
+    assert torch.equal(draw, again)
+    other = prior.propose(known, CLIP, torch.Generator().manual_seed(1))
+    assert not torch.equal(draw, other)
+    shorter = prior.propose(known, 20, torch.Generator().manual_seed(0))  # a short last window
+    assert shorter.shape == (20, prior.dims)
+
+
+def test_bad_requests_are_refused(prior, capture):
+    known = torch.from_numpy(capture[1][:KNOWN]).float()
+    with pytest.raises(DiffshegError, match="known frames"):
+        prior.propose(known, CLIP + 1, torch.Generator())
+    with pytest.raises(DiffshegError, match="known frames"):
+        prior.propose(known[:0], CLIP, torch.Generator())
+    with pytest.raises(DiffshegError, match="cannot fit"):
+        GesturePrior.fit([capture[1][:10]], prior.dims, CLIP)
+
+
+def test_tensors_round_trip(prior):
+    tensors = prior.tensors()
+    back = GesturePrior.from_tensors(tensors, "test")
+    assert back.dims == prior.dims and back.max_len == CLIP
+    assert torch.equal(back.axes, prior.axes) and torch.equal(back.autocov, prior.autocov)
+    assert GesturePrior.from_tensors({}, "test") is None
+    with pytest.raises(DiffshegError, match="incomplete"):
+        GesturePrior.from_tensors({k: v for k, v in tensors.items() if "autocov" not in k}, "model.safetensors")
