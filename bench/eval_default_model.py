@@ -185,7 +185,7 @@ def main() -> int:
 
     results: dict[str, dict] = {}
     wav, teacher, grid = heldout_set(Path(args.corpus), args.seconds, out)
-    sampling = replace(bundle.sampling, prior_start=not args.no_prior)
+    sampling = replace(bundle.sampling, prior_start=False) if args.no_prior else bundle.sampling
     scales = {"guidance": args.guidance, "skip_guidance": args.skip_guidance, "sampling": sampling}
     heldout = samples_for(bundle, wav, out / "motion", "heldout", scales)
     results["heldout"] = evaluate("heldout", wav, heldout, out,

@@ -21,7 +21,7 @@ from typing import Iterable
 import numpy as np
 import torch
 
-from .errors import DiffshegError
+from .errors import CheckpointError, DiffshegError
 
 PREFIX = "prior."
 
@@ -100,10 +100,10 @@ class GesturePrior:
         try:
             mean, axes, autocov = (tensors[n].double() for n in names)
         except KeyError as exc:
-            raise DiffshegError(f"{source}: the gesture prior is incomplete (no {exc}); export it again") from None
+            raise CheckpointError(f"{source}: the gesture prior is incomplete (no {exc}); export it again") from None
         g = mean.shape[0]
         if axes.shape != (g, g) or autocov.ndim != 2 or autocov.shape[0] != g:
-            raise DiffshegError(f"{source}: the gesture prior's shapes do not fit together "
+            raise CheckpointError(f"{source}: the gesture prior's shapes do not fit together "
                                 f"(mean {tuple(mean.shape)}, axes {tuple(axes.shape)}, "
                                 f"autocov {tuple(autocov.shape)}); export it again")
         return cls(mean, axes, autocov)
