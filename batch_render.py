@@ -13,20 +13,76 @@ onto a demo speaker built from the embedded BEAT skeleton, saved to out/demo.ble
 rendered (Workbench, low resolution) to out/demo.mp4.
 
 Progress goes to stdout; on failure a one-line message goes to stderr, exit code 1.
+
+From the installed add-on: the extension zip ships this script beside the add-on, with
+diffsheg_core under lib/, so it runs without a checkout:
+
+    blender -b scene.blend -P <extension folder>/batch_render.py -- --audio talk.wav --preset rigify
+
+where the extension folder is <Blender user config>/extensions/user_default/diffsheg
+(Linux: ~/.config/blender/5.0/extensions/user_default/diffsheg; Windows:
+%APPDATA%\\Blender Foundation\\Blender\\5.0\\extensions\\user_default\\diffsheg; macOS:
+~/Library/Application Support/Blender/5.0/extensions/user_default/diffsheg). Blender
+prints it with:
+
+    blender -b --python-expr "import bpy; print(bpy.utils.user_resource('EXTENSIONS', path='user_default/diffsheg'))"
+
+Inside the installed add-on, the default output folder is ./out (the working directory);
+in a checkout it is out/ in the checkout.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import importlib.util
 import sys
 import tempfile
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+HERE = Path(__file__).resolve().parent
+
+
+def _find_packages() -> tuple[str, Path]:
+    """Make diffsheg_core and the add-on importable, from a checkout (blender_addon/ beside
+    this file) or from inside the installed add-on (this file beside its __init__.py, the
+    core under lib/). Returns the add-on's package name and the default output folder."""
+    if (HERE / "blender_addon" / "__init__.py").is_file():  # a checkout
+        if str(HERE) not in sys.path:
+            sys.path.insert(0, str(HERE))
+        return "blender_addon", HERE / "out"
+    if (HERE / "__init__.py").is_file() and (HERE / "lib" / "diffsheg_core").is_dir():
+        if str(HERE / "lib") not in sys.path:
+            sys.path.insert(0, str(HERE / "lib"))
+        # the extension's wheels (Blender adds them at start-up; a bare `python` may not)
+        wheels = HERE.parents[1] / ".local" / "lib" / f"python{sys.version_info[0]}.{sys.version_info[1]}" \
+            / "site-packages"
+        if wheels.is_dir() and str(wheels) not in sys.path:
+            sys.path.append(str(wheels))
+        init = HERE / "__init__.py"
+        for name, module in list(sys.modules.items()):  # the enabled add-on (bl_ext.user_default.diffsheg)
+            file = getattr(module, "__file__", None)
+            if file and Path(file).resolve() == init:
+                return name, Path.cwd() / "out"
+        name = "diffsheg_batch_addon"  # not enabled: import the add-on's package without registering it
+        spec = importlib.util.spec_from_file_location(name, init, submodule_search_locations=[str(HERE)])
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+        return name, Path.cwd() / "out"
+    raise SystemExit(f"batch_render: error: {HERE} is neither a checkout of the project nor the installed "
+                     "add-on (no blender_addon/ beside this script, nor lib/diffsheg_core)")
+
 
 import bpy  # noqa: E402
+
+ADDON, OUT = _find_packages()
+
+
+def addon(module: str):
+    """A module of the add-on: addon("bake") is blender_addon.bake in a checkout."""
+    return importlib.import_module(f"{ADDON}.{module}")
+
 
 AUDIO_SUFFIXES = {".wav", ".flac", ".ogg", ".mp3", ".m4a", ".aiff", ".aif"}
 
@@ -112,18 +168,18 @@ def printer(label: str):
 def output_for(args, audio: Path, several: bool, suffix: str, explicit: str | None) -> Path:
     if explicit and not several:
         return Path(explicit).expanduser().resolve()
-    folder = Path(explicit).expanduser().resolve() if explicit else REPO / "out"
+    folder = Path(explicit).expanduser().resolve() if explicit else OUT
     return folder / f"{audio.stem}{suffix}"
 
 
 def run_one(args, audio: Path, label: str, several: bool) -> None:
     import diffsheg_core
-    from blender_addon.bake import BakeOptions, bake_motion
-    from blender_addon.demo import set_video_output
-    from blender_addon.operators import model_label, summary
-    from blender_addon.preset import load_preset
-
     from diffsheg_core.errors import DiffshegError
+
+    BakeOptions, bake_motion = addon("bake").BakeOptions, addon("bake").bake_motion
+    set_video_output = addon("demo").set_video_output
+    model_label, summary = addon("operators").model_label, addon("operators").summary
+    load_preset = addon("preset").load_preset
 
     scene = bpy.context.scene
     if not args.no_render and scene.camera is None:
@@ -153,7 +209,9 @@ def run_one(args, audio: Path, label: str, several: bool) -> None:
 
 def run_demo(args) -> None:
     from diffsheg_core.audio import SAMPLE_SPEECH
-    from blender_addon.demo import build_beat_armature, build_face, setup_preview
+
+    demo = addon("demo")
+    build_beat_armature, build_face, setup_preview = demo.build_beat_armature, demo.build_face, demo.setup_preview
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
@@ -162,8 +220,8 @@ def run_demo(args) -> None:
     build_face(armature)
     setup_preview(scene)
     args.audio, args.armature, args.preset = str(SAMPLE_SPEECH), armature.name, "beat"
-    args.output = args.output or str(REPO / "out" / "demo.mp4")
-    args.save = args.save or str(REPO / "out" / "demo.blend")
+    args.output = args.output or str(OUT / "demo.mp4")
+    args.save = args.save or str(OUT / "demo.blend")
     run_one(args, SAMPLE_SPEECH, "demo", several=False)
 
 

@@ -4,12 +4,13 @@ Prints, side by side for each configuration, the time spent loading audio,
 computing speech features, sampling (FOPPAS), and writing outputs, then frames per
 second and the real-time factor (audio seconds per wall second). Run from the repo:
 
-    python bench/bench_generate.py [--seconds 60] [--configs small,official] [--device auto]
+    python bench/bench_generate.py [--seconds 60] [--configs default,official] [--backend auto]
 
-`default` is the bundled model with its own sampling preset; `small` an untrained small
-network with the official preset; `official` the full-size official BEAT network (random weights) with HuBERT
-features from a randomly initialised HuBERT-large-layout model (the real model's
-compute; needs `transformers`), sampled with the official FOPPAS preset.
+`default` is the bundled model with its own sampling preset (onnxruntime unless
+--backend torch); `official` the full-size official BEAT network (random weights, torch)
+with HuBERT features from a randomly initialised HuBERT-large-layout model (the real
+model's compute; needs `transformers`), sampled with the official FOPPAS preset.
+For onnxruntime against torch, threads and load, see bench_backends.py.
 """
 
 from __future__ import annotations
@@ -25,12 +26,13 @@ import torch
 
 from diffsheg_core.audio import load_audio
 from diffsheg_core.bvh import write_bvh
-from diffsheg_core.checkpoints import ModelBundle, load_model, untrained_bundle
+from diffsheg_core.checkpoints import ModelBundle, load_model
+from diffsheg_core.config import ModelConfig
 from diffsheg_core.foppas import PRESETS, sample_long
-from diffsheg_core.model import ModelConfig, UniEG
+from diffsheg_core.model import UniEG
 from diffsheg_core.motion import write_arkit_json
-from diffsheg_core.devices import resolve_device
 from diffsheg_core.pipeline import build_sampling, speech_features, to_motion
+from diffsheg_core.runtime.backends import open_network
 
 SPEECH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "audio" / "2_scott_0_3_3.wav"
 
@@ -39,7 +41,8 @@ def official_bundle() -> ModelBundle:
     torch.manual_seed(0)
     model = UniEG(ModelConfig()).eval()
     dim = model.cfg.dim
-    return ModelBundle(model=model, mean=np.zeros(dim, np.float32), std=np.ones(dim, np.float32),
+    return ModelBundle(config=model.cfg, weights={k: v.numpy() for k, v in model.state_dict().items()},
+                       mean=np.zeros(dim, np.float32), std=np.ones(dim, np.float32),
                        sampling=PRESETS["official-beat"], model_id="official-size-random")
 
 
@@ -54,31 +57,30 @@ def random_hubert_large(folder: Path) -> str:
     return str(folder)
 
 
-def run(bundle: ModelBundle, audio_path: Path, device: torch.device, hubert: str | None, out: Path) -> dict:
-    bundle.model.to(device)
-    times = {}
+def run(bundle: ModelBundle, audio_path: Path, backend: str, device: str, hubert: str | None,
+        out: Path) -> dict:
+    network = open_network(bundle, backend, device)
+    times = {"network": f"{network.name}/{network.device}"}
     t = time.perf_counter()
     speech = load_audio(audio_path)
     times["load"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    cond = speech_features(bundle, speech, hubert_path=hubert, device=str(device))
+    cond = speech_features(bundle, network, speech, hubert_path=hubert)
     times["features"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    sampler, make = build_sampling(bundle, bundle.sampling)
-    out_frames = sample_long(sampler, make, cond, torch.Generator().manual_seed(0), device)
-    if device.type == "cuda":
-        torch.cuda.synchronize()
+    sampler, make = build_sampling(bundle, network, bundle.sampling)
+    out_frames = sample_long(sampler, make, cond, 0)
     times["sampling"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    motion = to_motion(bundle, out_frames.cpu().numpy(), meta={})
+    motion = to_motion(bundle, out_frames, meta={})
     motion.save_npz(out / "m.npz")
     write_bvh(motion, out / "m.bvh")
     write_arkit_json(motion, out / "m.json")
     times["writing"] = time.perf_counter() - t
-    times["total"] = sum(times.values())
+    times["total"] = sum(times[k] for k in ("load", "features", "sampling", "writing"))
     times["frames"] = motion.n_frames
     times["audio_s"] = speech.duration
     return times
@@ -88,13 +90,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=60.0, help="seconds of real speech (default 60)")
     parser.add_argument("--configs", default="default,official",
-                        help="default (bundled model), small (untrained small), official (full size)")
+                        help="default (bundled model), official (full size, random weights)")
+    parser.add_argument("--backend", default="auto", choices=["auto", "onnx", "torch"])
     parser.add_argument("--device", default="auto")
-    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     args = parser.parse_args()
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    device = resolve_device(args.device)
+    device = args.device
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         samples, sr = sf.read(SPEECH, dtype="float32")
@@ -103,16 +103,16 @@ def main() -> None:
         results = {}
         for name in args.configs.split(","):
             if name == "default":
-                results[name] = run(load_model(), audio, device, None, tmp)
-            elif name == "small":
-                results[name] = run(untrained_bundle(), audio, device, None, tmp)
+                results[name] = run(load_model(), audio, args.backend, device, None, tmp)
             elif name == "official":
-                results[name] = run(official_bundle(), audio, device, random_hubert_large(tmp / "hubert"), tmp)
+                results[name] = run(official_bundle(), audio, "torch", device,
+                                    random_hubert_large(tmp / "hubert"), tmp)
             else:
-                raise SystemExit(f"unknown configuration {name}: use default, small, official")
-    print(f"device: {device} ({torch.cuda.get_device_name() if device.type == 'cuda' else 'CPU'}), "
-          f"torch threads {torch.get_num_threads()}, {args.seconds:g} s of real speech")
+                raise SystemExit(f"unknown configuration {name}: use default, official")
+    gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "no GPU"
+    print(f"{args.seconds:g} s of real speech; {gpu}")
     names = list(results)
+    print(f"{'runs on':<12}" + "".join(f"{results[n]['network']:>14}" for n in names))
     print(f"{'stage':<12}" + "".join(f"{n:>14}" for n in names))
     for key in ("load", "features", "sampling", "writing", "total"):
         print(f"{key + ' (s)':<12}" + "".join(f"{results[n][key]:>14.2f}" for n in names))

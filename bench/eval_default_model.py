@@ -31,9 +31,9 @@ import torch
 
 from diffsheg_core.audio import Audio, load_audio
 from diffsheg_core.checkpoints import load_model
-from diffsheg_core.corpus.teacher import load_utterance, teach_files
-from diffsheg_core.data import DataConfig
-from diffsheg_core.data.dataset import find_sources
+from diffsheg_core.training.corpus.teacher import load_utterance, teach_files
+from diffsheg_core.training.data import DataConfig
+from diffsheg_core.training.data.dataset import find_sources
 from diffsheg_core.motion import Motion
 from diffsheg_core.pipeline import generate, resolve_guidance, resolve_skip_guidance, uses_prior
 

@@ -8,6 +8,7 @@ therefore leave the scene as it was.
 
 from __future__ import annotations
 
+import importlib
 import random
 import threading
 from pathlib import Path
@@ -17,7 +18,7 @@ import bpy
 from diffsheg_core.errors import DiffshegError
 
 from . import preset
-from .preferences import missing_dependencies
+from .preferences import INSTALL_GPU_HINT, RUNTIME, missing_runtime, runtime_fix, torch_installed
 from .properties import CUSTOM_PRESET
 
 
@@ -64,14 +65,64 @@ def bake_options(settings):
         set_frame_range=settings.set_frame_range)
 
 
-def check_ready(settings) -> tuple:
-    """Everything checkable before generating: dependencies, audio file, targets, preset."""
-    missing = missing_dependencies()
+def check_runtime() -> None:
+    """The runtime packages are there and import (e.g. a wheel for a newer OS fails here)."""
+    missing = missing_runtime()
     if missing:
-        raise DiffshegError(
-            f"missing Python packages: {', '.join(missing)}. Install them with "
-            "Edit > Preferences > Add-ons > DiffSHEG > Install dependencies")
+        raise DiffshegError(f"missing Python packages: {', '.join(missing)}; {runtime_fix()}")
+    for name in RUNTIME:
+        try:
+            importlib.import_module(name)
+        except Exception as exc:  # ImportError, or an OSError from a shared library
+            needs = bundled_wheels_need()
+            raise DiffshegError(f"the Python package {name} is installed but does not load "
+                                f"({type(exc).__name__}: {exc}); "
+                                + (f"the bundled wheels need {needs} or newer; " if needs else "")
+                                + runtime_fix()) from None
+
+
+def bundled_wheels_need() -> str | None:
+    """The OS release the extension's wheels ask for (wheels/wheels.json, see build_addon.py)."""
+    import json
+
+    record = Path(__file__).resolve().parent / "wheels" / "wheels.json"
+    try:
+        return json.loads(record.read_text(encoding="utf-8")).get("requires_os")
+    except (OSError, ValueError):
+        return None
+
+
+def is_official_checkpoint(path: Path) -> bool:
+    """A torch pickle (official DiffSHEG .pth/.pt), not our safetensors format: as
+    `diffsheg_core.checkpoints.load_model` tells them apart."""
+    if path.suffix == ".safetensors":
+        return False
+    with open(path, "rb") as fh:
+        return fh.read(16)[8:9] != b"{"
+
+
+def check_model(settings) -> None:
+    """What the chosen model and device need besides the runtime: torch for official
+    checkpoints and CUDA GPUs (the GPU support of the preferences)."""
+    if torch_installed():
+        return
+    raw = settings.model_path.strip()
+    if raw:
+        path = Path(bpy.path.abspath(raw))
+        if path.is_file() and is_official_checkpoint(path):
+            raise DiffshegError(f"{path.name} is an official DiffSHEG checkpoint (a torch file): it needs "
+                                f"torch, which is not installed: {INSTALL_GPU_HINT} (or choose a "
+                                ".safetensors model, or none for the bundled one)")
+    if settings.device == "GPU":
+        raise DiffshegError(f"device GPU needs torch with CUDA, which is not installed: {INSTALL_GPU_HINT} "
+                            "(CUDA build), or choose device Auto or CPU")
+
+
+def check_ready(settings) -> tuple:
+    """Everything checkable before generating: packages, audio file, model, targets, preset."""
+    check_runtime()
     path = audio_file(settings)
+    check_model(settings)
     options = bake_options(settings)
     if options.armature is None and not options.face_meshes:
         raise DiffshegError("no target: choose an armature and/or a face mesh in the panel")
@@ -180,8 +231,8 @@ class DIFFSHEG_OT_generate(bpy.types.Operator):
     def invoke(self, context, event):
         try:
             settings, path, options = self._prepare(context)
-        except DiffshegError as exc:
-            self.report({"ERROR"}, str(exc))
+        except Exception as exc:  # a message in the status bar, never a traceback
+            self.report({"ERROR"}, error_message(exc))
             return {"CANCELLED"}
         self._path, self._options = path, options
         self._job = GenerationJob(path, generate_kwargs(settings)).start()

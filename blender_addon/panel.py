@@ -6,7 +6,7 @@ import sys
 
 import bpy
 
-from .preferences import missing_dependencies
+from .preferences import missing_runtime, runtime_fix, torch_installed
 from .properties import CUSTOM_PRESET
 
 
@@ -15,6 +15,9 @@ def device_label(choice: str) -> str:
     torch = sys.modules.get("torch")
     if choice == "CPU":
         return "CPU"
+    if torch is None and not torch_installed():
+        return "CPU (GPU support not installed)" if choice == "AUTO" else \
+            "GPU needs GPU support: see the add-on's preferences"
     if torch is None:
         return "GPU (CUDA) if available, else CPU" if choice == "AUTO" else "GPU (CUDA)"
     has_cuda = torch.cuda.is_available()
@@ -38,11 +41,12 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         s = context.scene.diffsheg
-        missing = missing_dependencies()
+        missing = missing_runtime()
         if missing:
             box = layout.box()
             box.label(text=f"Missing Python packages: {', '.join(missing)}", icon="ERROR")
-            box.label(text="Install them in Preferences > Add-ons > DiffSHEG")
+            fix = runtime_fix()
+            box.label(text=fix[0].upper() + fix[1:])
 
         layout.prop(s, "audio_path")
         layout.prop(s, "armature")

@@ -1,14 +1,25 @@
-"""Add-on preferences: install the heavy Python dependencies into Blender's Python.
+"""Add-on preferences: the state of the Python packages generation runs on, and the
+optional GPU support.
 
-One button runs pip (in a background thread, output streamed to the preferences as
-progress) into Blender's user `scripts/modules` folder, which Blender puts on
-`sys.path`. torch comes from the PyTorch index of the chosen build (CPU or CUDA), the
-rest from PyPI; numpy is pinned to the version Blender ships so it is not replaced.
+- The runtime packages (onnxruntime, soundfile, soxr, safetensors). In the Blender 4.2+
+  extension they come with the zip, as wheels Blender installs offline (one zip per
+  platform, see build_addon.py): the preferences only say whether they import, and that
+  installing the zip of this platform again brings back any that is missing. The legacy
+  add-on (Blender before 4.2) keeps a button that installs them with pip.
+- GPU support: torch, optional, for the official DiffSHEG checkpoints and NVIDIA GPUs. A
+  button runs pip (in a background thread, its output streamed to the preferences) into
+  Blender's user `scripts/modules` folder, which Blender puts on `sys.path`; torch comes
+  from the PyTorch index of the chosen build (CPU or CUDA) and numpy is pinned to the
+  version Blender ships so it is not replaced.
+
+Nothing here imports those packages: their presence is looked up with `find_spec`, so the
+add-on registers with nothing but the standard library, numpy and bpy.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import platform
 import subprocess
 import sys
 import threading
@@ -19,48 +30,89 @@ from bpy.props import EnumProperty, StringProperty
 
 ADDON_PACKAGE = __package__
 
-# import name -> pip requirement
-DEPENDENCIES: dict[str, str] = {
-    "torch": "torch>=2.1",
-    "scipy": "scipy>=1.11",
-    "librosa": "librosa>=0.10",
+# import name -> pip requirement: what `diffsheg_core.generate` runs on (the onnx backend)
+RUNTIME: dict[str, str] = {
+    "onnxruntime": "onnxruntime>=1.17",
     "soundfile": "soundfile>=0.12",
+    "soxr": "soxr>=0.3",
     "safetensors": "safetensors>=0.4",
-    "tqdm": "tqdm>=4.60",
 }
+TORCH_REQUIREMENT = "torch>=2.1"
 
 TORCH_INDEXES: dict[str, str | None] = {
     "CPU": "https://download.pytorch.org/whl/cpu",
     "CUDA": "https://download.pytorch.org/whl/cu126",
     "PYPI": None,
 }
+INSTALL_GPU_HINT = "Edit > Preferences > Add-ons > DiffSHEG > Install GPU support"
 
 
-def missing_dependencies() -> list[str]:
-    """Import names of the required packages Blender's Python cannot find."""
-    return [name for name in DEPENDENCIES if importlib.util.find_spec(name) is None]
+def is_extension() -> bool:
+    """Installed as a Blender 4.2+ extension (its wheels bring the runtime packages)."""
+    return (ADDON_PACKAGE or "").startswith("bl_ext.")
+
+
+def blender_platform() -> str:
+    """This machine in the extension platforms' names: linux-x64, macos-arm64, ..."""
+    machine = platform.machine().lower()
+    arch = "arm64" if machine in ("arm64", "aarch64") else "x64"
+    system = {"win32": "windows", "darwin": "macos"}.get(sys.platform, sys.platform.rstrip("0123456789"))
+    return f"{system}-{arch}"
+
+
+def addon_version() -> str:
+    info = getattr(sys.modules.get(ADDON_PACKAGE or ""), "bl_info", {})
+    return ".".join(str(v) for v in info.get("version", (0, 1, 0)))
+
+
+def missing_runtime() -> list[str]:
+    """Import names of the runtime packages Blender's Python cannot find."""
+    return [name for name in RUNTIME if importlib.util.find_spec(name) is None]
+
+
+def torch_installed() -> bool:
+    return importlib.util.find_spec("torch") is not None
+
+
+def runtime_fix() -> str:
+    """What brings the runtime packages back, for this kind of install."""
+    if is_extension():
+        return (f"they come with the extension: install diffsheg-{addon_version()}-{blender_platform()}.zip "
+                "again (Edit > Preferences > Get Extensions > Install from Disk)")
+    return "install them with Edit > Preferences > Add-ons > DiffSHEG > Install dependencies"
 
 
 def modules_dir(create: bool = True) -> Path:
     return Path(bpy.utils.user_resource("SCRIPTS", path="modules", create=create))
 
 
-def pip_commands(build: str, target: Path, packages: list[str] | None = None) -> list[list[str]]:
-    """The pip runs installing `packages` (import names; default all) into `target`."""
+def ensure_on_path(folder: Path) -> None:
+    """Blender puts the user modules folder on sys.path only if it existed at start-up."""
+    if folder.is_dir() and str(folder) not in sys.path:
+        sys.path.append(str(folder))
+    importlib.invalidate_caches()
+
+
+def _pip_base(target: Path) -> list[str]:
+    return [sys.executable, "-m", "pip", "install", "--upgrade", "--target", str(target),
+            "--disable-pip-version-check", "--no-input"]
+
+
+def _numpy_pin() -> str:
     import numpy
 
-    names = packages if packages is not None else list(DEPENDENCIES)
-    base = [sys.executable, "-m", "pip", "install", "--upgrade", "--target", str(target),
-            "--disable-pip-version-check", "--no-input"]
-    pin = f"numpy=={numpy.__version__}"
-    commands = []
-    if "torch" in names:
-        index = TORCH_INDEXES[build]
-        commands.append(base + (["--index-url", index] if index else []) + [DEPENDENCIES["torch"], pin])
-    rest = [DEPENDENCIES[n] for n in names if n != "torch"]
-    if rest:
-        commands.append(base + rest + [pin])
-    return commands
+    return f"numpy=={numpy.__version__}"
+
+
+def runtime_pip_commands(target: Path) -> list[list[str]]:
+    """The pip run installing the runtime packages into `target` (the legacy add-on)."""
+    return [_pip_base(target) + list(RUNTIME.values()) + [_numpy_pin()]]
+
+
+def torch_pip_commands(build: str, target: Path) -> list[list[str]]:
+    """The pip run installing torch of `build` (CPU, CUDA, PYPI) into `target`."""
+    index = TORCH_INDEXES[build]
+    return [_pip_base(target) + (["--index-url", index] if index else []) + [TORCH_REQUIREMENT, _numpy_pin()]]
 
 
 class InstallJob:
@@ -108,28 +160,32 @@ class InstallJob:
         return "starting pip..."
 
 
-def result_message(job: InstallJob) -> tuple[bool, str]:
+def result_message(job: InstallJob, what: str) -> tuple[bool, str]:
+    """`what`: 'runtime' or 'gpu'."""
     if job.returncode == 0:
-        importlib.invalidate_caches()
-        still = missing_dependencies()
+        ensure_on_path(modules_dir(create=False))
+        still = missing_runtime() if what == "runtime" else ([] if torch_installed() else ["torch"])
         if still:
             return False, f"pip finished but these still do not import: {', '.join(still)}; restart Blender"
-        return True, "dependencies installed: generation is ready"
+        if what == "runtime":
+            return True, "dependencies installed: generation is ready"
+        return True, "GPU support installed: official checkpoints and CUDA GPUs can be used"
     return False, f"pip failed ({job.status}); see the system console for the full output"
 
 
-class DIFFSHEG_OT_install_dependencies(bpy.types.Operator):
-    """Install torch, librosa, soundfile and the other packages into Blender's Python"""
+class _PipOperator:
+    """An operator running pip in the background (invoke: modal with progress; execute: blocking)."""
 
-    bl_idname = "diffsheg.install_dependencies"
-    bl_label = "Install dependencies"
-
+    what = "runtime"
     _job: InstallJob | None = None
     _timer = None
 
+    def commands(self, prefs) -> list[list[str]]:
+        raise NotImplementedError
+
     def invoke(self, context, event):
         prefs = context.preferences.addons[ADDON_PACKAGE].preferences
-        self._job = InstallJob(pip_commands(prefs.torch_build, modules_dir())).start()
+        self._job = InstallJob(self.commands(prefs)).start()
         prefs.install_status = "installing..."
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.5, window=context.window)
@@ -138,7 +194,7 @@ class DIFFSHEG_OT_install_dependencies(bpy.types.Operator):
 
     def execute(self, context):
         prefs = context.preferences.addons[ADDON_PACKAGE].preferences
-        job = InstallJob(pip_commands(prefs.torch_build, modules_dir())).start()
+        job = InstallJob(self.commands(prefs)).start()
         job.wait()
         return self._report(context, job)
 
@@ -155,37 +211,72 @@ class DIFFSHEG_OT_install_dependencies(bpy.types.Operator):
         return self._report(context, self._job)
 
     def _report(self, context, job: InstallJob):
-        ok, message = result_message(job)
+        ok, message = result_message(job, self.what)
         print("\n".join(job.lines))
         context.preferences.addons[ADDON_PACKAGE].preferences.install_status = message
         self.report({"INFO"} if ok else {"ERROR"}, message)
         return {"FINISHED"} if ok else {"CANCELLED"}
 
 
+class DIFFSHEG_OT_install_dependencies(_PipOperator, bpy.types.Operator):
+    """Install onnxruntime, soundfile, soxr and safetensors into Blender's Python with pip
+    (the legacy add-on; the 4.2+ extension brings them with its zip)"""
+
+    bl_idname = "diffsheg.install_dependencies"
+    bl_label = "Install dependencies"
+    what = "runtime"
+
+    def commands(self, prefs):
+        return runtime_pip_commands(modules_dir())
+
+
+class DIFFSHEG_OT_install_gpu_support(_PipOperator, bpy.types.Operator):
+    """Install torch (CPU or CUDA build) into Blender's Python with pip: needed only for the
+    official DiffSHEG checkpoints and for generating on an NVIDIA GPU"""
+
+    bl_idname = "diffsheg.install_gpu_support"
+    bl_label = "Install GPU support"
+    what = "gpu"
+
+    def commands(self, prefs):
+        return torch_pip_commands(prefs.torch_build, modules_dir())
+
+
 class DIFFSHEG_AP_preferences(bpy.types.AddonPreferences):
     bl_idname = ADDON_PACKAGE
 
-    torch_build: EnumProperty(name="torch build", default="CPU", items=[
-        ("CPU", "CPU", "smaller download, runs everywhere"),
-        ("CUDA", "CUDA 12.6 (NVIDIA GPU)", "fast generation on an NVIDIA GPU"),
-        ("PYPI", "PyPI default", "the torch wheel PyPI gives this platform")])
+    torch_build: EnumProperty(name="torch build", default="PYPI" if sys.platform == "darwin" else "CUDA", items=[
+        ("CUDA", "CUDA 12.6 (NVIDIA GPU)", "generation on an NVIDIA GPU, and official checkpoints"),
+        ("CPU", "CPU", "smaller download: official checkpoints on the CPU"),
+        ("PYPI", "PyPI default", "the torch wheel PyPI gives this platform (macOS: CPU)")])
     install_status: StringProperty(default="")
 
     def draw(self, context):
         layout = self.layout
-        missing = missing_dependencies()
+        box = layout.box()
+        missing = missing_runtime()
         if missing:
-            layout.label(text=f"Missing: {', '.join(missing)}", icon="ERROR")
+            box.label(text=f"Missing Python packages: {', '.join(missing)}", icon="ERROR")
+            box.label(text=runtime_fix()[0].upper() + runtime_fix()[1:])
         else:
-            layout.label(text="All dependencies are installed", icon="CHECKMARK")
-        row = layout.row()
+            box.label(text="Generation is ready: " + ", ".join(RUNTIME) + " are installed", icon="CHECKMARK")
+        if not is_extension():
+            box.operator(DIFFSHEG_OT_install_dependencies.bl_idname, icon="IMPORT")
+
+        box = layout.box()
+        if torch_installed():
+            box.label(text="GPU support (torch) is installed", icon="CHECKMARK")
+        else:
+            box.label(text="GPU support (torch, optional): for official DiffSHEG checkpoints and NVIDIA GPUs",
+                      icon="INFO")
+        row = box.row()
         row.prop(self, "torch_build")
-        row.operator(DIFFSHEG_OT_install_dependencies.bl_idname, icon="IMPORT")
-        layout.label(text=f"Target: {modules_dir(create=False)}")
+        row.operator(DIFFSHEG_OT_install_gpu_support.bl_idname, icon="IMPORT")
+        box.label(text=f"Installs into: {modules_dir(create=False)}")
         if self.install_status:
             layout.label(text=self.install_status)
 
 
-CLASSES = (DIFFSHEG_OT_install_dependencies, DIFFSHEG_AP_preferences)
+CLASSES = (DIFFSHEG_OT_install_dependencies, DIFFSHEG_OT_install_gpu_support, DIFFSHEG_AP_preferences)
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)

@@ -46,7 +46,8 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
     preset_file: StringProperty(name="Preset file", subtype="FILE_PATH",
                                 description="your own preset .json (see presets/ for the format)")
     model_path: StringProperty(name="Model", subtype="FILE_PATH",
-                               description="a checkpoint file; empty = the bundled default model")
+                               description="a model file (.safetensors); empty = the bundled default model. "
+                                           "Official DiffSHEG checkpoints (.pth) need the GPU support (torch)")
     seed: IntProperty(name="Seed", default=0, min=0, description="same seed, same motion")
     steps: IntProperty(name="Steps", default=25, min=1, max=1000,
                        description="diffusion steps: fewer are faster, 25 is the model's default")
@@ -62,9 +63,10 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
                                               "livelier gestures; 0 = off")
     start_frame: IntProperty(name="Start frame", default=1, description="frame of the first key and the sound strip")
     device: EnumProperty(name="Device", default="AUTO", items=[
-        ("AUTO", "Auto", "a CUDA GPU when there is one, else the CPU"),
+        ("AUTO", "Auto", "a CUDA GPU when the GPU support (torch) is installed and finds one, "
+                         "else the CPU (onnxruntime)"),
         ("CPU", "CPU", "always the CPU"),
-        ("GPU", "GPU", "a CUDA GPU (error if there is none)")])
+        ("GPU", "GPU", "a CUDA GPU: needs the GPU support (torch with CUDA) from the preferences")])
     smoothing: FloatProperty(name="Smoothing", default=0.0, min=0.0, max=10.0,
                              description="Gaussian smoothing of the keys, sigma in frames; 0 = off")
     key_mode: EnumProperty(name="Keys", default="ALL", items=[

@@ -5,9 +5,15 @@ Three separate steps, each usable alone:
 - reading: `load_audio` turns a file (WAV, FLAC, OGG, MP3 - recognised by content,
   not by extension) or an array into a checked mono `Audio`;
 - resampling: `resample` (soxr "HQ", the resampler `librosa.load` uses by default);
-- features: `mel_features`, the official DiffSHEG mel front end (one frame per
-  motion frame), and the optional `hubert_features`.
+- features: `mel_spectrogram` (a power mel spectrogram at 18 kHz, as librosa 0.11
+  computes it by default), `mel_features`, the official DiffSHEG mel front end (one
+  frame per motion frame), and the optional `hubert_features`.
 
+This module runs inside Blender, where only numpy and the bundled wheels exist: it
+imports the standard library, numpy, soundfile and soxr, never librosa, scipy or
+numba. The mel filterbanks therefore are not computed here but read from
+`assets/mel_filters.npz`, which `tools/make_mel_filters.py` makes with librosa.
+The audioread fallback (formats libsndfile cannot read) is used only when installed.
 HuBERT needs the `transformers` package and a local copy of
 facebook/hubert-large-ls960-ft; neither is needed for anything else, and
 importing this module never imports transformers (or torch).
@@ -15,6 +21,7 @@ importing this module never imports transformers (or torch).
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import math
 import os
@@ -22,9 +29,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Union
 
-import librosa
 import numpy as np
 import soundfile as sf
+import soxr
 
 from .errors import AudioError, DiffshegError
 
@@ -36,13 +43,21 @@ MIN_DURATION_S = 1.0 / 15.0  # one motion frame of the BEAT model
 SILENCE_PEAK = 1e-4
 MAX_FLOAT_PEAK = 16.0  # beyond this, float samples are integer PCM that was never scaled
 MAX_CHANNELS = 16
-RESAMPLER = "soxr_hq"
+RESAMPLER = "soxr_hq"  # librosa's name for it; soxr itself calls it "HQ"
+SOXR_QUALITY = "HQ"
 
 # Official DiffSHEG mel front end (DESIGN.md section 5).
 LOAD_RATE = 22050
 MEL_RATE = 18000
 MEL_N_FFT = 2048
 MEL_N_MELS = 128
+
+# Mel filterbanks (Slaney mel scale and area normalisation, as librosa.filters.mel
+# gives by default), stored once by tools/make_mel_filters.py: one (n_mels, 1 + n_fft // 2)
+# float32 array per bank, under the key `mel_filter_key(n_fft, n_mels)`.
+MEL_FILTERS = Path(__file__).resolve().parent / "assets" / "mel_filters.npz"
+MEL_FILTERS_TOOL = "tools/make_mel_filters.py"
+MEL_CHUNK = 1 << 20  # samples framed at once (frames x n_fft): about 8 MB of float64
 
 # HuBERT (facebook/hubert-large-ls960-ft): 16 kHz input, one 1024-d frame per 320
 # samples from a 400-sample receptive field; long audio runs in chunks of 1000 frames.
@@ -238,13 +253,22 @@ def check_audio(audio: Audio) -> None:
 def resample(audio: Audio, sample_rate: int) -> Audio:
     """`audio` at `sample_rate` Hz with librosa's default resampler (soxr HQ).
 
-    The length is ceil(N * new / old), as `librosa.load(path, sr=...)` gives.
+    The length is ceil(N * new / old), as `librosa.load(path, sr=...)` gives: soxr's
+    output is cut or padded with zeros to it, as librosa.resample does.
     """
     if sample_rate == audio.sample_rate:
         return audio
-    samples = librosa.resample(
-        audio.samples, orig_sr=audio.sample_rate, target_sr=sample_rate, res_type=RESAMPLER)
-    return Audio(samples.astype(np.float32, copy=False), int(sample_rate), audio.path)
+    samples = np.asarray(audio.samples)
+    if samples.dtype != np.float64:  # soxr works in the input's precision, like librosa
+        samples = samples.astype(np.float32, copy=False)
+    resampled = soxr.resample(np.ascontiguousarray(samples), audio.sample_rate, sample_rate,
+                              quality=SOXR_QUALITY)
+    n = _resampled_length(len(samples), audio.sample_rate, sample_rate)
+    if len(resampled) >= n:
+        resampled = resampled[:n]
+    else:
+        resampled = np.concatenate([resampled, np.zeros(n - len(resampled), resampled.dtype)])
+    return Audio(resampled.astype(np.float32, copy=False), int(sample_rate), audio.path)
 
 
 def _resampled_length(n: int, orig_sr: int, target_sr: int) -> int:
@@ -255,6 +279,86 @@ def _resampled_length(n: int, orig_sr: int, target_sr: int) -> int:
 
 
 # --- mel features --------------------------------------------------------------
+
+
+def mel_filter_key(n_fft: int, n_mels: int) -> str:
+    """Name of the stored filterbank for (n_fft, n_mels) at MEL_RATE in MEL_FILTERS."""
+    return f"sr{MEL_RATE}_nfft{n_fft}_mels{n_mels}"
+
+
+@functools.lru_cache(maxsize=None)
+def _stored_mel_filters() -> dict[str, np.ndarray]:
+    """All filterbanks in MEL_FILTERS, read once."""
+    if not MEL_FILTERS.is_file():
+        raise DiffshegError(
+            f"the mel filterbank file '{MEL_FILTERS}' is missing: this installation is "
+            f"incomplete; reinstall it, or make the file with `python {MEL_FILTERS_TOOL}`")
+    with np.load(MEL_FILTERS, allow_pickle=False) as stored:
+        return {key: stored[key] for key in stored.files}
+
+
+@functools.lru_cache(maxsize=None)
+def _mel_filters(n_fft: int, n_mels: int) -> np.ndarray:
+    """(1 + n_fft // 2, n_mels) float64 filterbank, transposed for `power @ filters`."""
+    key = mel_filter_key(n_fft, n_mels)
+    banks = _stored_mel_filters()
+    if key not in banks:
+        stored = ", ".join(sorted(banks)) or "none"
+        raise DiffshegError(
+            f"no mel filterbank is stored for n_fft={n_fft}, n_mels={n_mels} at {MEL_RATE} Hz "
+            f"(stored: {stored}): add ({n_fft}, {n_mels}) to the banks of {MEL_FILTERS_TOOL} "
+            f"and run `python {MEL_FILTERS_TOOL}`")
+    bank = banks[key]
+    if bank.shape != (n_mels, 1 + n_fft // 2):
+        raise DiffshegError(
+            f"the stored mel filterbank {key} has shape {bank.shape}, not "
+            f"{(n_mels, 1 + n_fft // 2)}: make '{MEL_FILTERS}' again with `python {MEL_FILTERS_TOOL}`")
+    return np.ascontiguousarray(bank.T, dtype=np.float64)
+
+
+def _periodic_hann(n: int) -> np.ndarray:
+    """Periodic ("DFT-even") Hann window of length n: 0.5 - 0.5 cos(2 pi k / n), k < n."""
+    return 0.5 - 0.5 * np.cos(2.0 * np.pi * np.arange(n) / n)
+
+
+def mel_spectrogram(samples: np.ndarray, n_fft: int, hop: int, n_mels: int) -> np.ndarray:
+    """(n_mels, frames) float32 power mel spectrogram of mono `samples` at MEL_RATE (18 kHz).
+
+    The same as librosa 0.11's `librosa.feature.melspectrogram(y=samples, sr=18000,
+    n_fft=n_fft, hop_length=hop, n_mels=n_mels)`: frame j is centred on sample j * hop
+    (the signal padded with n_fft // 2 zeros at both ends), periodic Hann window of
+    n_fft samples, |rfft|^2, then the stored Slaney mel filterbank (see MEL_FILTERS).
+    There are 1 + (N + 2 * (n_fft // 2) - n_fft) // hop frames (1 + N // hop for an even
+    n_fft). Computed in float64, in chunks of about MEL_CHUNK framed samples.
+    """
+    for name, value in (("n_fft", n_fft), ("hop", hop), ("n_mels", n_mels)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise DiffshegError(f"mel_spectrogram: {name} must be a positive whole number, got {value!r}")
+    x = np.asarray(samples)
+    if x.ndim != 1:
+        raise AudioError(f"mel_spectrogram needs mono samples of shape (N,), got shape {x.shape}")
+    n_fft, hop = int(n_fft), int(hop)
+    pad = n_fft // 2
+    n_frames = 1 + (len(x) + 2 * pad - n_fft) // hop if len(x) + 2 * pad >= n_fft else 0
+    if n_frames < 1:
+        raise AudioError(f"mel_spectrogram: {len(x)} samples are too few for one frame of {n_fft}")
+    filters = _mel_filters(n_fft, int(n_mels))
+    window = _periodic_hann(n_fft)
+    mel = np.empty((int(n_mels), n_frames), dtype=np.float32)
+    step = max(1, MEL_CHUNK // n_fft)
+    for first in range(0, n_frames, step):
+        last = min(first + step, n_frames)
+        # The padded signal's samples [first * hop, (last - 1) * hop + n_fft), zeros outside x.
+        start, stop = first * hop - pad, (last - 1) * hop + n_fft - pad
+        segment = np.zeros(stop - start, dtype=np.float64)
+        lo, hi = max(start, 0), min(stop, len(x))
+        if hi > lo:
+            segment[lo - start:hi - start] = x[lo:hi]
+        frames = np.lib.stride_tricks.sliding_window_view(segment, n_fft)[::hop]
+        spectrum = np.fft.rfft(frames * window, axis=-1)
+        power = spectrum.real ** 2 + spectrum.imag ** 2
+        mel[:, first:last] = (power @ filters).T
+    return mel
 
 
 def mel_hop(fps: float) -> int:
@@ -276,8 +380,7 @@ def mel_features(audio: Audio, fps: float = 15.0) -> np.ndarray:
     """
     hop = mel_hop(fps)
     speech = resample(resample(audio, LOAD_RATE), MEL_RATE)
-    mel = librosa.feature.melspectrogram(
-        y=speech.samples, sr=MEL_RATE, n_fft=MEL_N_FFT, hop_length=hop, n_mels=MEL_N_MELS)
+    mel = mel_spectrogram(speech.samples, MEL_N_FFT, hop, MEL_N_MELS)
     return np.ascontiguousarray(mel[:, :-1].T, dtype=np.float32)
 
 

@@ -1,13 +1,16 @@
 """Model files: the bundled default, our own checkpoints, and the official DiffSHEG ones.
 
-A `ModelBundle` is everything generation needs besides audio: the network, its
-normalisation statistics, its default sampling settings and where it came from.
+A `ModelBundle` is everything generation needs besides audio: the network's weights and
+its ONNX graphs, its normalisation statistics, its default sampling settings and where it
+came from. It holds numpy arrays and bytes only; `runtime.backends` runs it.
 
-Our format is a safetensors file (no pickle): tensors `model.*`, `norm.mean`,
-`norm.std`, optionally `phonetic.*` (the phonetic encoder) and `prior.*` (the gesture
-prior), and JSON metadata (config, sampling, guidance scales, model id, model card).
-Official checkpoints are torch pickles holding the state dict under `encoder`; they
-are read with `weights_only=True` and loaded strictly.
+Our format is a safetensors file (no pickle): tensors `model.*` (the network, for the
+torch backend), `norm.mean`, `norm.std`, `onnx.*` (the exported graphs as bytes, for the
+onnxruntime backend), optionally `phonetic.*` (the phonetic encoder) and `prior.*` (the
+gesture prior), and JSON metadata (config, sampling, guidance scales, model id, model
+card). Reading it needs numpy and safetensors only. Official checkpoints are torch pickles
+holding the state dict under `encoder`; they need torch, are read with
+`weights_only=True` and loaded strictly.
 """
 
 from __future__ import annotations
@@ -21,47 +24,51 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-import torch
 
+from .config import ModelConfig
 from .errors import CheckpointError
 from .foppas import PRESETS, FoppasConfig
-from .model import ModelConfig, UniEG
-from .phonetic import PhoneticEncoder, config_metadata, encoder_from, state_tensors
+from .phonetic import PhoneticConfig
 from .prior import GesturePrior
 from .rigs import Layout, get_layout
 
 FORMAT = "diffsheg-core/1"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.safetensors"
-PHONETIC_PREFIX = "phonetic."
+MODEL_PREFIX, PHONETIC_PREFIX, GRAPH_PREFIX = "model.", "phonetic.", "onnx."
 STATS_ENV = "DIFFSHEG_OFFICIAL_STATS"
+TORCH_HOW_TO = ("install torch: in Blender, Edit > Preferences > Add-ons > DiffSHEG > Install GPU "
+                "support; elsewhere `pip install torch==2.13.0` (README, GPU)")
 
 
 @dataclass
 class ModelBundle:
-    model: UniEG
+    config: ModelConfig
+    weights: dict[str, np.ndarray]   # the network's state dict (torch backend, re-export)
     mean: np.ndarray                 # (D,) normalisation, gesture then expression
     std: np.ndarray
     sampling: FoppasConfig
     guidance: Optional[float] = None  # default classifier-free scale (None: unguided)
-    skip_guidance: Optional[float] = None  # default gesture skip-guidance scale (None: off; see UniEG)
+    skip_guidance: Optional[float] = None  # default gesture skip-guidance scale (None: off; see guidance.py)
     model_id: str = "unnamed"
     trained: bool = True
     info: dict = field(default_factory=dict)
-    phonetic: Optional[PhoneticEncoder] = None  # the speech encoder of models with speech_encoder "phonetic"
+    phonetic: Optional[PhoneticConfig] = None  # the speech encoder of models with speech_encoder "phonetic"
+    phonetic_weights: dict[str, np.ndarray] = field(default_factory=dict)
     prior: Optional[GesturePrior] = None  # where later FOPPAS windows start from (see prior.py)
-
-    @property
-    def config(self) -> ModelConfig:
-        return self.model.cfg
+    graphs: dict[str, bytes] = field(default_factory=dict)  # ONNX: expression, gesture[, phonetic]
+    source: str = "model"            # how messages name it (its file)
+    networks: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # opened backends (runtime)
 
     @property
     def layout(self) -> Layout:
         return get_layout(self.config.layout)
 
     @property
-    def device(self) -> torch.device:
-        return next(self.model.parameters()).device
+    def has_graphs(self) -> bool:
+        """The file carries every ONNX graph sampling needs (the onnxruntime backend can run it)."""
+        needed = {"expression", "gesture"} | ({"phonetic"} if self.config.phonetic_input else set())
+        return needed <= set(self.graphs)
 
     def normalise(self, motion: np.ndarray) -> np.ndarray:
         return (motion - self.mean) / self.std
@@ -70,70 +77,42 @@ class ModelBundle:
         return motion * self.std + self.mean
 
 
-# ---------------------------------------------------------------- strict loading
-
-def load_state_strict(model: torch.nn.Module, state: dict[str, torch.Tensor], source: str,
-                      hint: str = "") -> None:
-    """Load `state` into `model`, refusing any missing, unexpected or misshapen key.
-
-    Only BatchNorm's `num_batches_tracked` counters may be absent (safetensors exports
-    often drop integer buffers; they play no part in inference).
-    """
-    expected = model.state_dict()
-    state = {**{k: v for k, v in expected.items() if k.endswith("num_batches_tracked")}, **state}
-    missing = sorted(set(expected) - set(state))
-    unexpected = sorted(set(state) - set(expected))
-    reshaped = sorted(
-        f"{k}: file {tuple(state[k].shape)}, model {tuple(expected[k].shape)}"
-        for k in set(expected) & set(state) if tuple(state[k].shape) != tuple(expected[k].shape))
-    if missing or unexpected or reshaped:
-        lines = [f"{source} does not match the model:"]
-        for title, items in (("missing keys", missing), ("unexpected keys", unexpected),
-                             ("wrong shapes", reshaped)):
-            if items:
-                lines.append(f"  {title} ({len(items)}): " + ", ".join(items))
-        likely = hint or (
-            "the file is truncated or damaged" if missing and not unexpected and not reshaped
-            else "the checkpoint was made for another model configuration")
-        lines.append(f"  likely cause: {likely}")
-        raise CheckpointError("\n".join(lines))
-    model.load_state_dict(state, strict=True)
-
-
 # ---------------------------------------------------------------- our format
 
-def write_safetensors(tensors: dict[str, torch.Tensor], meta: dict[str, str], path: str | Path) -> Path:
+def write_safetensors(tensors: dict[str, np.ndarray], meta: dict[str, str], path: str | Path) -> Path:
     """Write atomically: a run killed mid-write leaves the previous file, not a broken one."""
-    from safetensors.torch import save_file
+    from safetensors.numpy import save_file
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial")
-    save_file(tensors, str(tmp), metadata=meta)
+    save_file({k: np.require(v, requirements="C") for k, v in tensors.items()}, str(tmp), metadata=meta)
     os.replace(tmp, path)
     return path
 
 
-def read_safetensors(path: Path, fix: str) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
-    """Metadata and tensors of a safetensors file; a damaged file raises CheckpointError
-    ending in `fix`."""
+def read_safetensors(path: Path, fix: str) -> tuple[dict[str, str], dict[str, np.ndarray]]:
+    """Metadata and tensors (numpy) of a safetensors file; a damaged file raises
+    CheckpointError ending in `fix`."""
     from safetensors import safe_open
-    from safetensors.torch import load_file
 
     try:
-        with safe_open(str(path), framework="pt") as fh:
-            meta = fh.metadata() or {}
-        return meta, load_file(str(path))
+        with safe_open(str(path), framework="numpy") as fh:
+            return fh.metadata() or {}, {k: fh.get_tensor(k) for k in fh.keys()}
     except Exception as exc:  # safetensors raises several types for damaged files
         raise CheckpointError(f"{path}: cannot read this safetensors file ({exc}); {fix}") from exc
 
 
+def _prefixed(tensors: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
+    return {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+
+
 def save_checkpoint(bundle: ModelBundle, path: str | Path) -> Path:
-    tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in bundle.model.state_dict().items()}
-    tensors["norm.mean"] = torch.from_numpy(np.asarray(bundle.mean, dtype=np.float32))
-    tensors["norm.std"] = torch.from_numpy(np.asarray(bundle.std, dtype=np.float32))
-    if bundle.phonetic is not None:
-        tensors.update(state_tensors(bundle.phonetic, PHONETIC_PREFIX))
+    tensors = {f"{MODEL_PREFIX}{k}": np.asarray(v) for k, v in bundle.weights.items()}
+    tensors["norm.mean"] = np.asarray(bundle.mean, dtype=np.float32)
+    tensors["norm.std"] = np.asarray(bundle.std, dtype=np.float32)
+    tensors.update({f"{PHONETIC_PREFIX}{k}": np.asarray(v) for k, v in bundle.phonetic_weights.items()})
+    tensors.update({f"{GRAPH_PREFIX}{k}": np.frombuffer(v, np.uint8) for k, v in bundle.graphs.items()})
     if bundle.prior is not None:
         tensors.update(bundle.prior.tensors())
     meta = {
@@ -145,12 +124,12 @@ def save_checkpoint(bundle: ModelBundle, path: str | Path) -> Path:
         "model_id": bundle.model_id,
         "trained": json.dumps(bundle.trained),
         "info": json.dumps(bundle.info, default=str),
-        **({"phonetic": config_metadata(bundle.phonetic)} if bundle.phonetic is not None else {}),
+        **({"phonetic": bundle.phonetic.metadata()} if bundle.phonetic is not None else {}),
     }
     return write_safetensors(tensors, meta, path)
 
 
-def _load_ours(path: Path, device: torch.device) -> ModelBundle:
+def _load_ours(path: Path) -> ModelBundle:
     meta, tensors = read_safetensors(path, "it may be truncated: download or export it again")
     if meta.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a diffsheg-core checkpoint (format tag "
@@ -158,28 +137,33 @@ def _load_ours(path: Path, device: torch.device) -> ModelBundle:
     try:
         cfg = ModelConfig.from_dict(json.loads(meta["config"]))
         sampling = FoppasConfig(**json.loads(meta["sampling"]))
-        mean, std = tensors.pop("norm.mean").numpy(), tensors.pop("norm.std").numpy()
+        mean, std = tensors.pop("norm.mean"), tensors.pop("norm.std")
     except (KeyError, ValueError, TypeError) as exc:
         raise CheckpointError(f"{path}: checkpoint metadata is incomplete ({exc})") from exc
-    model = UniEG(cfg)
-    state = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
-    load_state_strict(model, state, str(path))
+    weights = _prefixed(tensors, MODEL_PREFIX)
+    if not weights:
+        raise CheckpointError(f"{path}: the file holds no network weights (model.*); export it again")
     return ModelBundle(
-        model=model.to(device).eval(), mean=mean, std=std, sampling=sampling,
+        config=cfg, weights=weights, mean=mean, std=std, sampling=sampling,
         guidance=json.loads(meta.get("guidance", "null")),
         skip_guidance=json.loads(meta.get("skip_guidance", "null")), model_id=meta.get("model_id", path.stem),
         trained=json.loads(meta.get("trained", "true")), info=json.loads(meta.get("info", "{}")),
-        phonetic=_stored_phonetic(cfg, meta, tensors, path), prior=_stored_prior(cfg, tensors, path))
+        **_stored_phonetic(cfg, meta, tensors, path), prior=_stored_prior(cfg, tensors, path),
+        graphs={k: v.tobytes() for k, v in _prefixed(tensors, GRAPH_PREFIX).items()}, source=str(path))
 
 
-def _stored_phonetic(cfg: ModelConfig, meta: dict, tensors: dict, path: Path) -> Optional[PhoneticEncoder]:
+def _stored_phonetic(cfg: ModelConfig, meta: dict, tensors: dict, path: Path) -> dict:
     if not cfg.phonetic_input:
-        return None
-    state = {k[len(PHONETIC_PREFIX):]: v for k, v in tensors.items() if k.startswith(PHONETIC_PREFIX)}
-    if "phonetic" not in meta or not state:
+        return {}
+    weights = _prefixed(tensors, PHONETIC_PREFIX)
+    if "phonetic" not in meta or not weights:
         raise CheckpointError(f"{path}: the model takes phonetic features but the file holds no phonetic "
                               "encoder; export it again from its training run")
-    return encoder_from(meta["phonetic"], state, f"{path} (phonetic encoder)")
+    phonetic = PhoneticConfig.from_metadata(meta["phonetic"], f"{path} (phonetic encoder)")
+    if phonetic.dim != cfg.speech_dim:
+        raise CheckpointError(f"{path}: its phonetic encoder gives {phonetic.dim} features per frame but "
+                              f"the network takes {cfg.speech_dim}; export it again")
+    return {"phonetic": phonetic, "phonetic_weights": weights}
 
 
 def _stored_prior(cfg: ModelConfig, tensors: dict, path: Path) -> Optional[GesturePrior]:
@@ -216,6 +200,11 @@ OFFICIAL = {
 
 def _read_pickle(path: Path) -> dict:
     try:
+        import torch
+    except ImportError:
+        raise CheckpointError(f"{path}: official DiffSHEG checkpoints are torch pickles and need torch, "
+                              f"which this installation lacks: {TORCH_HOW_TO}") from None
+    try:
         return torch.load(str(path), map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         raise CheckpointError(
@@ -228,16 +217,17 @@ def _read_pickle(path: Path) -> dict:
                               "truncated or not a checkpoint at all") from exc
 
 
-def official_state_dict(raw: dict, path: Path) -> dict[str, torch.Tensor]:
-    """The network's state dict from an official checkpoint (key `encoder`, optional `module.`)."""
+def official_state_dict(raw: dict, path: Path) -> dict[str, np.ndarray]:
+    """The network's state dict (numpy) from an official checkpoint (key `encoder`, optional `module.`)."""
     state = raw.get("encoder", raw) if isinstance(raw, dict) else None
-    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+    if not isinstance(state, dict) or not all(hasattr(v, "numpy") for v in state.values()):
         raise CheckpointError(f"{path}: no state dict found (expected a dict with key 'encoder' "
                               "holding the network's tensors)")
-    return {k[len("module."):] if k.startswith("module.") else k: v for k, v in state.items()}
+    return {k[len("module."):] if k.startswith("module.") else k: v.detach().cpu().numpy()
+            for k, v in state.items()}
 
 
-def config_from_state(state: dict[str, torch.Tensor], dataset: Optional[str], path: Path) -> ModelConfig:
+def config_from_state(state: dict[str, np.ndarray], dataset: Optional[str], path: Path) -> ModelConfig:
     """Infer the network configuration from tensor shapes (heads: 8, as the official models)."""
     try:
         blocks = {int(m.group(1)) for k in state
@@ -249,7 +239,7 @@ def config_from_state(state: dict[str, torch.Tensor], dataset: Optional[str], pa
             style_dim=state["encoder_exp.pid_embed.0.weight"].shape[1],
             mel_dim=state["encoder_aud.sa_block.norm.weight"].shape[0],
             audio_latent=state["encoder_exp.audio_proj.weight"].shape[0],
-            use_hubert="encoder_exp.hubert_encoder.0.weight" in state,
+            speech_encoder="hubert" if "encoder_exp.hubert_encoder.0.weight" in state else None,
             latent=state["time_embed.0.weight"].shape[1],
             layers=len(blocks),
             ff=state["encoder_exp.temporal_decoder_blocks.0.ffn.linear1.weight"].shape[0],
@@ -304,47 +294,33 @@ def official_stats(dataset: str, stats_dir: Optional[str | Path],
     return mean.astype(np.float32), std.astype(np.float32)
 
 
-def _load_official(path: Path, dataset: Optional[str], stats_dir, device: torch.device) -> ModelBundle:
+def _load_official(path: Path, dataset: Optional[str], stats_dir) -> ModelBundle:
     state = official_state_dict(_read_pickle(path), path)
+    from .model import UniEG, load_state_strict  # torch: _read_pickle has checked it is there
+
     cfg = config_from_state(state, dataset, path)
     name = "beat" if cfg.layout == "beat" else "show"
-    model = UniEG(cfg)
-    load_state_strict(model, state, str(path),
+    load_state_strict(UniEG(cfg), state, str(path),
                       hint=f"the checkpoint is not the official {name.upper()} model: try --config "
                            f"{'show' if name == 'beat' else 'beat'}, or the file is truncated")
     mean, std = official_stats(name, stats_dir, beside=path.parent)
     setup = OFFICIAL[name]
-    return ModelBundle(model=model.to(device).eval(), mean=mean, std=std, sampling=setup.sampling,
+    return ModelBundle(config=cfg, weights=state, mean=mean, std=std, sampling=setup.sampling,
                        guidance=setup.guidance if cfg.classifier_free else None,
                        model_id=f"official-{name}:{path.name}", trained=True,
-                       info={"source": "DiffSHEG official checkpoint", "dataset": name})
+                       info={"source": "DiffSHEG official checkpoint", "dataset": name}, source=str(path))
 
 
 # ---------------------------------------------------------------- the default and entry point
 
-def untrained_bundle(seed: int = 0) -> ModelBundle:
-    """A small randomly initialised model, used only until trained weights are bundled.
-
-    Its output is noise around the rest pose: it is labelled untrained everywhere.
-    """
-    cfg = ModelConfig(latent=128, layers=2, ff=256, heads=4, use_hubert=False)
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        model = UniEG(cfg).eval()
-    dim = cfg.dim
-    return ModelBundle(model=model, mean=np.zeros(dim, np.float32), std=np.full(dim, 0.05, np.float32),
-                       sampling=PRESETS["official-beat"], model_id="untrained-beat-small",
-                       trained=False, info={"note": "random weights; no learned motion"})
-
-
-def load_model(source: str | Path | None = None, *, device: str | torch.device = "cpu",
-               dataset: Optional[str] = None, stats_dir: str | Path | None = None) -> ModelBundle:
+def load_model(source: str | Path | None = None, *, dataset: Optional[str] = None,
+               stats_dir: str | Path | None = None) -> ModelBundle:
     """Load a model: None = the bundled default; else a checkpoint path (ours or official)."""
-    device = torch.device(device)
     if source is None:
-        if DEFAULT_WEIGHTS.is_file():
-            return _load_ours(DEFAULT_WEIGHTS, device)
-        return untrained_bundle()
+        if not DEFAULT_WEIGHTS.is_file():
+            raise CheckpointError(f"the bundled model {DEFAULT_WEIGHTS} is missing: reinstall the package "
+                                  "or pass a checkpoint")
+        return _load_ours(DEFAULT_WEIGHTS)
     path = Path(source).expanduser()
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
@@ -353,5 +329,5 @@ def load_model(source: str | Path | None = None, *, device: str | torch.device =
     with open(path, "rb") as fh:
         head = fh.read(16)
     if path.suffix == ".safetensors" or head[8:9] == b"{":
-        return _load_ours(path, device)
-    return _load_official(path, dataset, stats_dir, device)
+        return _load_ours(path)
+    return _load_official(path, dataset, stats_dir)

@@ -38,7 +38,11 @@ def _generate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--skip-guidance", type=float,
                    help="gesture skip-guidance scale, 0-1: larger, livelier gestures; 0 turns it off "
                         "(default: the model's)")
+    p.add_argument("--backend", default="auto", choices=["auto", "onnx", "torch"],
+                   help="onnx: onnxruntime on the CPU, no torch needed; torch: CUDA and official "
+                        "checkpoints; auto (default): onnx where the model has its graphs and no GPU is used")
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
+    p.add_argument("--threads", type=int, help="CPU threads (default: 2, or $DIFFSHEG_THREADS)")
     p.add_argument("--precision", default="fp32", choices=["fp32", "bf16", "fp16"])
     p.add_argument("--hubert", help="local folder of facebook/hubert-large-ls960-ft (models that use HuBERT)")
     p.add_argument("--hubert-official-quirk", action="store_true",
@@ -52,16 +56,16 @@ def run_generate(args: argparse.Namespace) -> int:
     from .audio import SAMPLE_SPEECH, load_audio
     from .checkpoints import load_model
     from .foppas import PRESETS
-    from .devices import resolve_device
     from .pipeline import generate
+    from .runtime.backends import open_network
 
     audio_path = args.audio or str(SAMPLE_SPEECH)
     if args.audio is None:
         print(f"no audio given: using the bundled sample speech {SAMPLE_SPEECH}")
     started = time.perf_counter()
-    device = resolve_device(args.device)
     speech = load_audio(audio_path)
-    bundle = load_model(args.checkpoint, device=device, dataset=args.config, stats_dir=args.stats)
+    bundle = load_model(args.checkpoint, dataset=args.config, stats_dir=args.stats)
+    network = open_network(bundle, args.backend, args.device, args.precision, args.threads)
     if not bundle.trained:
         print(f"warning: model '{bundle.model_id}' is UNTRAINED (random weights): "
               "the motion is not learned from data", file=sys.stderr)
@@ -80,7 +84,8 @@ def run_generate(args: argparse.Namespace) -> int:
         result = generate(speech, model=bundle, seed=args.seed, steps=args.steps, overlap=args.overlap,
                           style=args.style, guidance=args.guidance, skip_guidance=args.skip_guidance,
                           sampling=sampling,
-                          device=str(device), precision=args.precision, hubert_path=args.hubert,
+                          device=args.device, backend=args.backend, precision=args.precision,
+                          threads=args.threads, hubert_path=args.hubert,
                           hubert_quirk=args.hubert_official_quirk, progress=on_progress, cancel=cancel)
     except KeyboardInterrupt:
         cancel.set()
@@ -102,7 +107,7 @@ def run_generate(args: argparse.Namespace) -> int:
         print(f"wrote {path}")
     print(f"{result.n_frames} frames at {result.fps:g} fps = {result.duration:.1f} s of motion in "
           f"{elapsed:.1f} s ({result.n_frames / elapsed:.1f} frames/s, "
-          f"{result.duration / elapsed:.2f}x real time) on {device} with {bundle.model_id}")
+          f"{result.duration / elapsed:.2f}x real time) on {network.name}/{network.device} with {bundle.model_id}")
     return 0
 
 
@@ -114,8 +119,9 @@ def _delegate(module: str, argv: Sequence[str]) -> int:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    delegated = {"train": "train", "evaluate": "evaluate", "train-autoencoder": "autoencoder",
-                 "train-phonetic": "phonetic"}
+    delegated = {"train": "training.train", "evaluate": "training.evaluate",
+                 "train-autoencoder": "training.autoencoder", "train-phonetic": "training.phonetic",
+                 "export-onnx": "export"}
     if argv and argv[0] in delegated:
         try:
             return _delegate(delegated[argv[0]], argv[1:])
@@ -125,12 +131,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m diffsheg_core",
                                      description="Speech-driven gesture and expression generation (DiffSHEG).")
     sub = parser.add_subparsers(dest="command", required=True,
-                                metavar="{generate,train,evaluate,train-autoencoder,train-phonetic}")
+                                metavar="{generate,train,evaluate,train-autoencoder,train-phonetic,"
+                                        "export-onnx}")
     _generate_parser(sub)
     sub.add_parser("train", help="train a model (see: train --help)")
     sub.add_parser("evaluate", help="evaluate motion against references (see: evaluate --help)")
     sub.add_parser("train-autoencoder", help="train the motion autoencoder for Fréchet distances")
     sub.add_parser("train-phonetic", help="train the phonetic speech encoder on the synthetic corpus")
+    sub.add_parser("export-onnx", help="add ONNX graphs (the torch-free runtime's) to a model file")
     args = parser.parse_args(argv)
     try:
         return run_generate(args)

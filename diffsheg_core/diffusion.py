@@ -3,7 +3,10 @@
 `Schedule` is the 1000-step linear-beta diffusion the model is trained on.
 `Schedule.respaced(n)` gives the n-step sub-schedule DDIM samples with (the official
 "ddimN" spacing: every 1000 // n-th step, so 25 steps use t in {0, 40, ..., 960}).
-All arithmetic on the schedule is done in float64, as in the reference code.
+All arithmetic on the schedule is done in float64, as in the reference code. The update
+rules take numpy arrays (sampling) or torch tensors (training) alike: coefficients come
+back as the type, dtype and device of the array they multiply, and nothing here imports
+torch.
 """
 
 from __future__ import annotations
@@ -11,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 
 def linear_betas(num_steps: int = 1000, beta_start: float = 1e-4, beta_end: float = 0.02) -> np.ndarray:
@@ -19,10 +21,17 @@ def linear_betas(num_steps: int = 1000, beta_start: float = 1e-4, beta_end: floa
     return np.linspace(scale * beta_start, scale * beta_end, num_steps, dtype=np.float64)
 
 
-def _gather(values: np.ndarray, index: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """values[index] as a (B, 1, 1, ...) tensor broadcastable against `like`."""
-    out = torch.from_numpy(values).to(like.device)[index.to(like.device)].to(like.dtype)
-    return out.view(-1, *([1] * (like.dim() - 1)))
+def _indices(index) -> np.ndarray:
+    """Schedule indices as a numpy array, from an int, a numpy array or a torch tensor."""
+    return np.asarray(index.cpu() if hasattr(index, "cpu") else index).reshape(-1)
+
+
+def _gather(values: np.ndarray, index, like):
+    """values[index] shaped (B, 1, 1, ...) to broadcast against `like`, as its kind of array."""
+    out = values[_indices(index)].reshape(-1, *([1] * (like.ndim - 1)))
+    if hasattr(like, "new_tensor"):  # a torch tensor: same dtype and device
+        return like.new_tensor(out)
+    return out.astype(like.dtype)
 
 
 @dataclass(frozen=True)
@@ -64,20 +73,22 @@ class Schedule:
             keep = np.unique(np.round(np.linspace(0, n - 1, steps)).astype(np.int64))
         return Schedule(alphas_cumprod=self.alphas_cumprod[keep], timesteps=self.timesteps[keep])
 
-    def model_timesteps(self, index: torch.Tensor) -> torch.Tensor:
-        """Original-indexing timesteps the model is conditioned on, for schedule indices."""
-        return torch.from_numpy(self.timesteps).to(index.device)[index]
+    def model_timesteps(self, index):
+        """Original-indexing timesteps the model is conditioned on, for schedule indices
+        (an array of the same kind as `index`)."""
+        steps = self.timesteps[_indices(index)]
+        return index.new_tensor(steps) if hasattr(index, "new_tensor") else steps
 
-    def x0_coefs(self, index: torch.Tensor, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def x0_coefs(self, index, like):
         """sqrt(1/abar) and sqrt(1/abar - 1) at `index`: x0 = a * x_t - b * eps."""
         abar = self.alphas_cumprod
         return (_gather(np.sqrt(1.0 / abar), index, like), _gather(np.sqrt(1.0 / abar - 1.0), index, like))
 
-    def predict_x0(self, x_t: torch.Tensor, index: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
+    def predict_x0(self, x_t, index, eps):
         a, b = self.x0_coefs(index, x_t)
         return a * x_t - b * eps
 
-    def q_sample(self, x0: torch.Tensor, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+    def q_sample(self, x0, index, noise):
         """Sample x_t ~ q(x_t | x0)."""
         abar = self.alphas_cumprod
         return _gather(np.sqrt(abar), index, x0) * x0 + _gather(np.sqrt(1.0 - abar), index, x0) * noise
@@ -86,25 +97,23 @@ class Schedule:
         """sqrt(1 - abar) of the level a step from index i lands on."""
         return float(np.sqrt(1.0 - self.alphas_cumprod_prev[i]))
 
-    def ddim_step(self, x_t: torch.Tensor, i: int, eps: torch.Tensor, eta: float = 0.0,
-                  noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def ddim_step(self, x_t, i: int, eps, eta: float = 0.0, noise=None) -> tuple:
         """One DDIM update from index i to i-1. Returns (x_{i-1}, predicted x0).
 
         eta = 0 is the deterministic DDIM path; eta = 1 has DDPM's posterior mean and
         variance. x0 is not clipped.
         """
-        index = torch.full((x_t.shape[0],), i, dtype=torch.long)
-        x0 = self.predict_x0(x_t, index, eps)
+        x0 = self.predict_x0(x_t, np.full(x_t.shape[0], i), eps)
         abar, abar_prev = self.alphas_cumprod[i], self.alphas_cumprod_prev[i]
         sigma = eta * np.sqrt((1 - abar_prev) / (1 - abar)) * np.sqrt(1 - abar / abar_prev)
         # eps re-derived from the x0 estimate, as the reference implementation does
-        eps = (np.sqrt(1.0 / abar) * x_t - x0) / np.sqrt(1.0 / abar - 1.0)
+        eps = (float(np.sqrt(1.0 / abar)) * x_t - x0) / float(np.sqrt(1.0 / abar - 1.0))
         mean = float(np.sqrt(abar_prev)) * x0 + float(np.sqrt(1 - abar_prev - sigma ** 2)) * eps
         if sigma > 0 and i > 0:
             mean = mean + float(sigma) * noise
         return mean, x0
 
-    def ddpm_posterior_mean(self, x_t: torch.Tensor, i: int, x0: torch.Tensor) -> torch.Tensor:
+    def ddpm_posterior_mean(self, x_t, i: int, x0):
         """Mean of q(x_{i-1} | x_i, x0): the DDPM update without its noise."""
         beta = self.betas[i]
         abar, abar_prev = self.alphas_cumprod[i], self.alphas_cumprod_prev[i]
@@ -116,7 +125,7 @@ class Schedule:
         abar, abar_prev = self.alphas_cumprod[i], self.alphas_cumprod_prev[i]
         return float(np.sqrt(self.betas[i] * (1.0 - abar_prev) / (1.0 - abar)))
 
-    def renoise(self, x: torch.Tensor, beta_index: int, noise: torch.Tensor) -> torch.Tensor:
+    def renoise(self, x, beta_index: int, noise):
         """One forward diffusion step with the beta at `beta_index`: going from index i to
         i + 1 is exact with beta_index = i + 1 (the reference sampler uses i)."""
         beta = float(self.betas[beta_index])

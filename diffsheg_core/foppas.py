@@ -13,6 +13,10 @@ A later window starts at `later_start` from pure noise, as in the paper, or, giv
 The sampler is model-agnostic: it calls `eps_fn(x_t, index)` for a window, where
 `index` is the step in the respaced schedule. `FoppasStream` takes conditioning
 frames as they arrive and returns motion frames as soon as they are final.
+
+Everything here is numpy, float32 motion: the noise comes from numpy's PCG64 generator
+seeded with the sampling seed, so a seed gives the same noise whichever backend
+(onnxruntime or torch, CPU or GPU) predicts it.
 """
 
 from __future__ import annotations
@@ -21,17 +25,18 @@ import threading
 from dataclasses import dataclass, replace
 from typing import Callable, Optional
 
-import torch
+import numpy as np
 
 from .diffusion import Schedule
+from .errors import DiffshegError
 from .progress import Progress, ProgressCallback, check_cancel
 
-PROPOSAL_STREAM = 0x5EED0F9A0D  # mixed into the seed of the proposal's generator
+PROPOSAL_STREAM = 0x5EED0F9A0D  # the proposal's generator is seeded with (seed, this)
 
-EpsFn = Callable[[torch.Tensor, int], torch.Tensor]
+EpsFn = Callable[[np.ndarray, int], np.ndarray]
 """(x_t of shape (1, L, D), schedule index) -> predicted noise (1, L, D)."""
 
-Proposal = Callable[[torch.Tensor, int, torch.Generator], torch.Tensor]
+Proposal = Callable[[np.ndarray, int, np.random.Generator], np.ndarray]
 """(known overlap frames (n, D), window length, generator) -> a (length, C) draw of the
 first C <= D channels; the others start from pure noise as without a proposal."""
 
@@ -139,29 +144,29 @@ class Foppas:
             return list(range(self.config.steps - 1, -1, -1)) + [-1]
         return jump_schedule(self.config.start_index, self.config.jump_length, self.config.jump_n_sample)
 
-    def sample_window(self, eps_fn: EpsFn, length: int, known: Optional[torch.Tensor],
-                      generator: torch.Generator, device: torch.device,
+    def sample_window(self, eps_fn: EpsFn, length: int, known: Optional[np.ndarray],
+                      generator: np.random.Generator,
                       on_step: Callable[[int, int], None] = lambda step, n: None,
-                      proposal_generator: Optional[torch.Generator] = None) -> torch.Tensor:
+                      proposal_generator: Optional[np.random.Generator] = None) -> np.ndarray:
         """Sample a (1, length, dim) window; `known` (1, overlap, dim) fixes its first frames.
         The proposal draws from its own generator, so the noise of every channel it does not
         cover is the same as without it."""
         cfg, sched = self.config, self.schedule
 
-        def randn(*shape: int) -> torch.Tensor:
-            return torch.randn(*shape, generator=generator).to(device)
+        def randn(*shape: int) -> np.ndarray:
+            return generator.standard_normal(shape, dtype=np.float32)
 
         x = randn(1, length, self.dim)
         if known is not None and self.proposal is not None:
             own = generator if proposal_generator is None else proposal_generator
-            draw = self.proposal(known[0], length, own).to(device).unsqueeze(0)
+            draw = self.proposal(known[0], length, own)[None].astype(np.float32)
             c = draw.shape[-1]
-            x[..., :c] = sched.q_sample(draw, torch.tensor([cfg.start_index]), x[..., :c])
+            x[..., :c] = sched.q_sample(draw, cfg.start_index, x[..., :c])
         times = self.times(known is not None)
         n_calls, call = model_calls(times), 0
         if known is not None:
             n_known = known.shape[1]
-            ramp = torch.linspace(0, 1, n_known, device=device).view(1, -1, 1)
+            ramp = np.linspace(0, 1, n_known, dtype=np.float32).reshape(1, -1, 1)
         for t_now, t_next in zip(times, times[1:]):
             if t_next > t_now:
                 beta_index = t_now if cfg.reference_renoise else t_next
@@ -174,7 +179,7 @@ class Foppas:
                 noisy_known = float((1 - level ** 2) ** 0.5) * known + level * randn(*known.shape)
                 if cfg.blend and level < cfg.blend_below:
                     noisy_known = noisy_known * (1 - ramp) + x[:, :n_known] * ramp
-                x = torch.cat([noisy_known, x[:, n_known:]], dim=1)
+                x = np.concatenate([noisy_known, x[:, n_known:]], axis=1)
             on_step(call, n_calls)
             call += 1
         return x
@@ -189,34 +194,32 @@ class FoppasStream:
     latency is at most one window plus its compute.
     """
 
-    def __init__(self, sampler: Foppas, make_eps_fn: Callable[[torch.Tensor], EpsFn],
-                 generator: torch.Generator, device: torch.device,
+    def __init__(self, sampler: Foppas, make_eps_fn: Callable[[np.ndarray], EpsFn], seed: int,
                  progress: Optional[ProgressCallback] = None,
                  cancel: Optional[threading.Event] = None, expected_frames: Optional[int] = None):
         self.sampler = sampler
         self.make_eps_fn = make_eps_fn
-        self.generator = generator
-        # a second stream for the proposal, seeded from the first's seed
-        self.proposal_generator = torch.Generator().manual_seed(generator.initial_seed() ^ PROPOSAL_STREAM)
-        self.device = device
+        self.generator = np.random.default_rng(check_seed(seed))
+        # a second stream for the proposal, so the noise of everything else does not depend on it
+        self.proposal_generator = np.random.default_rng([seed, PROPOSAL_STREAM])
         self.progress = progress
         self.cancel = cancel
         self.expected_windows = (
             len(plan_windows(expected_frames, sampler.clip_len, sampler.config.overlap))
             if expected_frames else 0)
-        self._cond: Optional[torch.Tensor] = None   # conditioning from the current window start
-        self._tail: Optional[torch.Tensor] = None   # held-back overlap frames (1, overlap, D)
+        self._cond: Optional[np.ndarray] = None   # conditioning from the current window start
+        self._tail: Optional[np.ndarray] = None   # held-back overlap frames (1, overlap, D)
         self._window = 0
 
-    def push(self, cond: torch.Tensor) -> torch.Tensor:
+    def push(self, cond: np.ndarray) -> np.ndarray:
         """Add (n, F) conditioning frames; return the (k, D) motion frames now final."""
-        self._cond = cond if self._cond is None else torch.cat([self._cond, cond])
+        self._cond = cond if self._cond is None else np.concatenate([self._cond, cond])
         out = []
         while len(self._cond) >= self.sampler.clip_len:
             out.append(self._run_window(self.sampler.clip_len))
         return self._stack(out)
 
-    def finish(self) -> torch.Tensor:
+    def finish(self) -> np.ndarray:
         """Sample what is left (a shorter last window) and return the remaining frames."""
         out = []
         held = 0 if self._tail is None else self._tail.shape[1]
@@ -228,9 +231,9 @@ class FoppasStream:
         self._cond = None
         return self._stack(out)
 
-    def _run_window(self, length: int) -> torch.Tensor:
+    def _run_window(self, length: int) -> np.ndarray:
         overlap = self.sampler.config.overlap
-        cond = self._cond[:length].unsqueeze(0).to(self.device)
+        cond = self._cond[None, :length]
         known = self._tail if (self._tail is not None and overlap > 0) else None
         clip, total = self._window, max(self.expected_windows, self._window + 1)
 
@@ -238,12 +241,12 @@ class FoppasStream:
             if self.progress is not None:
                 self.progress(Progress(clip=clip, n_clips=total, step=step, n_steps=n_steps))
 
-        def eps_fn(x: torch.Tensor, index: int) -> torch.Tensor:
+        def eps_fn(x: np.ndarray, index: int) -> np.ndarray:
             check_cancel(self.cancel)
             return base_fn(x, index)
 
         base_fn = self.make_eps_fn(cond)
-        window = self.sampler.sample_window(eps_fn, length, known, self.generator, self.device, on_step,
+        window = self.sampler.sample_window(eps_fn, length, known, self.generator, on_step,
                                             self.proposal_generator)
         self._window += 1
         keep = length - overlap if length == self.sampler.clip_len else length
@@ -251,20 +254,25 @@ class FoppasStream:
         self._cond = self._cond[keep:]
         return window[0, :keep]
 
-    def _stack(self, parts: list[torch.Tensor]) -> torch.Tensor:
+    def _stack(self, parts: list[np.ndarray]) -> np.ndarray:
         if not parts:
-            return torch.zeros(0, self.sampler.dim, device=self.device)
-        return torch.cat(parts)
+            return np.zeros((0, self.sampler.dim), np.float32)
+        return np.concatenate(parts)
 
 
-def sample_long(sampler: Foppas, make_eps_fn: Callable[[torch.Tensor], EpsFn], cond: torch.Tensor,
-                generator: torch.Generator, device: torch.device,
-                progress: Optional[ProgressCallback] = None,
-                cancel: Optional[threading.Event] = None) -> torch.Tensor:
+def check_seed(seed) -> int:
+    """A sampling seed: any whole number >= 0 (numpy's SeedSequence takes integers of any size)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise DiffshegError(f"seed must be a whole number >= 0, got {seed!r}")
+    return int(seed)
+
+
+def sample_long(sampler: Foppas, make_eps_fn: Callable[[np.ndarray], EpsFn], cond: np.ndarray,
+                seed: int, progress: Optional[ProgressCallback] = None,
+                cancel: Optional[threading.Event] = None) -> np.ndarray:
     """Sample (T, D) motion for (T, F) conditioning frames."""
-    stream = FoppasStream(sampler, make_eps_fn, generator, device, progress, cancel,
-                          expected_frames=len(cond))
-    return torch.cat([stream.push(cond), stream.finish()])
+    stream = FoppasStream(sampler, make_eps_fn, seed, progress, cancel, expected_frames=len(cond))
+    return np.concatenate([stream.push(cond), stream.finish()])
 
 
 def with_overrides(config: FoppasConfig, steps: Optional[int] = None, **overrides) -> FoppasConfig:

@@ -2,78 +2,31 @@
 sees the expression branch's predicted x0.
 
 Parameter names and shapes follow the official implementation, so the published
-checkpoints load strictly into this module (see `checkpoints`). Read top to bottom:
-configuration, building blocks, one branch, the whole network.
+checkpoints load strictly into this module (the second speech input's encoder keeps the
+official name `hubert_encoder`, whatever feeds it). Read top to bottom: building blocks,
+one branch, the whole network. The configuration is `config.ModelConfig`.
+
+`PhoneticEncoder` is the project's phone recogniser, the bundled model's second speech
+input (see `phonetic`).
+
+Sampling runs the network as two calls per step, `UniEG.expression` then `UniEG.gesture`,
+each over a batch of passes (conditioned, null-conditioned, without self-attention) that
+the caller mixes (see `guidance`); the same two calls are what is exported to ONNX.
+`forward` is the training path: one unguided prediction per row.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-
-SPEECH_ENCODERS = ("hubert", "phonetic")
-
-
-@dataclass
-class ModelConfig:
-    """Sizes and switches of a UniEG network (defaults: the official BEAT model)."""
-
-    gesture_dim: int = 141
-    expression_dim: int = 51
-    style_dim: int = 30           # one-hot speaker / style classes
-    mel_dim: int = 128            # mel bands per motion frame
-    audio_latent: int = 256       # width of the projected [mel | encoded mel] feature
-    use_hubert: bool = True       # a second speech input, encoded per branch to hubert_latent
-    speech_encoder: str = "hubert"  # its source: hubert (official, 1024-d) or phonetic (stored in the model file)
-    hubert_dim: int = 1024
-    hubert_latent: int = 128
-    latent: int = 512
-    layers: int = 8               # per branch
-    ff: int = 1024
-    heads: int = 8
-    dropout: float = 0.0
-    pe_period: int = 600          # sinusoidal PE, restarting in every window
-    pe_length: int = 1200
-    classifier_free: bool = False  # learned null condition for guidance
-    log_mel: bool = False         # feed log10(mel + 1e-5) instead of the raw power mel (official: raw)
-    clip_len: int = 34            # frames per diffusion window (n_poses)
-    fps: float = 15.0
-    layout: str = "beat"
-
-    def __post_init__(self):
-        if self.speech_encoder not in SPEECH_ENCODERS:
-            raise ValueError(f"speech_encoder must be one of {', '.join(SPEECH_ENCODERS)}, "
-                             f"got {self.speech_encoder!r}")
-
-    @property
-    def dim(self) -> int:
-        return self.gesture_dim + self.expression_dim
-
-    @property
-    def phonetic_input(self) -> bool:
-        """The second speech input is the phonetic encoder's (stored with the model)."""
-        return self.use_hubert and self.speech_encoder == "phonetic"
-
-    @property
-    def time_embed_dim(self) -> int:
-        return 4 * self.latent
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, values: dict) -> "ModelConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = set(values) - known
-        if unknown:
-            raise ValueError(f"unknown model configuration fields: {sorted(unknown)}")
-        return cls(**values)
-
+from .config import ModelConfig
+from .errors import CheckpointError
+from .phonetic import PHONES, PhoneticConfig
 
 def timestep_embedding(timesteps: torch.Tensor, dim: int, max_period: float = 10000.0) -> torch.Tensor:
     """Sinusoidal embedding of diffusion steps: cosines first, then sines."""
@@ -173,21 +126,19 @@ class Layer(nn.Module):
         self.sa_block = LinearSelfAttention(dim, cfg.heads, emb_dim, cfg.dropout)
         self.ffn = FeedForward(dim, cfg.ff, emb_dim, cfg.dropout)
 
-    def fuse(self, h: torch.Tensor, cond: torch.Tensor, null_rows: int = 0,
+    def fuse(self, h: torch.Tensor, cond: torch.Tensor, null: torch.Tensor | None = None,
              null_cond: torch.Tensor | None = None) -> torch.Tensor:
-        """h + MLP([h | cond]); the first `null_rows` batch rows see `null_cond` instead."""
+        """h + MLP([h | cond]); rows where `null` (B,) is true see `null_cond` instead of the
+        whole [h | cond] (the official classifier-free null condition)."""
         fused = torch.cat([h, cond], dim=-1)
-        if null_rows:
-            fused = torch.cat([null_cond.expand(null_rows, fused.shape[1], -1), fused[null_rows:]])
+        if null is not None:
+            fused = torch.where(null.view(-1, 1, 1), null_cond.to(fused.dtype), fused)
         return h + self.feat_proj(fused)
 
-    def forward(self, h: torch.Tensor, emb: torch.Tensor, skip_rows: int = 0) -> torch.Tensor:
-        """skip_rows: the last `skip_rows` batch rows bypass self-attention (skip guidance)."""
-        if skip_rows:
-            keep = h.shape[0] - skip_rows
-            h = torch.cat([self.sa_block(h[:keep], emb[:keep]), h[keep:]])
-        else:
-            h = self.sa_block(h, emb)
+    def forward(self, h: torch.Tensor, emb: torch.Tensor, attend: torch.Tensor | None = None) -> torch.Tensor:
+        """attend: (B,) bool, false for rows that bypass self-attention (skip guidance)."""
+        attended = self.sa_block(h, emb)
+        h = attended if attend is None else torch.where(attend.view(-1, 1, 1), attended, h)
         return self.ffn(h, emb)
 
 
@@ -197,19 +148,19 @@ class Branch(nn.Module):
 
     def __init__(self, motion_dim: int, extra_dim: int, cfg: ModelConfig):
         super().__init__()
-        hub = cfg.hubert_latent if cfg.use_hubert else 0
-        cond_dim = cfg.audio_latent + hub + extra_dim
+        speech = cfg.speech_latent if cfg.has_speech_input else 0
+        cond_dim = cfg.audio_latent + speech + extra_dim
         if cfg.classifier_free:
             self.null_cond_emb = nn.Parameter(torch.randn(1, cfg.latent + cond_dim))
         self.PE = PositionalEncoding(cfg.latent, cfg.pe_period, cfg.pe_length)
         self.joint_embed = nn.Linear(motion_dim, cfg.latent)
         self.audio_proj = nn.Linear(2 * cfg.mel_dim, cfg.audio_latent)
-        if cfg.use_hubert:
+        if cfg.has_speech_input:
             self.hubert_encoder = nn.Sequential(
-                nn.Conv1d(cfg.hubert_dim, cfg.hubert_latent, 3, 1, 1, bias=False),
-                nn.BatchNorm1d(cfg.hubert_latent),
+                nn.Conv1d(cfg.speech_dim, cfg.speech_latent, 3, 1, 1, bias=False),
+                nn.BatchNorm1d(cfg.speech_latent),
                 nn.GELU(),
-                nn.Conv1d(cfg.hubert_latent, cfg.hubert_latent, 3, 1, 1, bias=False),
+                nn.Conv1d(cfg.speech_latent, cfg.speech_latent, 3, 1, 1, bias=False),
             )
         self.time_embed = _mlp(cfg.latent, cfg.time_embed_dim)
         self.pid_embed = _mlp(cfg.style_dim, cfg.time_embed_dim)
@@ -218,34 +169,23 @@ class Branch(nn.Module):
         self.latent = cfg.latent
 
     def forward(self, x: torch.Tensor, timesteps: torch.Tensor, audio: torch.Tensor,
-                hubert: torch.Tensor | None, extra: torch.Tensor | None, style: torch.Tensor,
-                guidance: float | None, null_rows: int = 0, skip_guidance: float | None = None
-                ) -> torch.Tensor:
+                speech: torch.Tensor | None, extra: torch.Tensor | None, style: torch.Tensor,
+                null: torch.Tensor | None = None, attend: torch.Tensor | None = None) -> torch.Tensor:
+        """The branch's noise prediction for every batch row (see Layer for null / attend)."""
         parts = [self.audio_proj(audio)]
-        if hubert is not None:
-            parts.append(self.hubert_encoder(hubert.transpose(1, 2)).transpose(1, 2))
+        if speech is not None:
+            parts.append(self.hubert_encoder(speech.transpose(1, 2)).transpose(1, 2))
         if extra is not None:
             parts.append(extra)
         cond = torch.cat(parts, dim=-1)
         emb = self.time_embed(timestep_embedding(timesteps, self.latent)) + self.pid_embed(style)
         h = self.PE(self.joint_embed(x))
-
-        rows, skip_rows = x.shape[0], 0
-        if guidance is not None or skip_guidance is not None:
-            # Two passes in one batch: [null | cond] for classifier-free guidance,
-            # [cond | cond without self-attention] for skip guidance.
-            null_rows, skip_rows = (rows, 0) if guidance is not None else (0, rows)
-            h, cond, emb = (torch.cat([v, v]) for v in (h, cond, emb))
+        null_cond = getattr(self, "null_cond_emb", None)
+        if null is not None and null_cond is None:
+            raise ValueError("a null condition needs a model trained with one (classifier_free)")
         for layer in self.temporal_decoder_blocks:
-            h = layer(layer.fuse(h, cond, null_rows, getattr(self, "null_cond_emb", None)), emb, skip_rows)
-        out = self.out(h)
-        if guidance is not None:
-            uncond, cond_out = out[:rows], out[rows:]
-            return uncond + guidance * (cond_out - uncond)
-        if skip_guidance is not None:
-            cond_out, skipped = out[:rows], out[rows:]
-            return cond_out + skip_guidance * (cond_out - skipped)
-        return out
+            h = layer(layer.fuse(h, cond, null, null_cond), emb, attend)
+        return self.out(h)
 
 
 class UniEG(nn.Module):
@@ -262,48 +202,115 @@ class UniEG(nn.Module):
         self.encoder_exp = Branch(cfg.expression_dim, 0, cfg)
         self.encoder_ges = Branch(cfg.gesture_dim, cfg.expression_dim, cfg)
 
-    def forward(self, x_t: torch.Tensor, timesteps: torch.Tensor, mel: torch.Tensor,
-                hubert: torch.Tensor | None, style: torch.Tensor,
-                x0_coefs: tuple[torch.Tensor, torch.Tensor],
-                guidance: float | None = None, null_rows: int = 0,
-                skip_guidance: float | None = None) -> torch.Tensor:
-        """Predict the noise in x_t.
+    def _check_speech(self, speech: torch.Tensor | None) -> None:
+        if (speech is not None) != self.cfg.has_speech_input:
+            raise ValueError("this model was built %s a second speech input"
+                             % ("with" if self.cfg.has_speech_input else "without"))
 
-        timesteps: (B,) in the 1000-step indexing. x0_coefs: sqrt(1/abar_t) and
-        sqrt(1/abar_t - 1), each (B, 1, 1), used to turn the expression noise into the
-        expression x0 that conditions the gesture branch. guidance: classifier-free
-        scale (only for models trained with a null condition; None = unguided).
-        null_rows: in training, the first `null_rows` batch rows see the learned null
-        condition instead of their speech (classifier-free dropout).
-
-        skip_guidance: scale s of skip-layer guidance on the gesture branch (None = off):
-        eps + s (eps - eps without the branch's self-attention blocks), which steers the
-        gestures away from what the network makes of each frame without its temporal
-        context (after Spatiotemporal Skip Guidance, Hyung et al. 2024). It replaces the
-        gesture branch's classifier-free pass, so guided generation costs the same: speech
-        guidance hardly moves the gestures, while small networks' gestures come out at
-        about 0.6x the amplitude of their data and skip guidance restores it.
-        """
-        cfg = self.cfg
-        if (hubert is not None) != cfg.use_hubert:
-            raise ValueError(
-                "this model was built %s HuBERT features" % ("with" if cfg.use_hubert else "without"))
-        if (guidance is not None or null_rows) and not cfg.classifier_free:
-            raise ValueError("classifier-free guidance needs a model trained with a null condition")
-        if (guidance is not None or skip_guidance is not None) and null_rows:
-            raise ValueError("null_rows is for training; guided sampling builds its own second pass")
-        if cfg.log_mel:
+    def expression(self, expression: torch.Tensor, timesteps: torch.Tensor, mel: torch.Tensor,
+                   speech: torch.Tensor | None, style: torch.Tensor, null: torch.Tensor | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The expression branch: (its noise prediction per row, the speech features both
+        branches fuse). timesteps: (B,) in the 1000-step indexing; null: (B,) bool, rows
+        that see the learned null condition (classifier-free guidance and dropout)."""
+        self._check_speech(speech)
+        if self.cfg.log_mel:
             mel = torch.log10(mel + 1e-5)
-        emb = self.time_embed(timestep_embedding(timesteps, cfg.latent))
+        emb = self.time_embed(timestep_embedding(timesteps, self.cfg.latent))
         # The official fusion residual also runs on the audio layer, which has no
         # fusion MLP: its input is added to itself before attention.
-        mel_feat = self.encoder_aud(mel + mel, emb)
-        audio = torch.cat([mel, mel_feat], dim=-1)
+        audio = torch.cat([mel, self.encoder_aud(mel + mel, emb)], dim=-1)
+        return self.encoder_exp(expression, timesteps, audio, speech, None, style, null), audio
 
+    def gesture(self, gesture: torch.Tensor, timesteps: torch.Tensor, audio: torch.Tensor,
+                speech: torch.Tensor | None, expression_x0: torch.Tensor, style: torch.Tensor,
+                null: torch.Tensor | None = None, attend: torch.Tensor | None = None) -> torch.Tensor:
+        """The gesture branch, which sees the expression branch's predicted x0 (the
+        uni-directional expression-to-gesture flow). attend: (B,) bool, false for rows
+        without self-attention (skip guidance: see `guidance`)."""
+        self._check_speech(speech)
+        return self.encoder_ges(gesture, timesteps, audio, speech, expression_x0, style, null, attend)
+
+    def forward(self, x_t: torch.Tensor, timesteps: torch.Tensor, mel: torch.Tensor,
+                speech: torch.Tensor | None, style: torch.Tensor,
+                x0_coefs: tuple[torch.Tensor, torch.Tensor], null_rows: int = 0) -> torch.Tensor:
+        """Predict the noise in x_t, one unguided prediction per row (training).
+
+        x0_coefs: sqrt(1/abar_t) and sqrt(1/abar_t - 1), each (B, 1, 1), used to turn the
+        expression noise into the expression x0 that conditions the gesture branch.
+        null_rows: the first `null_rows` rows see the learned null condition instead of
+        their speech (classifier-free dropout).
+        """
+        cfg = self.cfg
+        if null_rows and not cfg.classifier_free:
+            raise ValueError("classifier-free dropout needs a model trained with a null condition")
+        null = torch.arange(x_t.shape[0], device=x_t.device) < null_rows if null_rows else None
         gesture, expression = x_t.split([cfg.gesture_dim, cfg.expression_dim], dim=-1)
-        eps_exp = self.encoder_exp(expression, timesteps, audio, hubert, None, style, guidance, null_rows)
+        eps_exp, audio = self.expression(expression, timesteps, mel, speech, style, null)
         sqrt_recip, sqrt_recipm1 = x0_coefs
         exp_x0 = sqrt_recip * expression - sqrt_recipm1 * eps_exp.detach()
-        eps_ges = self.encoder_ges(gesture, timesteps, audio, hubert, exp_x0, style,
-                                   guidance if skip_guidance is None else None, null_rows, skip_guidance)
+        eps_ges = self.gesture(gesture, timesteps, audio, speech, exp_x0, style, null)
         return torch.cat([eps_ges, eps_exp], dim=-1)
+
+
+# ---------------------------------------------------------------- the phonetic encoder
+
+class _Activation(nn.Module):
+    """GELU then dropout, one module so the convolutions keep their state-dict names."""
+
+    def __init__(self, dropout: float):
+        super().__init__()
+        self.dropout = nn.Dropout(dropout)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.dropout(nn.functional.gelu(x))
+
+
+class PhoneticEncoder(nn.Module):
+    """Log-mel (B, n_mels, N) -> phone logits (B, len(PHONES), N), non-causal dilated convs."""
+
+    def __init__(self, cfg: PhoneticConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.register_buffer("mel_mean", torch.zeros(cfg.n_mels, 1))
+        self.register_buffer("mel_std", torch.ones(cfg.n_mels, 1))
+        layers: list[nn.Module] = []
+        width = cfg.n_mels
+        for d in cfg.dilations:
+            layers += [nn.Conv1d(width, cfg.channels, cfg.kernel, padding=d * (cfg.kernel // 2), dilation=d),
+                       _Activation(cfg.dropout)]
+            width = cfg.channels
+        layers.append(nn.Conv1d(width, len(PHONES), 1))
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, mel: torch.Tensor) -> torch.Tensor:
+        return self.net((mel - self.mel_mean) / self.mel_std)
+
+
+def load_state_strict(model: nn.Module, state: dict, source: str, hint: str = "") -> None:
+    """Load `state` (torch tensors or numpy arrays) into `model`, refusing any missing,
+    unexpected or misshapen key.
+
+    Only BatchNorm's `num_batches_tracked` counters may be absent (safetensors exports
+    often drop integer buffers; they play no part in inference).
+    """
+    expected = model.state_dict()
+    state = {**{k: v for k, v in expected.items() if k.endswith("num_batches_tracked")}, **state}
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    reshaped = sorted(
+        f"{k}: file {tuple(state[k].shape)}, model {tuple(expected[k].shape)}"
+        for k in set(expected) & set(state) if tuple(state[k].shape) != tuple(expected[k].shape))
+    if missing or unexpected or reshaped:
+        lines = [f"{source} does not match the model:"]
+        for title, items in (("missing keys", missing), ("unexpected keys", unexpected),
+                             ("wrong shapes", reshaped)):
+            if items:
+                lines.append(f"  {title} ({len(items)}): " + ", ".join(items))
+        likely = hint or (
+            "the file is truncated or damaged" if missing and not unexpected and not reshaped
+            else "the checkpoint was made for another model configuration")
+        lines.append(f"  likely cause: {likely}")
+        raise CheckpointError("\n".join(lines))
+    model.load_state_dict({k: torch.tensor(v) if isinstance(v, np.ndarray) else v
+                           for k, v in state.items()}, strict=True)

@@ -10,7 +10,7 @@ and noised to the start level, the network has a plausible continuation to refin
 The prior is stationary: the gesture channels are rotated onto the principal axes of
 their covariance, and each axis is a Gaussian process with its own temporal
 autocovariance. It is fitted to the normalised training motion and stored with the model
-(about 25 000 numbers).
+(about 25 000 numbers). All numpy, float64 inside.
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ from dataclasses import dataclass, field
 from typing import Iterable
 
 import numpy as np
-import torch
 
 from .errors import CheckpointError, DiffshegError
 
@@ -28,9 +27,9 @@ PREFIX = "prior."
 
 @dataclass
 class GesturePrior:
-    mean: torch.Tensor      # (G,) mean of the normalised gesture channels
-    axes: torch.Tensor      # (G, G) orthonormal principal axes, one per column
-    autocov: torch.Tensor   # (G, L) autocovariance of each axis at lags 0 .. L-1
+    mean: np.ndarray      # (G,) mean of the normalised gesture channels
+    axes: np.ndarray      # (G, G) orthonormal principal axes, one per column
+    autocov: np.ndarray   # (G, L) autocovariance of each axis at lags 0 .. L-1
     _conditionals: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -57,9 +56,9 @@ class GesturePrior:
                 autocov[:, lag] += (y[lag:] * y[: len(y) - lag]).sum(0)
         autocov /= len(frames)  # the biased estimate, which keeps the covariance positive
         # rounded to the float32 it is stored in, so a saved model samples as the fitted one
-        return cls(*(torch.from_numpy(a).float().double() for a in (mean, axes, autocov)))
+        return cls(*(a.astype(np.float32).astype(np.float64) for a in (mean, axes, autocov)))
 
-    def propose(self, known: torch.Tensor, length: int, generator: torch.Generator) -> torch.Tensor:
+    def propose(self, known: np.ndarray, length: int, generator: np.random.Generator) -> np.ndarray:
         """A (length, dims) draw of the gesture channels whose first frames are those of
         `known` (n, >= dims), n < length <= max_len."""
         n = known.shape[0]
@@ -67,38 +66,39 @@ class GesturePrior:
             raise DiffshegError(f"the gesture prior continues 1 to {self.max_len - 1} known frames "
                                 f"within {self.max_len}; asked for {n} of {length}")
         gain, scale = self._conditional(n, length)
-        given = known[:, : self.dims].double().cpu()
+        given = np.asarray(known[:, : self.dims], np.float64)
         y_known = ((given - self.mean) @ self.axes).T                                     # (G, n)
-        z = torch.randn(self.dims, length - n, generator=generator, dtype=torch.float64)
-        y_new = gain @ y_known.unsqueeze(-1) + scale @ z.unsqueeze(-1)                    # (G, m, 1)
-        drawn = y_new.squeeze(-1).T @ self.axes.T + self.mean
-        return torch.cat([given, drawn]).to(known.dtype)
+        z = generator.standard_normal((self.dims, length - n))
+        y_new = gain @ y_known[..., None] + scale @ z[..., None]                          # (G, m, 1)
+        drawn = y_new[..., 0].T @ self.axes.T + self.mean
+        return np.concatenate([given, drawn]).astype(known.dtype)
 
-    def _conditional(self, n: int, length: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def _conditional(self, n: int, length: int) -> tuple[np.ndarray, np.ndarray]:
         """Per axis, the gain from the known frames to the mean of the new ones and a
         square root of the new frames' covariance given the known ones."""
         key = (n, length)
         if key not in self._conditionals:
-            lags = (torch.arange(length)[:, None] - torch.arange(length)[None, :]).abs()
+            lags = np.abs(np.arange(length)[:, None] - np.arange(length)[None, :])
             cov = self.autocov[:, lags]                                                   # (G, L, L)
             c_kk, c_kn, c_nn = cov[:, :n, :n], cov[:, :n, n:], cov[:, n:, n:]
-            ridge = 1e-6 * self.autocov[:, :1, None] * torch.eye(n, dtype=cov.dtype)
-            gain = torch.linalg.solve(c_kk + ridge, c_kn).transpose(1, 2)                 # (G, m, n)
-            values, vectors = torch.linalg.eigh(c_nn - gain @ c_kn)
-            self._conditionals[key] = (gain, vectors * values.clamp(min=0).sqrt().unsqueeze(1))
+            ridge = 1e-6 * self.autocov[:, :1, None] * np.eye(n)
+            gain = np.linalg.solve(c_kk + ridge, c_kn).transpose(0, 2, 1)                # (G, m, n)
+            values, vectors = np.linalg.eigh(c_nn - gain @ c_kn)
+            self._conditionals[key] = (gain, vectors * np.sqrt(np.clip(values, 0, None))[:, None, :])
         return self._conditionals[key]
 
-    def tensors(self) -> dict[str, torch.Tensor]:
-        return {f"{PREFIX}{k}": getattr(self, k).float().contiguous() for k in ("mean", "axes", "autocov")}
+    def tensors(self) -> dict[str, np.ndarray]:
+        return {f"{PREFIX}{k}": np.ascontiguousarray(getattr(self, k), np.float32)
+                for k in ("mean", "axes", "autocov")}
 
     @classmethod
-    def from_tensors(cls, tensors: dict[str, torch.Tensor], source: str) -> "GesturePrior | None":
+    def from_tensors(cls, tensors: dict[str, np.ndarray], source: str) -> "GesturePrior | None":
         """The prior stored in a checkpoint's tensors, or None if it holds none."""
         names = [f"{PREFIX}{k}" for k in ("mean", "axes", "autocov")]
         if not any(n in tensors for n in names):
             return None
         try:
-            mean, axes, autocov = (tensors[n].double() for n in names)
+            mean, axes, autocov = (np.asarray(tensors[n], np.float64) for n in names)
         except KeyError as exc:
             raise CheckpointError(f"{source}: the gesture prior is incomplete (no {exc}); export it again") from None
         g = mean.shape[0]

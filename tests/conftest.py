@@ -38,3 +38,30 @@ def tiny_hubert(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("tiny_hubert")
     transformers.HubertModel(config).save_pretrained(folder)
     return folder
+
+
+def random_bundle(graphs: bool = True, seed: int = 0, **config):
+    """A small randomly initialised model (no learned motion) as a ModelBundle, with its
+    ONNX graphs unless `graphs` is false. `config`: ModelConfig fields over a small mel-only
+    BEAT network (latent 64, 2 layers)."""
+    import numpy as np
+    import torch
+
+    from diffsheg_core.checkpoints import ModelBundle
+    from diffsheg_core.config import ModelConfig
+    from diffsheg_core.export import with_graphs
+    from diffsheg_core.foppas import PRESETS
+    from diffsheg_core.model import UniEG
+
+    cfg = ModelConfig(**{"latent": 64, "layers": 2, "ff": 128, "heads": 4, "speech_encoder": None, **config})
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        model = UniEG(cfg).eval()
+        for name, p in model.named_parameters():  # wake the zero-initialised layers up
+            if p.abs().max() == 0:
+                torch.nn.init.normal_(p, std=0.02)
+    bundle = ModelBundle(config=cfg, weights={k: v.numpy() for k, v in model.state_dict().items()},
+                         mean=np.zeros(cfg.dim, np.float32), std=np.full(cfg.dim, 0.05, np.float32),
+                         sampling=PRESETS["official-beat"], model_id="random-small", trained=False,
+                         source="random-small")
+    return with_graphs(bundle) if graphs else bundle

@@ -15,10 +15,11 @@ import pytest
 import soundfile as sf
 
 from diffsheg_core.audio import (
-    HUBERT_REPO_ID, SAMPLE_SPEECH, Audio, hubert_features, hubert_status, load_audio,
-    mel_features, n_motion_frames, resample,
+    HUBERT_REPO_ID, MEL_FILTERS, SAMPLE_SPEECH, Audio, _resampled_length, hubert_features,
+    hubert_status, load_audio, mel_features, mel_filter_key, mel_spectrogram, n_motion_frames,
+    resample,
 )
-from diffsheg_core.errors import AudioError
+from diffsheg_core.errors import AudioError, DiffshegError
 
 ROOT = Path(__file__).resolve().parents[1]
 AUDIO = ROOT.parent / "shared" / "data" / "audio"
@@ -26,6 +27,10 @@ SCOTT_24BIT = AUDIO / "2_scott_0_3_3.wav"  # 68.0 s, 16 kHz, 24-bit PCM
 MP3_AS_WAV = AUDIO / "2_scott_0_103_103_28s.wav"  # MP3 data (44.1 kHz stereo) named .wav
 ZHAO = AUDIO / "12_zhao_2_3_3.wav"  # 56 s, 16 kHz, 16-bit
 BEAT2_FLOAT = ROOT.parent / "shared" / "data" / "beat2" / "2_scott_0_1_1.wav"  # 32-bit float
+FORREST = AUDIO / "Forrest_tts.wav"  # 118.6 s synthetic speech, 16 kHz
+
+# The filterbanks stored in assets/mel_filters.npz: (n_fft, n_mels, the hop they are used with).
+MEL_BANKS = {"official_2048x128": (2048, 128, 1200), "phonetic_512x64": (512, 64, 300)}
 
 HAS_TRANSFORMERS = importlib.util.find_spec("transformers") is not None
 
@@ -119,7 +124,85 @@ def test_formats_libsndfile_cannot_read_fall_back_to_audioread(tmp_path, zhao_cl
     assert audio.sample_rate == rate and audio.duration == pytest.approx(4.0, abs=0.1)
 
 
+# --- resampling ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("path, rate", [(SCOTT_24BIT, 22050), (SCOTT_24BIT, 18000), (ZHAO, 48000),
+                                        (MP3_AS_WAV, 22050), (MP3_AS_WAV, 16000)],
+                         ids=["16k_to_22050", "16k_to_18000", "16k_to_48000", "44k1_to_22050", "44k1_to_16000"])
+def test_resample_equals_librosa_soxr_hq(path, rate):
+    audio = load_audio(path)
+    ours = resample(audio, rate)
+    reference = librosa.resample(audio.samples, orig_sr=audio.sample_rate, target_sr=rate, res_type="soxr_hq")
+    assert ours.sample_rate == rate and ours.path == audio.path and ours.samples.dtype == np.float32
+    assert len(ours.samples) == _resampled_length(len(audio.samples), audio.sample_rate, rate)
+    assert len(ours.samples) == math.ceil(len(audio.samples) * rate / audio.sample_rate)
+    np.testing.assert_array_equal(ours.samples, reference)
+    at_22k = resample(audio, 22050)  # the official chain 22050 -> 18000, as mel_features runs it
+    np.testing.assert_array_equal(
+        resample(at_22k, 18000).samples,
+        librosa.resample(at_22k.samples, orig_sr=22050, target_sr=18000, res_type="soxr_hq"))
+
+
+def test_resample_keeps_float64_precision_like_librosa(zhao_clip):
+    mono, rate = zhao_clip
+    audio = Audio(mono.astype(np.float64), rate)
+    reference = librosa.resample(audio.samples, orig_sr=rate, target_sr=22050, res_type="soxr_hq")
+    ours = resample(audio, 22050).samples
+    assert ours.dtype == np.float32
+    np.testing.assert_array_equal(ours, reference.astype(np.float32))
+    assert resample(audio, rate) is audio
+
+
 # --- mel features ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("bank", list(MEL_BANKS))
+def test_stored_filterbanks_equal_librosa(bank):
+    n_fft, n_mels, _ = MEL_BANKS[bank]
+    with np.load(MEL_FILTERS, allow_pickle=False) as stored:
+        assert set(stored.files) == {mel_filter_key(n, m) for n, m, _ in MEL_BANKS.values()}
+        filters = stored[mel_filter_key(n_fft, n_mels)]
+    assert mel_filter_key(n_fft, n_mels) == f"sr18000_nfft{n_fft}_mels{n_mels}"
+    assert filters.dtype == np.float32 and filters.shape == (n_mels, 1 + n_fft // 2)
+    np.testing.assert_array_equal(filters, librosa.filters.mel(sr=18000, n_fft=n_fft, n_mels=n_mels))
+
+
+@pytest.mark.parametrize("path", [SCOTT_24BIT, ZHAO, FORREST], ids=lambda p: p.stem)
+@pytest.mark.parametrize("bank", list(MEL_BANKS))
+def test_mel_spectrogram_equals_librosa_melspectrogram(path, bank):
+    n_fft, n_mels, hop = MEL_BANKS[bank]
+    speech = resample(load_audio(path), 18000).samples
+    for samples, hop in ((speech, hop), (speech[: 18000 * 5 + 777], hop + 7)):  # odd hop and length
+        mel = mel_spectrogram(samples, n_fft, hop, n_mels)
+        reference = librosa.feature.melspectrogram(
+            y=samples, sr=18000, n_fft=n_fft, hop_length=hop, n_mels=n_mels)
+        assert mel.dtype == np.float32 and mel.shape == reference.shape == (n_mels, 1 + len(samples) // hop)
+        # librosa rounds the spectrum to float32; ours is float64 until the end. Measured: 2e-7.
+        assert np.abs(mel - reference).max() <= 1e-6 * reference.max()
+        np.testing.assert_allclose(mel, reference, rtol=2e-6, atol=1e-7 * reference.max())
+
+
+@pytest.mark.filterwarnings("ignore:n_fft=2048 is too large:UserWarning")
+def test_mel_spectrogram_of_audio_shorter_than_the_window_is_zero_padded(zhao_clip):
+    samples = resample(load_audio(zhao_clip[0], zhao_clip[1]), 18000).samples[:1200]
+    mel = mel_spectrogram(samples, 2048, 1200, 128)
+    reference = librosa.feature.melspectrogram(y=samples, sr=18000, n_fft=2048, hop_length=1200, n_mels=128)
+    assert mel.shape == reference.shape == (128, 2)
+    assert np.abs(mel - reference).max() <= 1e-6 * reference.max()
+
+
+def test_mel_spectrogram_without_a_stored_bank_names_it_and_the_tool():
+    samples = resample(load_audio(SAMPLE_SPEECH), 18000).samples
+    with pytest.raises(DiffshegError) as error:
+        mel_spectrogram(samples, 1024, 300, 80)
+    message = str(error.value)
+    assert "n_fft=1024, n_mels=80" in message and "tools/make_mel_filters.py" in message
+    with pytest.raises(DiffshegError, match="hop must be a positive"):
+        mel_spectrogram(samples, 2048, 0, 128)
+    with pytest.raises(AudioError, match="mono"):
+        mel_spectrogram(np.stack([samples, samples]), 2048, 1200, 128)
+
 
 
 @pytest.mark.parametrize("path", [SCOTT_24BIT, MP3_AS_WAV], ids=["16k_24bit", "mp3_44k_stereo"])
@@ -239,6 +322,51 @@ def test_bad_arrays_raise_audio_error_naming_the_problem(case):
 
 
 # --- HuBERT ----------------------------------------------------------------------
+
+
+NOT_IN_BLENDER = ("librosa", "scipy", "numba")
+
+# Blocks the packages Blender lacks (or, unblocked, leaves them importable), imports the audio
+# module, computes the official mel of a real file and checks that none of them was imported.
+# "audio_module" loads diffsheg_core/audio.py with an empty parent package (so only audio.py and
+# errors.py run); "package" imports it the ordinary way, running diffsheg_core/__init__.py and
+# what it imports.
+WITHOUT_LIBROSA = """
+import importlib.util, sys, types
+BLOCKED = {blocked!r}
+for name in BLOCKED if {block!r} else ():
+    sys.modules[name] = None  # `import name` (and name.anything) now raises ImportError
+if {isolated!r}:
+    package = types.ModuleType("diffsheg_core")
+    package.__path__ = [{package!r}]
+    sys.modules["diffsheg_core"] = package
+import diffsheg_core.audio as audio
+audio_in = audio.load_audio({path!r})
+mel = audio.mel_features(audio_in)
+assert mel.shape == (audio.n_motion_frames(audio_in), 128) and mel.dtype.name == "float32", mel.shape
+assert audio.mel_spectrogram(audio.resample(audio_in, 18000).samples, 512, 300, 64).shape[0] == 64
+loaded = sorted(name for name, module in sys.modules.items()
+                if name.split(".")[0] in BLOCKED and module is not None)
+assert not loaded, loaded
+import numpy as np
+np.save({out!r}, mel)
+"""
+
+
+@pytest.mark.parametrize("isolated, block", [
+    pytest.param(True, True, id="audio_module"),
+    pytest.param(True, False, id="audio_module_with_librosa_installed"),
+    pytest.param(False, True, id="package"),
+])
+def test_audio_runs_without_librosa_scipy_and_numba(tmp_path, isolated, block):
+    out = tmp_path / "mel.npy"
+    code = WITHOUT_LIBROSA.format(blocked=NOT_IN_BLENDER, block=block, isolated=isolated,
+                                  package=str(ROOT / "diffsheg_core"), path=str(MP3_AS_WAV), out=str(out))
+    result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr[-3000:]
+    reference = official_mel(MP3_AS_WAV)
+    mel = np.load(out)
+    assert mel.shape == reference.shape and np.abs(mel - reference).max() <= 1e-6 * reference.max()
 
 
 def test_importing_audio_does_not_import_transformers():

@@ -9,12 +9,13 @@ import soundfile as sf
 import torch
 from safetensors.torch import load_file
 
-from diffsheg_core import CheckpointError, generate
+from conftest import random_bundle
+from diffsheg_core import CheckpointError, DiffshegError, generate
 from diffsheg_core.bvh import read_bvh
-from diffsheg_core.checkpoints import (load_model, official_stats, save_checkpoint,
-                                       untrained_bundle)
+from diffsheg_core.checkpoints import load_model, official_stats, read_safetensors, save_checkpoint
 from diffsheg_core.motion import read_arkit_json
 from diffsheg_core.model import ModelConfig, UniEG
+from diffsheg_core.runtime.backends import choose_backend
 
 
 def golden_official_file(golden_dir, tmp_path, prefix="module."):
@@ -27,20 +28,27 @@ def golden_official_file(golden_dir, tmp_path, prefix="module."):
 
 
 def test_our_format_round_trips(tmp_path):
-    bundle = untrained_bundle(seed=3)
+    bundle = random_bundle(seed=3)
     bundle.info = {"trained_on": "nothing"}
     path = save_checkpoint(bundle, tmp_path / "m.safetensors")
     loaded = load_model(path)
     assert loaded.config == bundle.config and loaded.model_id == bundle.model_id
     assert loaded.trained is False and loaded.info == {"trained_on": "nothing"}
     assert loaded.sampling == bundle.sampling
-    for (k, a), (_, b) in zip(bundle.model.state_dict().items(), loaded.model.state_dict().items()):
-        assert torch.equal(a, b), k
+    assert sorted(loaded.weights) == sorted(bundle.weights)
+    for k, a in bundle.weights.items():
+        b = loaded.weights[k]
+        assert isinstance(b, np.ndarray) and b.dtype == a.dtype and np.array_equal(a, b), k
     assert np.array_equal(loaded.std, bundle.std)
+    # the ONNX graphs travel byte for byte, so the file runs without torch
+    assert loaded.has_graphs and loaded.graphs == bundle.graphs
+    meta, tensors = read_safetensors(path, "")
+    assert all(isinstance(v, np.ndarray) for v in tensors.values())
+    assert {k for k in tensors if k.startswith("onnx.")} == {"onnx.expression", "onnx.gesture"}
 
 
 def test_truncated_checkpoint_is_reported(tmp_path):
-    path = save_checkpoint(untrained_bundle(), tmp_path / "m.safetensors")
+    path = save_checkpoint(random_bundle(graphs=False), tmp_path / "m.safetensors")
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])
     with pytest.raises(CheckpointError, match="truncated"):
@@ -57,9 +65,18 @@ def test_official_checkpoint_loads_strictly_with_inferred_config(golden_dir, dat
     cfg = bundle.config
     assert (cfg.gesture_dim, cfg.expression_dim, cfg.style_dim, cfg.latent, cfg.layers, cfg.ff) == \
         (141, 51, 30, 64, 2, 128)
-    assert cfg.use_hubert and not cfg.classifier_free and cfg.clip_len == 34 and cfg.layout == "beat"
+    assert cfg.speech_encoder == "hubert" and cfg.has_speech_input and not cfg.phonetic_input
+    assert not cfg.classifier_free and cfg.clip_len == 34 and cfg.layout == "beat"
     assert bundle.sampling.overlap == 4 and bundle.guidance is None
     assert bundle.mean.shape == (192,) and np.allclose(bundle.mean[:141], np.load(data_dir / "beat/axis_angle_mean.npy"))
+    # the weights, as numpy, under their official names (the `module.` prefix dropped)
+    golden = load_file(str(golden_dir / "beat_small.safetensors"))
+    assert set(bundle.weights) == set(golden)
+    assert all(isinstance(v, np.ndarray) and np.array_equal(v, golden[k].numpy()) for k, v in bundle.weights.items())
+    # official checkpoints carry no ONNX graphs: they run on the torch backend
+    assert not bundle.has_graphs and choose_backend(bundle, "auto", "cpu") == "torch"
+    with pytest.raises(DiffshegError, match="no ONNX graphs"):
+        choose_backend(bundle, "onnx", "cpu")
 
 
 def test_official_checkpoint_without_stats_explains(golden_dir, tmp_path, monkeypatch):
@@ -135,6 +152,7 @@ def test_official_size_beat_end_to_end_with_random_weights(data_dir, tmp_path):
     samples, sr = sf.read(data_dir / "audio" / "2_scott_0_3_3.wav", dtype="float32")
     motion = generate(samples[: 10 * sr], sr, model=bundle, device="cpu", hubert_path=str(hubert))
     assert motion.n_frames == 150 and np.isfinite(motion.rotations).all()
+    assert motion.meta["backend"] == "torch"  # no graphs in an official checkpoint
     from diffsheg_core.bvh import write_bvh
     from diffsheg_core.motion import write_arkit_json
     bvh = read_bvh(write_bvh(motion, tmp_path / "out.bvh"))

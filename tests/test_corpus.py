@@ -13,18 +13,18 @@ import soundfile as sf
 
 from diffsheg_core.audio import Audio, load_audio, n_motion_frames
 from diffsheg_core.bvh import bvh_to_motion, read_bvh
-from diffsheg_core.corpus.__main__ import main
-from diffsheg_core.corpus.augment import SAMPLE_RATE, AugmentSpec, augment
-from diffsheg_core.corpus.build import BuildConfig, build, make_utterance, read_manifest, utterance_specs
-from diffsheg_core.corpus.phones import SILENCE, check_phones, phones_from_textgrid
-from diffsheg_core.corpus.synthesis import FLITE_VOICES, VoiceSpec, engine_available, synthesize
-from diffsheg_core.corpus.teacher import load_utterance, teach
-from diffsheg_core.corpus.texts import fortune_files, load_texts, split_utterances
+from diffsheg_core.training.corpus.__main__ import main
+from diffsheg_core.training.corpus.augment import SAMPLE_RATE, AugmentSpec, augment
+from diffsheg_core.training.corpus.build import BuildConfig, build, make_utterance, read_manifest, utterance_specs
+from diffsheg_core.training.corpus.phones import SILENCE, check_phones, phones_from_textgrid
+from diffsheg_core.training.corpus.synthesis import FLITE_VOICES, VoiceSpec, engine_available, synthesize
+from diffsheg_core.training.corpus.teacher import load_utterance, teach
+from diffsheg_core.training.corpus.texts import fortune_files, load_texts, split_utterances
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.motion import Motion
-from diffsheg_core.metrics.blinks import detect_blinks
-from diffsheg_core.metrics.lipsync import envelope_correlation, phoneme_contrast
-from diffsheg_core.metrics.textgrid import phone_tier, read_textgrid
+from diffsheg_core.training.metrics.blinks import detect_blinks
+from diffsheg_core.training.metrics.lipsync import envelope_correlation, phoneme_contrast
+from diffsheg_core.training.metrics.textgrid import phone_tier, read_textgrid
 from diffsheg_core.rigs import ARKIT51, BEAT_JOINTS
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -104,7 +104,7 @@ def test_unknown_voices_and_engines_are_named():
 
 def test_a_requested_engine_that_is_not_installed_stops_the_build(tmp_path, monkeypatch):
     """The corpus would silently change its voice mix: the build names the engine instead."""
-    import diffsheg_core.corpus.build as build_module
+    import diffsheg_core.training.corpus.build as build_module
 
     monkeypatch.setattr(build_module, "engine_available", lambda engine: engine != "festival")
     config = BuildConfig(out=tmp_path / "c", hours=1 / 3600, jobs=1, engines=("espeak", "festival"))
@@ -113,6 +113,15 @@ def test_a_requested_engine_that_is_not_installed_stops_the_build(tmp_path, monk
     assert not (tmp_path / "c").exists()
     with pytest.raises(DiffshegError, match="unknown speech engine mbrola"):
         build(BuildConfig(out=tmp_path / "c", hours=1 / 3600, engines=("mbrola",)), progress=False)
+
+
+def test_a_build_whose_every_utterance_fails_stops_and_names_the_error(tmp_path):
+    text = tmp_path / "texts.txt"
+    text.write_text("Peter and Bob bought a map of the big park.")
+    config = BuildConfig(out=tmp_path / "c", hours=1.0, jobs=1, engines=("espeak",), text_files=(text,),
+                         mocap=tmp_path / "missing.bvh")
+    with pytest.raises(DiffshegError, match="the last 20 utterances all failed.*missing.bvh"):
+        build(config, progress=False)
 
 
 def test_augmentation_retimes_phones():

@@ -10,12 +10,12 @@ import pytest
 import soundfile as sf
 
 from diffsheg_core.bvh import bvh_to_motion, read_bvh, write_bvh_data
-from diffsheg_core.corpus.build import MANIFEST, BuildConfig, build, read_manifest
-from diffsheg_core.corpus.teacher import load_utterance
-from diffsheg_core.data import (
+from diffsheg_core.training.corpus.build import MANIFEST, BuildConfig, build, read_manifest
+from diffsheg_core.training.corpus.teacher import load_utterance
+from diffsheg_core.training.data import (
     ClipDataset, DataConfig, load_takes, normalisation, official_stats, window_starts,
 )
-from diffsheg_core.data.beat2 import read_motion
+from diffsheg_core.training.data.beat2 import read_motion
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.motion import Motion, write_arkit_json, write_livelink_csv
 from diffsheg_core.rigs import ARKIT51, BEAT, SMPLX

@@ -1,20 +1,22 @@
 """FOPPAS windowing, outpainting and streaming, on real speech and synthetic models."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import soundfile as sf
-import torch
 
+from conftest import random_bundle
 from diffsheg_core.audio import load_audio, n_motion_frames
-from diffsheg_core.checkpoints import untrained_bundle
 from diffsheg_core.diffusion import Schedule
-from diffsheg_core.foppas import (Foppas, FoppasConfig, FoppasStream, PRESETS, jump_schedule,
-                                  model_calls, plan_windows, sample_long)
-from diffsheg_core.pipeline import generate
-
-CPU = torch.device("cpu")
+from diffsheg_core.errors import DiffshegError
+from diffsheg_core.foppas import (PROPOSAL_STREAM, Foppas, FoppasConfig, FoppasStream, PRESETS,
+                                  check_seed, jump_schedule, model_calls, plan_windows, sample_long)
+from diffsheg_core.guidance import Guidance
+from diffsheg_core.pipeline import generate, make_eps_fn_factory, open_stream, style_onehot
+from diffsheg_core.prior import GesturePrior
+from diffsheg_core.runtime.backends import open_network
 
 
 def test_official_schedules_match_golden(golden_dir):
@@ -29,9 +31,8 @@ def test_official_schedules_match_golden(golden_dir):
 def test_official_preset_makes_27_model_calls_per_later_clip():
     sampler = Foppas(Schedule.linear(), PRESETS["official-beat"], 34, 4)
     counts = []
-    stream = FoppasStream(sampler, lambda cond: lambda x, i: counts.append(i) or torch.zeros_like(x),
-                          torch.Generator().manual_seed(0), CPU)
-    stream.push(torch.zeros(34 + 30 + 30, 1))
+    stream = FoppasStream(sampler, lambda cond: lambda x, i: counts.append(i) or np.zeros_like(x), 0)
+    stream.push(np.zeros((34 + 30 + 30, 1), np.float32))
     stream.finish()
     per_clip = [counts[:25], counts[25:52], counts[52:79]]
     assert [len(c) for c in per_clip] == [25, 27, 27] and len(counts) == 79
@@ -48,7 +49,7 @@ def test_plan_windows(n, expected):
 
 @pytest.fixture(scope="module")
 def model():
-    return untrained_bundle()
+    return random_bundle()
 
 
 def cut(data_dir, tmp_path, n_frames):
@@ -81,29 +82,30 @@ def window_outputs(sampler, make_eps_fn, n_frames, seed=0):
 
     def recording(*args, **kwargs):
         out = original(*args, **kwargs)
-        windows.append(out[0].clone())
+        windows.append(out[0].copy())
         return out
 
     sampler.sample_window = recording
-    motion = sample_long(sampler, make_eps_fn, torch.zeros(n_frames, 1), torch.Generator().manual_seed(seed), CPU)
+    motion = sample_long(sampler, make_eps_fn, np.zeros((n_frames, 1), np.float32), seed)
     return motion, windows
 
 
-def test_overlap_equals_previous_tail_exactly_without_blending(model):
+@pytest.mark.parametrize("backend", ["onnx", "torch"])
+def test_overlap_equals_previous_tail_exactly_without_blending(model, backend):
     cfg = model.config
     sampler = Foppas(Schedule.linear(), FoppasConfig(steps=10, overlap=4, later_start=6, blend=False),
                      cfg.clip_len, cfg.dim)
-    from diffsheg_core.pipeline import make_eps_fn_factory, style_onehot
-    make = make_eps_fn_factory(model, sampler, style_onehot(model, 0), None, None)
-    cond = torch.rand(100, cfg.mel_dim)
+    network = open_network(model, backend=backend, device="cpu")
+    make = make_eps_fn_factory(model, network, sampler, style_onehot(model, 0), Guidance())
+    cond = np.random.default_rng(0).random((100, cfg.mel_dim), dtype=np.float32)
     windows = []
     original = sampler.sample_window
-    sampler.sample_window = lambda *a, **k: windows.append(original(*a, **k)[0].clone()) or windows[-1][None]
-    motion = sample_long(sampler, make, cond, torch.Generator().manual_seed(1), CPU)
+    sampler.sample_window = lambda *a, **k: windows.append(original(*a, **k)[0].copy()) or windows[-1][None]
+    motion = sample_long(sampler, make, cond, 1)
     assert len(windows) == 4
     for prev, nxt in zip(windows, windows[1:]):
-        assert torch.equal(nxt[:4], prev[-4:])
-    assert torch.equal(motion[:30], windows[0][:30]) and torch.equal(motion[30:60], windows[1][:30])
+        assert np.array_equal(nxt[:4], prev[-4:])
+    assert np.array_equal(motion[:30], windows[0][:30]) and np.array_equal(motion[30:60], windows[1][:30])
 
 
 def smooth_model():
@@ -112,15 +114,15 @@ def smooth_model():
     sched = Schedule.linear().respaced(25)
 
     def make(cond):
-        t = cond[0, :, 0]
-        k = torch.exp(-0.5 * ((t[:, None] - t[None, :]) / 4.0) ** 2).double()
-        eye = torch.eye(len(t), dtype=torch.float64)
+        t = cond[0, :, 0].astype(np.float64)
+        k = np.exp(-0.5 * ((t[:, None] - t[None, :]) / 4.0) ** 2)
+        eye = np.eye(len(t))
 
         def eps(x, index):
-            a, b = sched.x0_coefs(torch.tensor([index]), x)
-            abar = float(1.0 / a.flatten()[0] ** 2)
-            gain = abar ** 0.5 * k @ torch.linalg.inv(abar * k + (1 - abar) * eye + 1e-6 * eye)
-            x0 = (gain @ x[0].double()).float()[None]
+            a, b = sched.x0_coefs(np.array([index]), x)
+            abar = float(1.0 / a.reshape(-1)[0] ** 2)
+            gain = abar ** 0.5 * k @ np.linalg.inv(abar * k + (1 - abar) * eye + 1e-6 * eye)
+            x0 = (gain @ x[0].astype(np.float64)).astype(np.float32)[None]
             return (a * x - x0) / b
 
         return eps
@@ -130,9 +132,9 @@ def smooth_model():
 
 def seam_and_inside_steps(blend):
     sampler = Foppas(Schedule.linear(), FoppasConfig(overlap=4, blend=blend), 34, 2)
-    frames = torch.arange(300, dtype=torch.float32).view(-1, 1)
-    motion = sample_long(sampler, smooth_model(), frames, torch.Generator().manual_seed(0), CPU)
-    steps = (motion[1:, 0] - motion[:-1, 0]).abs()
+    frames = np.arange(300, dtype=np.float32).reshape(-1, 1)
+    motion = sample_long(sampler, smooth_model(), frames, 0)
+    steps = np.abs(motion[1:, 0] - motion[:-1, 0])
     seams = {s for start, _ in plan_windows(300, 34, 4)[1:] for s in range(start - 1, start + 4)}
     inside = [i for i in range(len(steps)) if i not in seams]
     return steps[sorted(seams)], steps[inside]
@@ -145,26 +147,28 @@ def test_blending_keeps_clip_boundaries_as_smooth_as_the_clips():
     assert unblended.max() > seams.max()
 
 
-def test_stream_equals_offline_and_emits_early(model):
+@pytest.mark.parametrize("backend", ["onnx", "torch"])
+def test_stream_equals_offline_and_emits_early(model, backend):
     cfg = model.config
-    from diffsheg_core.pipeline import make_eps_fn_factory, style_onehot
-    cond = torch.rand(150, cfg.mel_dim)
+    cond = np.random.default_rng(0).random((150, cfg.mel_dim), dtype=np.float32)
     conf = FoppasConfig(steps=4, later_start=2)
 
     def sampler():
         return Foppas(Schedule.linear(), conf, cfg.clip_len, cfg.dim)
 
     s = sampler()
-    make = make_eps_fn_factory(model, s, style_onehot(model, 0), None, None)
-    offline = sample_long(s, make, cond, torch.Generator().manual_seed(3), CPU)
-    stream = FoppasStream(sampler(), make, torch.Generator().manual_seed(3), CPU)
+    network = open_network(model, backend=backend, device="cpu")
+    make = make_eps_fn_factory(model, network, s, style_onehot(model, 0), Guidance())
+    offline = sample_long(s, make, cond, 3)
+    stream = FoppasStream(sampler(), make, 3)
     parts, emitted_after = [], []
     for start in range(0, 150, 10):
         parts.append(stream.push(cond[start:start + 10]))
         emitted_after.append(sum(len(p) for p in parts))
     parts.append(stream.finish())
-    streamed = torch.cat(parts)
-    assert torch.equal(streamed, offline)
+    streamed = np.concatenate(parts)
+    assert streamed.dtype == offline.dtype == np.float32
+    assert np.array_equal(streamed, offline)
     # latency: after 40 frames of speech the first 30 frames are out
     assert emitted_after[3] >= 30
     assert all(received - out <= cfg.clip_len for received, out in zip(range(10, 160, 10), emitted_after))
@@ -181,9 +185,9 @@ def test_later_windows_start_from_the_proposal_noised_to_the_start_level():
     config = PRESETS["official-beat"]
     calls = []
 
-    def proposal(known: torch.Tensor, length: int, generator: torch.Generator) -> torch.Tensor:
+    def proposal(known: np.ndarray, length: int, generator: np.random.Generator) -> np.ndarray:
         calls.append((tuple(known.shape), length))
-        return torch.full((length, 4), 50.0)
+        return np.full((length, 4), 50.0, np.float32)
 
     def first_inputs(sampler: Foppas) -> list[float]:
         means = []
@@ -195,9 +199,9 @@ def test_later_windows_start_from_the_proposal_noised_to_the_start_level():
                 if not seen:
                     seen.append(True)
                     means.append(float(x[0, config.overlap:].mean()))
-                return torch.zeros_like(x)
+                return np.zeros_like(x)
             return eps_fn
-        sample_long(sampler, make, torch.zeros(34 + 30 + 20, 1), torch.Generator().manual_seed(0), CPU)
+        sample_long(sampler, make, np.zeros((34 + 30 + 20, 1), np.float32), 0)
         return means
 
     with_draw = first_inputs(Foppas(Schedule.linear(), config, 34, 4, proposal=proposal))
@@ -210,20 +214,112 @@ def test_later_windows_start_from_the_proposal_noised_to_the_start_level():
     assert all(abs(m) < 0.5 for m in without)
 
 
+def two_channels(known, length, generator):
+    """A proposal of the first two channels: the known frames, then noise from its generator."""
+    return np.concatenate([known[:, :2], generator.standard_normal((length - len(known), 2), dtype=np.float32)])
+
+
 def test_a_proposal_of_some_channels_leaves_the_others_noise_unchanged():
     """The proposal draws from its own generator: the channels it does not cover get the
     same noise as without it, so they come out the same."""
     config = PRESETS["official-beat"]
 
-    def run(proposal) -> torch.Tensor:
+    def run(proposal) -> np.ndarray:
         sampler = Foppas(Schedule.linear(), config, 34, 4, proposal=proposal)
         make = lambda cond: lambda x, i: 0.1 * x  # any model that treats the channels apart
-        return sample_long(sampler, make, torch.zeros(80, 1), torch.Generator().manual_seed(3), CPU)
-
-    def two_channels(known, length, generator):
-        return torch.cat([known[:, :2], torch.randn(length - len(known), 2, generator=generator)])
+        return sample_long(sampler, make, np.zeros((80, 1), np.float32), 3)
 
     plain, proposed = run(None), run(two_channels)
-    assert torch.equal(plain[:, 2:], proposed[:, 2:])
-    assert torch.equal(plain[:30, :2], proposed[:30, :2])  # the first window has no proposal
-    assert not torch.allclose(plain[30:, :2], proposed[30:, :2])
+    assert np.array_equal(plain[:, 2:], proposed[:, 2:])
+    assert np.array_equal(plain[:30, :2], proposed[:30, :2])  # the first window has no proposal
+    assert not np.allclose(plain[30:, :2], proposed[30:, :2])
+
+
+# ---------------------------------------------------------------- seeds
+
+def first_model_inputs(seed, n_frames=80, proposal=None, dim=4):
+    """(the first x_t each window's model sees, the generators the proposal was handed, output)
+    for a deterministic model (eps = 0.1 x)."""
+    sampler = Foppas(Schedule.linear(), PRESETS["official-beat"], 34, dim, proposal=proposal)
+    firsts = []
+
+    def make(cond):
+        def eps_fn(x, index):
+            if len(firsts) < len(made):
+                firsts.append(x.copy())
+            return 0.1 * x
+        made.append(True)
+        return eps_fn
+
+    made = []
+    out = sample_long(sampler, make, np.zeros((n_frames, 1), np.float32), seed)
+    return firsts, out
+
+
+@pytest.mark.parametrize("seed", [0, 7, 2**100])
+def test_the_noise_is_numpy_pcg64_seeded_with_the_seed(seed):
+    """The first window starts from default_rng(seed)'s first draw, and the proposal draws
+    from default_rng([seed, PROPOSAL_STREAM]): nothing of the backend or device enters."""
+    firsts, _ = first_model_inputs(seed)
+    expected = np.random.default_rng(seed).standard_normal((1, 34, 4), dtype=np.float32)
+    assert firsts[0].dtype == np.float32 and np.array_equal(firsts[0], expected)
+
+    handed = []
+
+    def recording(known, length, generator):
+        handed.append(generator.bit_generator.state)
+        return two_channels(known, length, generator)
+
+    first_model_inputs(seed, proposal=recording)
+    assert handed[0] == np.random.default_rng([seed, PROPOSAL_STREAM]).bit_generator.state
+
+
+def test_a_huge_seed_works_and_is_deterministic(data_dir, tmp_path, model):
+    seed = 2**100
+    firsts, out = first_model_inputs(seed, proposal=two_channels)
+    again_firsts, again = first_model_inputs(seed, proposal=two_channels)
+    assert np.array_equal(out, again) and all(np.array_equal(a, b) for a, b in zip(firsts, again_firsts))
+    _, other = first_model_inputs(seed + 1, proposal=two_channels)
+    assert not np.allclose(out, other)
+    path = cut(data_dir, tmp_path, 40)
+    a = generate(path, model=model, seed=seed, steps=3, device="cpu")
+    b = generate(path, model=model, seed=seed, steps=3, device="cpu")
+    assert a.meta["seed"] == seed
+    assert np.array_equal(a.rotations, b.rotations) and np.array_equal(a.face, b.face)
+    c = generate(path, model=model, seed=seed + 1, steps=3, device="cpu")
+    assert not np.allclose(a.rotations, c.rotations)
+
+
+@pytest.mark.parametrize("seed", [-1, -(2**100), 1.5, 2.0, True, "3", None])
+def test_bad_seeds_are_refused(model, seed):
+    with pytest.raises(DiffshegError, match="seed"):
+        check_seed(seed)
+    sampler = Foppas(Schedule.linear(), PRESETS["official-beat"], 34, 4)
+    make = lambda cond: lambda x, i: np.zeros_like(x)
+    with pytest.raises(DiffshegError, match="seed"):
+        sample_long(sampler, make, np.zeros((40, 1), np.float32), seed)
+    with pytest.raises(DiffshegError, match="seed"):
+        FoppasStream(sampler, make, seed)
+    with pytest.raises(DiffshegError, match="seed"):
+        generate(np.zeros(16000, np.float32), 16000, model=model, seed=seed)
+    with pytest.raises(DiffshegError, match="seed"):
+        open_stream(model, seed=seed)
+
+
+def test_a_seed_gives_the_same_motion_on_either_backend(data_dir, tmp_path, model):
+    """Same seed, same noise, whichever backend predicts it: onnxruntime and torch agree
+    (within float32 rounding) on real speech over several windows, with a gesture prior."""
+    rng = np.random.default_rng(5)
+    walk = np.cumsum(rng.standard_normal((400, model.config.gesture_dim)), axis=0) * 0.1
+    bundle = replace(model, prior=GesturePrior.fit([walk - walk.mean(0)], model.config.gesture_dim, 34))
+    path = cut(data_dir, tmp_path, 110)  # windows 34 + 30 + 30 + a short last one
+    runs = {backend: generate(path, model=bundle, seed=11, backend=backend, device="cpu")
+            for backend in ("onnx", "torch")}
+    onnx_run, torch_run = runs["onnx"], runs["torch"]
+    assert onnx_run.meta["backend"] == "onnx" and torch_run.meta["backend"] == "torch"
+    assert onnx_run.meta["prior_start"] and onnx_run.n_frames == torch_run.n_frames == 110
+    # measured: 5e-5 on rotations of up to 20 (the random network drifts far from the rest pose)
+    assert np.abs(onnx_run.rotations - torch_run.rotations).max() <= 1e-3
+    assert np.abs(onnx_run.face - torch_run.face).max() <= 1e-3
+    other = generate(path, model=bundle, seed=12, backend="torch", device="cpu")
+    assert np.abs(other.rotations - torch_run.rotations).max() > 100 * 1e-3  # the seed does matter

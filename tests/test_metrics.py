@@ -8,12 +8,12 @@ import pytest
 
 from diffsheg_core.audio import load_audio
 from diffsheg_core.errors import DiffshegError
-from diffsheg_core.metrics import (
+from diffsheg_core.training.metrics import (
     audio_beats, beat_alignment, blink_stats, diversity, envelope_correlation, foppas_seams,
     frechet_distance, mean_jerk, motion_beats, pcm, phone_tier, phoneme_contrast, read_textgrid,
     reference_correlation, seam_smoothness, srgr,
 )
-from diffsheg_core.metrics.lipsync import ENVELOPE_RATE, speech_envelope_db
+from diffsheg_core.training.metrics.lipsync import ENVELOPE_RATE, speech_envelope_db
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 SPEECH = DATA / "audio" / "2_scott_0_3_3.wav"
@@ -185,15 +185,15 @@ REAL_NPZ = DATA / "beat2" / "2_scott_0_1_1.npz"
 
 @pytest.fixture(scope="module")
 def real_take():
-    from diffsheg_core.evaluate import load_reference
+    from diffsheg_core.training.evaluate import load_reference
 
     return load_reference(REAL_NPZ)
 
 
 @pytest.fixture(scope="module")
 def autoencoder(real_take, tmp_path_factory):
-    from diffsheg_core.autoencoder import AutoencoderConfig, MotionFeatures, train_autoencoders
-    from diffsheg_core.metrics import layout_array
+    from diffsheg_core.training.autoencoder import AutoencoderConfig, MotionFeatures, train_autoencoders
+    from diffsheg_core.training.metrics import layout_array
     from diffsheg_core.rigs import SMPLX
 
     motion = layout_array(real_take, SMPLX)
@@ -208,8 +208,8 @@ def autoencoder(real_take, tmp_path_factory):
 
 
 def test_frechet_distances_in_autoencoder_space_grow_with_jitter(real_take, autoencoder):
-    from diffsheg_core.autoencoder import MotionFeatures
-    from diffsheg_core.metrics import layout_array
+    from diffsheg_core.training.autoencoder import MotionFeatures
+    from diffsheg_core.training.metrics import layout_array
     from diffsheg_core.rigs import SMPLX
 
     feats = MotionFeatures.load(autoencoder)
@@ -224,7 +224,7 @@ def test_frechet_distances_in_autoencoder_space_grow_with_jitter(real_take, auto
 
 
 def test_evaluate_command_writes_a_report_on_the_real_take(real_take, autoencoder, tmp_path):
-    from diffsheg_core.evaluate import main
+    from diffsheg_core.training.evaluate import main
 
     generated = [tmp_path / "seed0.npz", tmp_path / "seed1.npz"]
     real_take.save_npz(generated[0])
@@ -259,7 +259,7 @@ def test_evaluate_command_writes_a_report_on_the_real_take(real_take, autoencode
 def test_evaluate_accepts_a_body_only_bvh_reference(tmp_path):
     """The real BEAT capture as BVH has no face: gesture metrics and PCM, no mouth metrics."""
     from diffsheg_core.bvh import bvh_to_motion, read_bvh
-    from diffsheg_core.evaluate import main
+    from diffsheg_core.training.evaluate import main
     from diffsheg_core.motion import Motion
     from diffsheg_core.rigs import ARKIT51
 

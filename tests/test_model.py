@@ -1,15 +1,24 @@
-"""The UniEG network reproduces the official DiffSHEG network (golden vectors)."""
+"""The UniEG network reproduces the official DiffSHEG network (golden vectors), on the
+training path (`UniEG.forward`) and on the sampling path (the two calls of a step on
+either backend, mixed by `guidance.step_eps`)."""
 
 import json
 
 import numpy as np
 import pytest
 import torch
+from safetensors.numpy import load_file as load_numpy
 from safetensors.torch import load_file
 
-from diffsheg_core.checkpoints import load_state_strict
+from conftest import random_bundle
+from diffsheg_core.checkpoints import ModelBundle
+from diffsheg_core.diffusion import Schedule
 from diffsheg_core.errors import CheckpointError
-from diffsheg_core.model import ModelConfig, UniEG
+from diffsheg_core.export import network_graphs
+from diffsheg_core.foppas import PRESETS
+from diffsheg_core.guidance import Guidance, step_eps
+from diffsheg_core.model import ModelConfig, UniEG, load_state_strict
+from diffsheg_core.runtime.backends import OnnxNetwork, TorchNetwork, open_network
 
 SMALL = dict(latent=64, layers=2, ff=128, heads=4)
 SHOW = dict(gesture_dim=129, expression_dim=103, style_dim=4, classifier_free=True, clip_len=88,
@@ -21,23 +30,69 @@ CASES = [
 ]
 
 
-def run_golden(model: UniEG, io: dict, guidance):
+def run_golden(model: UniEG, io: dict):
+    """The unguided training path."""
     with torch.no_grad():
         return model(
             torch.from_numpy(io["x_t"]), torch.from_numpy(io["timesteps"]), torch.from_numpy(io["mel"]),
             torch.from_numpy(io["hubert"]), torch.from_numpy(io["person_id"]),
             (torch.from_numpy(io["sqrt_recip_alphas_cumprod"]),
-             torch.from_numpy(io["sqrt_recipm1_alphas_cumprod"])),
-            guidance).numpy()
+             torch.from_numpy(io["sqrt_recipm1_alphas_cumprod"]))).numpy()
 
 
-@pytest.mark.parametrize("weights,io_file,extra,guidance", CASES)
-def test_golden_outputs(golden_dir, weights, io_file, extra, guidance):
+def golden_args(io: dict, rows: slice) -> tuple:
+    """step_eps's inputs after the network (x, timesteps, mel, speech, style, x0_coefs)."""
+    return (io["x_t"][rows], io["timesteps"][rows], io["mel"][rows], io["hubert"][rows],
+            io["person_id"][rows],
+            (io["sqrt_recip_alphas_cumprod"][rows], io["sqrt_recipm1_alphas_cumprod"][rows]))
+
+
+def sample_golden(network, cfg: ModelConfig, io: dict, guidance) -> np.ndarray:
+    """The sampling path, one window (batch row) per call as the sampler runs it."""
+    return np.concatenate([
+        step_eps(network, cfg.gesture_dim, *golden_args(io, slice(row, row + 1)), Guidance(guidance))
+        for row in range(len(io["x_t"]))])
+
+
+def golden_bundle(golden_dir, weights: str, extra: dict, graphs: bool = False) -> ModelBundle:
+    cfg = ModelConfig(**SMALL, **extra)
+    state = load_numpy(str(golden_dir / f"{weights}.safetensors"))
+    bundle = ModelBundle(config=cfg, weights=state, mean=np.zeros(cfg.dim, np.float32),
+                         std=np.ones(cfg.dim, np.float32), sampling=PRESETS["official-beat"],
+                         model_id=weights, trained=False, source=weights)
+    if graphs:
+        bundle.graphs = network_graphs(cfg, state, weights)
+        assert bundle.has_graphs
+    return bundle
+
+
+@pytest.mark.parametrize("weights,io_file,extra,guidance", [c for c in CASES if c[3] is None])
+def test_golden_outputs_on_the_training_path(golden_dir, weights, io_file, extra, guidance):
     model = UniEG(ModelConfig(**SMALL, **extra)).eval()
     load_state_strict(model, load_file(str(golden_dir / f"{weights}.safetensors")), weights)
     io = dict(np.load(golden_dir / io_file))
-    out = run_golden(model, io, guidance)
+    out = run_golden(model, io)
     assert out.shape == io["eps_out"].shape
+    assert np.abs(out - io["eps_out"]).max() < 1e-5
+
+
+@pytest.mark.parametrize("backend", ["torch", "onnx"])
+@pytest.mark.parametrize("weights,io_file,extra,guidance", CASES)
+def test_golden_outputs_on_the_sampling_path(golden_dir, weights, io_file, extra, guidance, backend):
+    """Both backends, the guidance (SHOW: classifier-free 1.25) mixed in numpy."""
+    bundle = golden_bundle(golden_dir, weights, extra, graphs=backend == "onnx")
+    network = OnnxNetwork(bundle, threads=2) if backend == "onnx" else TorchNetwork(bundle, "cpu", "fp32")
+    io = dict(np.load(golden_dir / io_file))
+    out = sample_golden(network, bundle.config, io, guidance)
+    assert out.shape == io["eps_out"].shape and out.dtype == np.float32
+    assert np.abs(out - io["eps_out"]).max() < 1e-5  # measured: 1e-7 (BEAT), 2e-7 (SHOW) on both
+
+
+def test_guided_step_eps_keeps_the_rows_of_a_batch_apart(golden_dir):
+    bundle = golden_bundle(golden_dir, "show_small", SHOW)
+    io = dict(np.load(golden_dir / "show_small_io.npz"))
+    out = step_eps(TorchNetwork(bundle, "cpu", "fp32"), bundle.config.gesture_dim,
+                   *golden_args(io, slice(None)), Guidance(1.25))
     assert np.abs(out - io["eps_out"]).max() < 1e-5
 
 
@@ -53,8 +108,9 @@ def test_official_beat_parameter_count():
     assert sum(p.numel() for p in model.parameters()) == 155_416_560
 
 
-def test_corrupted_state_dict_names_every_problem(golden_dir):
-    state = load_file(str(golden_dir / "beat_small.safetensors"))
+@pytest.mark.parametrize("kind", ["torch", "numpy"])
+def test_corrupted_state_dict_names_every_problem(golden_dir, kind):
+    state = (load_file if kind == "torch" else load_numpy)(str(golden_dir / "beat_small.safetensors"))
     state.pop("encoder_exp.out.bias")
     state["encoder_ges.renamed_weight"] = state.pop("encoder_ges.out.weight")
     state["encoder_aud.ffn.linear1.weight"] = state["encoder_aud.ffn.linear1.weight"][:, :7]
@@ -69,7 +125,7 @@ def test_corrupted_state_dict_names_every_problem(golden_dir):
 
 def test_gesture_branch_sees_detached_expression_x0():
     torch.manual_seed(0)
-    model = UniEG(ModelConfig(**SMALL, use_hubert=False))
+    model = UniEG(ModelConfig(**SMALL, speech_encoder=None))
     for p in model.parameters():  # wake the zero-initialised layers up
         torch.nn.init.normal_(p, std=0.05)
     x = torch.randn(1, 8, model.cfg.dim)
@@ -96,28 +152,87 @@ def test_skip_guidance_steers_gestures_away_from_the_branch_without_self_attenti
     """eps_gesture + s (eps_gesture - eps_gesture without its self-attention blocks); the
     expression branch keeps its classifier-free guidance, the gesture branch drops it."""
     torch.manual_seed(0)
-    model = UniEG(ModelConfig(**SMALL, use_hubert=False, classifier_free=True)).eval()
+    model = UniEG(ModelConfig(**SMALL, speech_encoder=None, classifier_free=True)).eval()
     for p in model.parameters():  # wake the zero-initialised layers up
         torch.nn.init.normal_(p, std=0.05)
-    x = torch.randn(2, 8, model.cfg.dim)
-    args = (torch.tensor([400, 700]), torch.rand(2, 8, 128), None, torch.eye(30)[:2],
-            (torch.full((2, 1, 1), 2.0), torch.full((2, 1, 1), 1.5)))
+    cfg = model.cfg
+    bundle = ModelBundle(config=cfg, weights={k: v.numpy() for k, v in model.state_dict().items()},
+                         mean=np.zeros(cfg.dim, np.float32), std=np.ones(cfg.dim, np.float32),
+                         sampling=PRESETS["official-beat"], source="skip-test")
+    network = TorchNetwork(bundle, "cpu", "fp32")
+    model = network.model
+    gen = np.random.default_rng(0)
+    x = gen.standard_normal((2, 8, cfg.dim), dtype=np.float32)
+    mel = gen.random((2, 8, 128), dtype=np.float32)
+    timesteps, style = np.array([400, 700]), np.eye(30, dtype=np.float32)[:2]
+    coefs = (np.full((2, 1, 1), 2.0, np.float32), np.full((2, 1, 1), 1.5, np.float32))
     seen = []
     model.encoder_ges.register_forward_pre_hook(lambda mod, inputs: seen.append(inputs))
-    g = model.cfg.gesture_dim
-    with torch.no_grad():
-        guided = model(x, *args, guidance=2.0)
-        skipped = model(x, *args, guidance=2.0, skip_guidance=0.5)
-        branch_inputs = seen[-1][:6]  # gesture, timesteps, speech, hubert, expression x0, style
-        cond = model.encoder_ges(*branch_inputs, None)
-        blocks = model.encoder_ges.temporal_decoder_blocks
-        attention = [layer.sa_block for layer in blocks]
-        for layer in blocks:
-            layer.sa_block = _NoAttention()
-        without = model.encoder_ges(*branch_inputs, None)
-        for layer, sa in zip(blocks, attention):
-            layer.sa_block = sa
-    torch.testing.assert_close(skipped[..., g:], guided[..., g:])
-    torch.testing.assert_close(skipped[..., :g], cond + 0.5 * (cond - without))
-    assert seen[-1][6] is None  # no classifier-free pass in the gesture branch
-    assert not torch.allclose(cond, without)
+    g = cfg.gesture_dim
+    for row in range(2):  # one window per call, as the sampler runs it
+        r = slice(row, row + 1)
+        args = (x[r], timesteps[r], mel[r], None, style[r], (coefs[0][r], coefs[1][r]))
+        guided = step_eps(network, g, *args, Guidance(2.0))
+        skipped = step_eps(network, g, *args, Guidance(2.0, skip=0.5))
+        # the skip pass: [conditioned | without self-attention], no null-conditioned row
+        branch_inputs = seen[-1]  # gesture, timesteps, audio, speech, expression x0, style, null, attend
+        assert branch_inputs[6] is None  # no classifier-free pass in the gesture branch
+        assert branch_inputs[7].tolist() == [True, False]
+        assert all(torch.equal(v[0], v[1]) for v in branch_inputs[:6] if v is not None)
+        conditioned = [v if v is None else v[:1] for v in branch_inputs[:6]]
+        with torch.no_grad():
+            cond = model.encoder_ges(*conditioned, None)
+            blocks = model.encoder_ges.temporal_decoder_blocks
+            attention = [layer.sa_block for layer in blocks]
+            for layer in blocks:
+                layer.sa_block = _NoAttention()
+            without = model.encoder_ges(*conditioned, None)
+            for layer, sa in zip(blocks, attention):
+                layer.sa_block = sa
+        cond, without = cond.numpy(), without.numpy()
+        torch.testing.assert_close(torch.from_numpy(skipped[..., g:]), torch.from_numpy(guided[..., g:]))
+        torch.testing.assert_close(torch.from_numpy(skipped[..., :g]),
+                                   torch.from_numpy(cond + 0.5 * (cond - without)))
+        assert not np.allclose(cond, without)
+        # and the expression branch of both is classifier-free guided: u + 2 (c - u)
+        exp_null, _ = network.expression(x[r][..., g:], timesteps[r], mel[r], None, style[r], np.array([True]))
+        exp_cond, _ = network.expression(x[r][..., g:], timesteps[r], mel[r], None, style[r], None)
+        torch.testing.assert_close(torch.from_numpy(guided[..., g:]),
+                                   torch.from_numpy(exp_null + 2.0 * (exp_cond - exp_null)))
+        assert not np.allclose(exp_null, exp_cond)
+
+
+GUIDANCE_MODES = {"none": Guidance(), "cfg": Guidance(2.0), "skip": Guidance(skip=0.5),
+                  "cfg+skip": Guidance(2.0, skip=0.5)}
+
+
+@pytest.fixture(scope="module")
+def guided_bundle():
+    """A fresh random model with a null condition and a second speech input (HuBERT layout)."""
+    return random_bundle(classifier_free=True, speech_encoder="hubert", speech_dim=32)
+
+
+@pytest.mark.parametrize("length", [34, 20])
+@pytest.mark.parametrize("mode", list(GUIDANCE_MODES))
+def test_onnx_and_torch_backends_agree_on_every_guidance_mode(guided_bundle, mode, length):
+    bundle, guidance = guided_bundle, GUIDANCE_MODES[mode]
+    cfg = bundle.config
+    onnx_net = open_network(bundle, backend="onnx", device="cpu", threads=2)
+    torch_net = open_network(bundle, backend="torch", device="cpu", threads=2)
+    assert (onnx_net.name, torch_net.name) == ("onnx", "torch")
+    sched = Schedule.linear().respaced(25)
+    gen = np.random.default_rng(length)
+    mel = gen.random((1, length, cfg.mel_dim), dtype=np.float32)
+    speech = gen.standard_normal((1, length, cfg.speech_dim), dtype=np.float32)
+    style = np.eye(cfg.style_dim, dtype=np.float32)[3:4]
+    for index in (24, 10, 0):
+        x = gen.standard_normal((1, length, cfg.dim), dtype=np.float32)
+        idx = np.array([index])
+        args = (cfg.gesture_dim, x, sched.model_timesteps(idx), mel, speech, style, sched.x0_coefs(idx, x),
+                guidance)
+        a, b = step_eps(onnx_net, *args), step_eps(torch_net, *args)
+        assert a.shape == b.shape == (1, length, cfg.dim) and a.dtype == b.dtype == np.float32
+        assert np.isfinite(a).all()
+        assert np.abs(a - b).max() <= 1e-4, (mode, length, index, float(np.abs(a - b).max()))  # measured 2e-6
+        if mode != "none":  # the guided passes do change the prediction (0.1 - 0.8 here)
+            assert np.abs(b - step_eps(torch_net, *args[:-1], Guidance())).max() > 0.05

@@ -3,22 +3,29 @@ on real synthesised speech with exact phone timings, and storage inside model fi
 
 from __future__ import annotations
 
+import json
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
+from conftest import random_bundle
 
 from diffsheg_core.audio import SAMPLE_SPEECH, Audio, load_audio, n_motion_frames
 from diffsheg_core.checkpoints import ModelBundle, load_model, save_checkpoint
-from diffsheg_core.corpus.build import BuildConfig, build
-from diffsheg_core.corpus.phones import Phone
 from diffsheg_core.errors import CheckpointError, DiffshegError
+from diffsheg_core.export import with_graphs
 from diffsheg_core.foppas import PRESETS
-from diffsheg_core.model import ModelConfig, UniEG
-from diffsheg_core.phonetic import (
-    PHONES, PhoneticConfig, PhoneticEncoder, corpus_utterances, evaluate_phonetic, frame_labels,
-    labelled_mels, load_phonetic, log_mel, main, save_phonetic,
-)
+from diffsheg_core.model import PhoneticEncoder
+from diffsheg_core.phonetic import PHONES, PhoneticConfig, log_mel, stack_posteriors
 from diffsheg_core.pipeline import generate, speech_features
+from diffsheg_core.runtime.backends import open_network
+from diffsheg_core.training.corpus.build import BuildConfig, build
+from diffsheg_core.training.corpus.phones import Phone
+from diffsheg_core.training.phonetic import (
+    corpus_utterances, evaluate_phonetic, frame_labels, labelled_mels, load_phonetic, main, save_phonetic,
+    state_arrays, torch_posteriors,
+)
 
 SENTENCES = (
     "Peter and Bob bought a map of the big park.",
@@ -50,7 +57,8 @@ def test_utterance_normalisation_takes_the_recording_level_out(data_dir):
     assert np.abs(shift[voiced] - 1.0).max() < 0.01
     assert np.abs(a - b)[voiced].mean() < 0.3
     # encoders saved before the option existed saw raw levels
-    assert PhoneticConfig.from_dict({"channels": 16}).normalise == "none"
+    old = json.dumps({"channels": 16, "phones": list(PHONES)})
+    assert PhoneticConfig.from_metadata(old, "old encoder").normalise == "none"
     with pytest.raises(DiffshegError, match="normalise must be one of utterance, none"):
         PhoneticConfig(normalise="global")
 
@@ -60,8 +68,8 @@ def test_features_stack_four_recogniser_frames_per_motion_frame():
     encoder = PhoneticEncoder(PhoneticConfig(channels=16, dilations=(1,))).eval()
     audio = load_audio(SAMPLE_SPEECH)
     n = n_motion_frames(audio)
-    post = encoder.posteriors(audio)
-    feats = encoder.features(audio, n)
+    post = torch_posteriors(encoder)(log_mel(audio, encoder.cfg))
+    feats = stack_posteriors(post, n, encoder.cfg.subframes)
     assert post.shape[1] == len(PHONES) and abs(len(post) - 4 * n) <= 2
     assert feats.shape == (n, 4 * len(PHONES)) and feats.dtype == np.float32
     np.testing.assert_allclose(feats.reshape(n, 4, -1).sum(-1), 1.0, atol=1e-5)
@@ -91,30 +99,35 @@ def test_trained_encoder_recognises_bilabials(tiny_corpus, tmp_path, capsys):
     assert scores["p_bilabial_at_bilabials"] > 4 * scores["p_bilabial_at_other_phones"]
 
 
-def _phonetic_bundle() -> ModelBundle:
+def _phonetic_bundle() -> tuple[ModelBundle, PhoneticEncoder]:
     torch.manual_seed(0)
     encoder = PhoneticEncoder(PhoneticConfig(channels=16, dilations=(1,))).eval()
-    cfg = ModelConfig(latent=32, layers=1, ff=64, heads=4, style_dim=1, use_hubert=True,
-                      speech_encoder="phonetic", hubert_dim=encoder.cfg.dim, hubert_latent=16)
-    d = cfg.dim
-    return ModelBundle(model=UniEG(cfg).eval(), mean=np.zeros(d, np.float32), std=np.ones(d, np.float32),
-                       sampling=PRESETS["no-resample"], model_id="phonetic-test", phonetic=encoder)
+    bundle = random_bundle(graphs=False, latent=32, layers=1, ff=64, heads=4, style_dim=1,
+                           speech_encoder="phonetic", speech_dim=encoder.cfg.dim, speech_latent=16)
+    bundle = replace(bundle, sampling=PRESETS["no-resample"], model_id="phonetic-test",
+                     phonetic=encoder.cfg, phonetic_weights=state_arrays(encoder))
+    return with_graphs(bundle), encoder
 
 
 def test_model_files_carry_their_phonetic_encoder(tmp_path):
-    bundle = _phonetic_bundle()
+    bundle, encoder = _phonetic_bundle()
+    assert set(bundle.graphs) == {"expression", "gesture", "phonetic"}
     path = save_checkpoint(bundle, tmp_path / "m.safetensors")
     loaded = load_model(path)
     assert loaded.phonetic is not None and loaded.config.speech_encoder == "phonetic"
     audio = load_audio(SAMPLE_SPEECH)
-    torch.testing.assert_close(speech_features(loaded, audio), speech_features(bundle, audio))
-    assert speech_features(loaded, audio).shape[1] == 128 + 4 * len(PHONES)
+    features = {backend: speech_features(loaded, open_network(loaded, backend), audio)
+                for backend in ("onnx", "torch")}
+    reference = speech_features(bundle, open_network(bundle, "torch"), audio)
+    np.testing.assert_allclose(features["torch"], reference)
+    np.testing.assert_allclose(features["onnx"], reference, atol=1e-5)
+    assert reference.shape[1] == 128 + 4 * len(PHONES)
     assert generate(audio, model=loaded, steps=3, device="cpu").n_frames == n_motion_frames(audio)
 
-    save_checkpoint(ModelBundle(**{**bundle.__dict__, "phonetic": None}), tmp_path / "bare.safetensors")
+    save_checkpoint(replace(bundle, phonetic=None, phonetic_weights={}), tmp_path / "bare.safetensors")
     with pytest.raises(CheckpointError, match="holds no phonetic encoder"):
         load_model(tmp_path / "bare.safetensors")
-    save_phonetic(bundle.phonetic, tmp_path / "p.safetensors", {})
+    save_phonetic(encoder, tmp_path / "p.safetensors", {})
     with pytest.raises(CheckpointError, match="not a phonetic encoder"):
         load_phonetic(path)
     with pytest.raises(CheckpointError, match="train-phonetic"):

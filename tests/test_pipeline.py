@@ -8,14 +8,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import soundfile as sf
-import torch
+from conftest import random_bundle
 
 from diffsheg_core import AudioError, Cancelled, CheckpointError, DiffshegError, Motion, generate
-from diffsheg_core.checkpoints import ModelBundle, load_model, save_checkpoint, untrained_bundle
-from diffsheg_core.data.beat import read_gesture
+from diffsheg_core.checkpoints import load_model, save_checkpoint
 from diffsheg_core.foppas import PRESETS
-from diffsheg_core.model import ModelConfig, UniEG
 from diffsheg_core.prior import GesturePrior
+from diffsheg_core.training.data.beat import read_gesture
 from diffsheg_core.rigs import ARKIT51, BEAT_JOINTS, SMPLX_EXPRESSION
 
 
@@ -30,7 +29,7 @@ def speech(data_dir, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def model():
-    return untrained_bundle()
+    return random_bundle()
 
 
 def test_motion_contract(speech, model):
@@ -40,7 +39,8 @@ def test_motion_contract(speech, model):
     assert motion.joint_names == list(BEAT_JOINTS) and motion.face_names == list(ARKIT51)
     assert motion.rotations.shape == (60, 47, 3) and motion.face.shape == (60, 51)
     assert np.isfinite(motion.rotations).all() and (0 <= motion.face).all() and (motion.face <= 1).all()
-    assert motion.meta["trained"] is False and motion.meta["model_id"] == "untrained-beat-small"
+    assert motion.meta["trained"] is False and motion.meta["model_id"] == "random-small"
+    assert motion.meta["backend"] == "onnx"
     assert motion.meta["seed"] == 1 and motion.meta["audio_file"].endswith("four_seconds.wav")
 
 
@@ -86,16 +86,34 @@ def test_cancel_between_steps(speech, model):
     (dict(style=30), "style"), (dict(style=-1), "style"), (dict(guidance=2.0), "guidance"),
     (dict(overlap=34), "overlap"), (dict(steps=0), "steps"), (dict(precision="bf16"), "precision"),
     (dict(device="tpu"), "device"), (dict(skip_guidance=1.5), "skip guidance scale must be between 0 and 1"),
+    (dict(backend="tensorrt"), "backend"), (dict(backend="onnx", device="cuda"), "CPU"),
+    (dict(seed=-1), "seed"), (dict(threads=0), "threads"),
 ])
 def test_bad_settings_are_refused(speech, model, kwargs, match):
     with pytest.raises(DiffshegError, match=match):
         generate(speech, **{"model": model, "device": "cpu", **kwargs})
 
 
-@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on machines without CUDA")
 def test_cuda_request_without_gpu_explains(speech, model):
+    torch = pytest.importorskip("torch")
+    if torch.cuda.is_available():
+        pytest.skip("checks the message on machines without CUDA")
     with pytest.raises(DiffshegError, match="no CUDA GPU"):
         generate(speech, model=model, device="cuda")
+
+
+def test_a_model_without_graphs_runs_on_torch_and_onnx_is_refused(speech):
+    bundle = random_bundle(graphs=False)
+    motion = generate(speech, model=bundle, steps=2)
+    assert motion.meta["backend"] == "torch"
+    with pytest.raises(DiffshegError, match="carries no ONNX graphs"):
+        generate(speech, model=bundle, steps=2, backend="onnx")
+
+
+def test_huge_seeds_are_accepted_and_recorded(speech, model):
+    a = generate(speech, model=model, steps=2, seed=2**100)
+    b = generate(speech, model=model, steps=2, seed=2**100)
+    assert a.meta["seed"] == 2**100 and np.array_equal(a.rotations, b.rotations)
 
 
 def test_bad_audio_is_refused(tmp_path, model):
@@ -108,13 +126,13 @@ def test_bad_audio_is_refused(tmp_path, model):
             generate(path, model=model, device="cpu")
 
 
+SHOW = dict(gesture_dim=129, expression_dim=103, style_dim=4, latent=32, layers=1, ff=64, heads=4,
+            clip_len=88, layout="smplx")
+
+
 def test_smplx_layout_with_classifier_free_guidance(speech):
-    cfg = ModelConfig(gesture_dim=129, expression_dim=103, style_dim=4, classifier_free=True,
-                      use_hubert=False, latent=32, layers=1, ff=64, heads=4, clip_len=88, layout="smplx")
-    torch.manual_seed(0)
-    bundle = ModelBundle(model=UniEG(cfg).eval(), mean=np.zeros(cfg.dim, np.float32),
-                         std=np.ones(cfg.dim, np.float32), sampling=PRESETS["official-show"],
-                         guidance=1.25, model_id="tiny-show", trained=False)
+    bundle = replace(random_bundle(classifier_free=True, **SHOW), sampling=PRESETS["official-show"],
+                     guidance=1.25, std=np.ones(232, np.float32))
     motion = generate(speech, model=bundle, steps=3, device="cpu")
     assert motion.rig == "smplx" and motion.joint_names[-1] == "jaw" and len(motion.joint_names) == 44
     assert motion.face_names == list(SMPLX_EXPRESSION) and motion.meta["guidance"] == 1.25
@@ -143,10 +161,7 @@ def test_smplx_motion_in_talkshow_layout(speech, tmp_path):
     from diffsheg_core.motion import write_talkshow_npz
     from diffsheg_core.rigs import SMPLX_GESTURE_JOINTS
 
-    cfg = ModelConfig(gesture_dim=129, expression_dim=103, style_dim=4, use_hubert=False, latent=32,
-                      layers=1, ff=64, heads=4, clip_len=88, layout="smplx")
-    bundle = ModelBundle(model=UniEG(cfg).eval(), mean=np.zeros(cfg.dim, np.float32),
-                         std=np.ones(cfg.dim, np.float32), sampling=PRESETS["official-show"])
+    bundle = replace(random_bundle(**SHOW), sampling=PRESETS["official-show"], std=np.ones(232, np.float32))
     motion = generate(speech, model=bundle, steps=2, device="cpu")
     with np.load(write_talkshow_npz(motion, tmp_path / "show.npz")) as z:
         pose, expression = z["pose"], z["expression"]
@@ -158,7 +173,7 @@ def test_smplx_motion_in_talkshow_layout(speech, tmp_path):
     assert np.array_equal(pose[:, 75:78], motion.rotations[:, SMPLX_GESTURE_JOINTS.index("left_index1")])
     assert np.array_equal(expression, motion.face)
     assert not pose[:, 9:12].any()  # pelvis / global orientation is not driven
-    beat_motion = generate(speech, model=untrained_bundle(), steps=2, device="cpu")
+    beat_motion = generate(speech, model=random_bundle(), steps=2, device="cpu")
     with pytest.raises(DiffshegError, match="SMPL-X"):
         write_talkshow_npz(beat_motion, tmp_path / "beat.npz")
 
@@ -178,43 +193,37 @@ def test_open_stream_matches_generate(speech, model, prior_model, with_prior):
     from diffsheg_core.pipeline import open_stream, speech_features, to_motion
 
     model = prior_model if with_prior else model
-    features = speech_features(model, load_audio(speech))
+    from diffsheg_core.runtime.backends import open_network
+
+    features = speech_features(model, open_network(model), load_audio(speech))
     stream = open_stream(model, seed=5, device="cpu")
     frames = [stream.push(features[i:i + 15]) for i in range(0, len(features), 15)] + [stream.finish()]
-    streamed = to_motion(model, torch.cat(frames).numpy(), meta={})
+    streamed = to_motion(model, np.concatenate(frames), meta={})
     offline = generate(speech, model=model, seed=5, device="cpu")
     assert streamed.n_frames == offline.n_frames == 60
     assert np.array_equal(streamed.rotations, offline.rotations)
 
 
 def test_guidance_one_is_the_conditioned_pass_alone(speech):
-    cfg = ModelConfig(classifier_free=True, use_hubert=False, latent=32, layers=1, ff=64, heads=4,
-                      style_dim=1, mel_dim=128)
-    torch.manual_seed(0)
-    bundle = ModelBundle(model=UniEG(cfg).eval(), mean=np.zeros(cfg.dim, np.float32),
-                         std=np.ones(cfg.dim, np.float32), sampling=PRESETS["no-resample"],
-                         guidance=1.0, model_id="tiny-guided", trained=False)
-    x = torch.randn(1, cfg.clip_len, cfg.dim)
-    mel = torch.rand(1, cfg.clip_len, cfg.mel_dim)
-    coefs = (torch.full((1, 1, 1), 2.0), torch.full((1, 1, 1), 1.5))
-    step = torch.tensor([500])
-    with torch.no_grad():
-        guided = bundle.model(x, step, mel, None, torch.ones(1, 1), coefs, 1.0)
-        alone = bundle.model(x, step, mel, None, torch.ones(1, 1), coefs, None)
-    torch.testing.assert_close(guided, alone, atol=1e-5, rtol=1e-5)
+    from diffsheg_core.guidance import Guidance, step_eps
+    from diffsheg_core.runtime.backends import open_network
+
+    bundle = replace(random_bundle(classifier_free=True, style_dim=1), sampling=PRESETS["no-resample"],
+                     guidance=1.0, std=np.ones(192, np.float32))
+    cfg, net, rng = bundle.config, open_network(bundle), np.random.default_rng(0)
+    x = rng.standard_normal((1, cfg.clip_len, cfg.dim), dtype=np.float32)
+    mel = rng.random((1, cfg.clip_len, cfg.mel_dim), dtype=np.float32)
+    coefs = (np.full((1, 1, 1), 2.0, np.float32), np.full((1, 1, 1), 1.5, np.float32))
+    args = (net, cfg.gesture_dim, x, np.array([500]), mel, None, np.ones((1, 1), np.float32), coefs)
+    np.testing.assert_allclose(step_eps(*args, Guidance(1.0)), step_eps(*args, Guidance()), atol=1e-5)
+    assert not np.allclose(step_eps(*args, Guidance(2.0)), step_eps(*args, Guidance()), atol=1e-3)
     motion = generate(speech, model=bundle, steps=3, device="cpu")
     assert motion.meta["guidance"] == 1.0 and np.isfinite(motion.face).all()
 
 
 def test_skip_guidance_defaults_to_the_models_and_zero_turns_it_off(speech):
-    cfg = ModelConfig(use_hubert=False, latent=32, layers=1, ff=64, heads=4, style_dim=1, mel_dim=128)
-    torch.manual_seed(0)
-    model = UniEG(cfg).eval()
-    for p in model.parameters():  # wake the zero-initialised layers up: attention must matter
-        torch.nn.init.normal_(p, std=0.05)
-    bundle = ModelBundle(model=model, mean=np.zeros(cfg.dim, np.float32), std=np.ones(cfg.dim, np.float32),
-                         sampling=PRESETS["no-resample"], skip_guidance=0.3, model_id="tiny-skip",
-                         trained=False)
+    bundle = replace(random_bundle(style_dim=1), sampling=PRESETS["no-resample"], skip_guidance=0.3,
+                     std=np.ones(192, np.float32))
     default = generate(speech, model=bundle, steps=3, device="cpu")
     assert default.meta["skip_guidance"] == 0.3
     same = generate(speech, model=bundle, steps=3, device="cpu", skip_guidance=0.3)
@@ -239,7 +248,7 @@ def test_later_windows_start_from_the_models_gesture_prior(speech, prior_model, 
 
     path = save_checkpoint(bundle, tmp_path / "with_prior.safetensors")
     loaded = load_model(path)
-    assert torch.equal(loaded.prior.autocov, bundle.prior.autocov)
+    assert np.array_equal(loaded.prior.autocov, bundle.prior.autocov)
     again = generate(speech, model=loaded, steps=3, device="cpu")
     assert np.array_equal(again.rotations, with_prior.rotations)
     out = tmp_path / "off.npz"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from diffsheg_core.errors import DiffshegError
-from diffsheg_core.metrics import (
+from diffsheg_core.training.metrics import (
     SemanticSpan, find_semantic, pcm, read_semantic, semantic_weights, srgr,
 )
 
@@ -127,7 +127,7 @@ def _as_sample(take, rotations: np.ndarray):
 def test_evaluate_reports_srgr_from_the_annotation_beside_a_beat_take(take, tmp_path):
     """The real BEAT take as reference in the training layout (bvh_rot/ + sem/); the sample
     is the capture itself, wrong on every joint outside the annotated gestures."""
-    from diffsheg_core.evaluate import main
+    from diffsheg_core.training.evaluate import main
 
     (tmp_path / "bvh_rot").mkdir()
     (tmp_path / "sem").mkdir()
@@ -157,7 +157,7 @@ def test_evaluate_reports_srgr_from_the_annotation_beside_a_beat_take(take, tmp_
 
 
 def test_evaluate_without_srgr_cases(take, tmp_path):
-    from diffsheg_core.evaluate import EvalInputs, comparison_metrics, main
+    from diffsheg_core.training.evaluate import EvalInputs, comparison_metrics, main
     from diffsheg_core.rigs import get_layout
 
     layout = get_layout("beat")

@@ -1,0 +1,103 @@
+"""One sampling step's noise prediction: the passes the network runs and how they are mixed.
+
+A step is two network calls (see `runtime.backends`): the expression branch, then the
+gesture branch, which sees the expression x0 made from the *mixed* expression noise.
+Each call runs a small batch of passes over the same window:
+
+- classifier-free guidance (scale w, models trained with a null speech condition): a
+  null-conditioned and a conditioned pass, mixed as u + w (c - u);
+- gesture skip guidance (scale s, after Spatiotemporal Skip Guidance, Hyung et al. 2024):
+  the gesture branch with and without its self-attention blocks, mixed as c + s (c - k).
+  The network without its temporal context predicts small, blurred gestures; steering away
+  from it restores the amplitude small networks lose. It replaces the gesture branch's
+  classifier-free pass, so a guided step costs two passes per branch either way.
+
+All numpy: the mixing is the same whichever backend runs the passes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Protocol
+
+import numpy as np
+
+
+class Network(Protocol):
+    """The two calls of a UniEG network on numpy arrays (batch B, window length L).
+    null: (B,) bool, rows that see the learned null condition; attend: (B,) bool, false for
+    rows without self-attention; None: no row nulled / every row attends."""
+
+    def expression(self, expression: np.ndarray, timesteps: np.ndarray, mel: np.ndarray,
+                   speech: Optional[np.ndarray], style: np.ndarray, null: Optional[np.ndarray]
+                   ) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def gesture(self, gesture: np.ndarray, timesteps: np.ndarray, audio: np.ndarray,
+                speech: Optional[np.ndarray], expression_x0: np.ndarray, style: np.ndarray,
+                null: Optional[np.ndarray], attend: Optional[np.ndarray]) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class Guidance:
+    """The scales one generation samples with (None: that guidance is off)."""
+
+    scale: Optional[float] = None   # classifier-free, both branches (the gesture branch only without skip)
+    skip: Optional[float] = None    # gesture skip guidance
+
+    def __post_init__(self):
+        # uncond + 1 * (cond - uncond) is the conditioned pass alone: skip the null pass
+        if self.scale == 1.0:
+            object.__setattr__(self, "scale", None)
+        if self.skip == 0.0:
+            object.__setattr__(self, "skip", None)
+
+
+def _rows(values: Optional[np.ndarray], n: int) -> Optional[np.ndarray]:
+    """The batch `n` times over, [a, b, a, b] (the layout the masks and the mixing assume)."""
+    return None if values is None else np.concatenate([values] * n)
+
+
+def classifier_free(out: np.ndarray, scale: float) -> np.ndarray:
+    """u + w (c - u) over a doubled batch [null-conditioned u | conditioned c]."""
+    u, c = np.split(out, 2)
+    return u + np.float32(scale) * (c - u)
+
+
+def skip_guided(out: np.ndarray, scale: float) -> np.ndarray:
+    """c + s (c - k) over a doubled batch [conditioned c | without self-attention k]."""
+    c, k = np.split(out, 2)
+    return c + np.float32(scale) * (c - k)
+
+
+def step_eps(net: Network, gesture_dim: int, x: np.ndarray, timesteps: np.ndarray, mel: np.ndarray,
+             speech: Optional[np.ndarray], style: np.ndarray, x0_coefs: tuple[np.ndarray, np.ndarray],
+             guidance: Guidance = Guidance()) -> np.ndarray:
+    """Guided noise prediction (B, L, D) for x_t (B, L, D), gesture channels first.
+
+    timesteps: (B,) in the 1000-step indexing; x0_coefs: sqrt(1/abar_t), sqrt(1/abar_t - 1)
+    as (B, 1, 1); style: (B, S) one-hot.
+    """
+    b = x.shape[0]
+    gesture, expression = x[..., :gesture_dim], x[..., gesture_dim:]
+    cfg = guidance.scale is not None
+    n = 2 if cfg else 1
+    null = np.repeat([True, False], b) if cfg else None
+    eps_exp, audio = net.expression(_rows(expression, n), _rows(timesteps, n), _rows(mel, n),
+                                    _rows(speech, n), _rows(style, n), null)
+    if cfg:
+        eps_exp, audio = classifier_free(eps_exp, guidance.scale), audio[b:]
+    a, c = x0_coefs
+    expression_x0 = (a * expression - c * eps_exp).astype(np.float32)
+
+    if guidance.skip is not None:   # [conditioned | without self-attention]
+        null, attend, mix = None, np.repeat([True, False], b), skip_guided
+    elif cfg:                       # [null | conditioned]
+        null, attend, mix = np.repeat([True, False], b), None, classifier_free
+    else:
+        null, attend, mix = None, None, None
+    n = 1 if mix is None else 2
+    eps_ges = net.gesture(_rows(gesture, n), _rows(timesteps, n), _rows(audio, n), _rows(speech, n),
+                          _rows(expression_x0, n), _rows(style, n), null, attend)
+    if mix is not None:
+        eps_ges = mix(eps_ges, guidance.skip if mix is skip_guided else guidance.scale)
+    return np.concatenate([eps_ges, eps_exp], axis=-1)

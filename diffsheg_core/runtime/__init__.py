@@ -1,0 +1,1 @@
+"""What runs a model: the onnxruntime and torch backends behind one interface (`backends`)."""

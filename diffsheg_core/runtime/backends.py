@@ -1,0 +1,200 @@
+"""The backends that run a model's networks, behind the two calls of `guidance.Network`
+(plus the phonetic encoder's posteriors): numpy in, numpy out.
+
+- onnx: onnxruntime on the CPU, from the ONNX graphs stored in the model file. Needs no
+  torch: this is what the Blender add-on runs.
+- torch: the UniEG module built from the file's weights, on the CPU or a CUDA GPU; the
+  backend of official DiffSHEG checkpoints (which carry no graphs) and of training.
+
+`backend="auto"` picks onnx where the model has its graphs and no GPU is asked for or
+found, torch otherwise. Both backends get the same inputs from the same numpy sampler,
+so a seed gives the same motion on either (within float32 rounding).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from typing import Optional
+
+import numpy as np
+
+from ..checkpoints import TORCH_HOW_TO, ModelBundle
+from ..errors import DiffshegError
+
+BACKENDS = ("auto", "onnx", "torch")
+DEVICES = ("auto", "cpu", "cuda")
+PRECISIONS = ("fp32", "bf16", "fp16")
+THREADS_ENV = "DIFFSHEG_THREADS"
+
+
+def default_threads() -> int:
+    """CPU threads per generation: $DIFFSHEG_THREADS, else 1.
+
+    The bundled model's products are small (68 x 192 rows by columns): one thread runs them
+    at the machine's matrix-multiply rate, a second adds more overhead than speed (onnx on 2
+    cores: 3.1 s for 60 s of speech with 1 thread, 3.4 s with 2), and a second thread that
+    must share a core with Blender's UI or another job collapses (torch: 5.4 s idle, 19.7 s
+    with one core busy; 1 thread: 6.5 / 6.8 s). See bench/bench_backends.py. onnxruntime's
+    threads are also told not to spin when more are asked for."""
+    value = os.environ.get(THREADS_ENV)
+    if value:
+        if not value.isdigit() or int(value) < 1:
+            raise DiffshegError(f"${THREADS_ENV} must be a whole number of threads >= 1, got {value!r}")
+        return int(value)
+    return 1
+
+
+class OnnxNetwork:
+    """A model's ONNX graphs on onnxruntime (CPU)."""
+
+    name = "onnx"
+
+    def __init__(self, bundle: ModelBundle, threads: int):
+        try:
+            import onnxruntime as ort
+        except ImportError:
+            raise DiffshegError("the onnx backend needs the onnxruntime package: `pip install onnxruntime` "
+                                "(the Blender add-on bundles it), or choose backend torch") from None
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = threads
+        options.inter_op_num_threads = 1
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        options.log_severity_level = 3
+        try:
+            self.sessions = {name: ort.InferenceSession(graph, options, providers=["CPUExecutionProvider"])
+                             for name, graph in bundle.graphs.items()}
+        except Exception as exc:  # onnxruntime raises its own types for damaged graphs
+            raise DiffshegError(f"{bundle.source}: its ONNX graphs do not load ({exc}); export the model "
+                                "again, or choose backend torch") from None
+        self.inputs = {name: {i.name for i in session.get_inputs()} for name, session in self.sessions.items()}
+        self.device = "cpu"
+
+    def _run(self, graph: str, feeds: dict) -> list[np.ndarray]:
+        """Run `graph` on the feeds it takes (the `null` input exists only in models with a
+        null condition); a row mask left as None means no row is nulled / every row attends."""
+        if "timesteps" in feeds:
+            rows = len(feeds["timesteps"])
+            defaults = {"null": np.zeros(rows, bool), "attend": np.ones(rows, bool)}
+            feeds = {k: defaults[k] if v is None and k in defaults else v for k, v in feeds.items()}
+        return self.sessions[graph].run(None, {k: v for k, v in feeds.items() if k in self.inputs[graph]})
+
+    def expression(self, expression, timesteps, mel, speech, style, null):
+        eps, audio = self._run("expression", {
+            "expression": expression, "timesteps": timesteps.astype(np.int64), "mel": mel,
+            "speech": speech, "style": style, "null": null})
+        return eps, audio
+
+    def gesture(self, gesture, timesteps, audio, speech, expression_x0, style, null, attend):
+        return self._run("gesture", {
+            "gesture": gesture, "timesteps": timesteps.astype(np.int64), "audio": audio, "speech": speech,
+            "expression_x0": expression_x0, "style": style, "null": null, "attend": attend})[0]
+
+    def phone_posteriors(self, mel: np.ndarray) -> np.ndarray:
+        return self._run("phonetic", {"mel": mel[None]})[0]
+
+
+class TorchNetwork:
+    """A model's networks as torch modules, on the CPU or a CUDA GPU."""
+
+    name = "torch"
+
+    def __init__(self, bundle: ModelBundle, device: str, precision: str):
+        import torch
+
+        from ..devices import resolve_device
+        from ..model import PhoneticEncoder, UniEG, load_state_strict
+
+        self.torch = torch
+        self.device = resolve_device(device)
+        self.autocast = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}[precision]
+        if self.autocast is not None and self.device.type != "cuda":
+            raise DiffshegError(f"precision '{precision}' is not available on {self.device.type}: "
+                                "use fp32 (or bf16/fp16 on a CUDA GPU)")
+        self.model = UniEG(bundle.config)
+        load_state_strict(self.model, bundle.weights, bundle.source)
+        self.model.to(self.device).eval()
+        self.phonetic = None
+        if bundle.phonetic is not None:
+            self.phonetic = PhoneticEncoder(bundle.phonetic)
+            load_state_strict(self.phonetic, bundle.phonetic_weights, f"{bundle.source} (phonetic encoder)")
+            self.phonetic.to(self.device).eval()
+
+    def _in(self, value: Optional[np.ndarray]):
+        return None if value is None else self.torch.from_numpy(np.ascontiguousarray(value)).to(self.device)
+
+    def _out(self, value) -> np.ndarray:
+        return value.float().cpu().numpy()
+
+    def _call(self, fn, *args):
+        torch = self.torch
+        with torch.inference_mode(), torch.autocast(self.device.type, dtype=self.autocast,
+                                                    enabled=self.autocast is not None):
+            return fn(*(self._in(a) for a in args))
+
+    def expression(self, expression, timesteps, mel, speech, style, null):
+        eps, audio = self._call(self.model.expression, expression, timesteps, mel, speech, style, null)
+        return self._out(eps), self._out(audio)
+
+    def gesture(self, gesture, timesteps, audio, speech, expression_x0, style, null, attend):
+        return self._out(self._call(self.model.gesture, gesture, timesteps, audio, speech, expression_x0,
+                                    style, null, attend))
+
+    def phone_posteriors(self, mel: np.ndarray) -> np.ndarray:
+        logits = self._call(self.phonetic, mel[None])
+        return self._out(logits[0].float().softmax(0).T)
+
+
+def _torch_sees_cuda() -> bool:
+    if importlib.util.find_spec("torch") is None:
+        return False
+    import torch
+
+    return torch.cuda.is_available()
+
+
+def choose_backend(bundle: ModelBundle, backend: str = "auto", device: str = "auto") -> str:
+    """The backend that runs `bundle`: onnx or torch. Bad or impossible choices raise
+    DiffshegError saying what to change."""
+    if backend not in BACKENDS:
+        raise DiffshegError(f"unknown backend '{backend}': use {', '.join(BACKENDS)}")
+    if str(device) not in DEVICES and not str(device).startswith("cuda:"):
+        raise DiffshegError(f"unknown device '{device}': use {', '.join(DEVICES)}")
+    wants_gpu = str(device).startswith("cuda")
+    if backend == "auto":
+        gpu = wants_gpu or (device == "auto" and _torch_sees_cuda())
+        backend = "onnx" if bundle.has_graphs and not gpu else "torch"
+    if backend == "onnx":
+        if not bundle.has_graphs:
+            raise DiffshegError(f"{bundle.source} carries no ONNX graphs (official checkpoints and files "
+                                "exported before 0.2 do not): choose backend torch, or export it again")
+        if wants_gpu:
+            raise DiffshegError("the onnx backend runs on the CPU: choose backend torch for a CUDA GPU")
+    elif importlib.util.find_spec("torch") is None:
+        raise DiffshegError(f"{bundle.source} needs the torch backend "
+                            f"({'a CUDA GPU was asked for' if wants_gpu else 'it carries no ONNX graphs'}), "
+                            f"and torch is not installed: {TORCH_HOW_TO}")
+    return backend
+
+
+def open_network(bundle: ModelBundle, backend: str = "auto", device: str = "auto",
+                 precision: str = "fp32", threads: Optional[int] = None):
+    """The network that runs `bundle` (cached on it): an OnnxNetwork or a TorchNetwork."""
+    if precision not in PRECISIONS:
+        raise DiffshegError(f"unknown precision '{precision}': use {', '.join(PRECISIONS)}")
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+        raise DiffshegError(f"threads must be a whole number >= 1, got {threads!r}")
+    backend = choose_backend(bundle, backend, device)
+    threads = threads or default_threads()
+    key = (backend, str(device), precision, threads)
+    if key not in bundle.networks:
+        if backend == "onnx":
+            if precision != "fp32":
+                raise DiffshegError(f"precision '{precision}' needs the torch backend on a CUDA GPU")
+            bundle.networks[key] = OnnxNetwork(bundle, threads)
+        else:
+            import torch
+
+            torch.set_num_threads(threads)
+            bundle.networks[key] = TorchNetwork(bundle, device, precision)
+    return bundle.networks[key]

@@ -1,0 +1,269 @@
+"""The body teacher: gesture phrases cut from real motion capture and re-timed so that
+their strokes land on accented syllables, with calm stretches of the same capture between
+them, all joined by slerp cross-fades.
+
+The capture (BEAT take 2_scott_0_1_1, `beat` layout, 15 fps) is cut at minima of the arms'
+angular speed; a phrase's stroke is its speed peak. A timeline of clips maps every output
+frame to a (fractional) source frame; neighbouring clips cross-fade over a few frames, and
+since each clip reads real capture on both sides of its cut, a cross-fade blends two real
+motions, never a held pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.signal import find_peaks
+
+from ...errors import DiffshegError
+from ...rigs import BEAT_JOINTS
+from ...rotations import axis_angle_to_quaternion, quaternion_sequence_continuous, quaternion_to_axis_angle
+from .prosody import Accent
+
+DEFAULT_MOCAP = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "beat" / "2_scott_0_1_1.bvh"
+"""The real take beside the project checkout (../shared/data from the repository root)."""
+
+MOCAP_FPS = 15.0
+_ARM_JOINTS = tuple(f"{s}{j}" for s in ("Right", "Left") for j in ("Shoulder", "Arm", "ForeArm", "Hand"))
+_FADE = 3
+"""Half-length (frames) of the cross-fade between two clips."""
+_MIN_PHRASE, _MAX_PHRASE = 6, 45
+
+
+@dataclass(frozen=True)
+class Phrase:
+    """Source frames [start, end) of the capture; `stroke` is the speed peak inside."""
+
+    start: int
+    end: int
+    stroke: int
+    peak_speed: float
+
+
+@dataclass(frozen=True)
+class GestureStyle:
+    """One speaker's gesturing, drawn per utterance: `energy` scales the gestures'
+    amplitude about the capture's mean pose, `min_gap` (s) spaces strokes, `rate_jitter`
+    bounds the re-timing of phrases, `nod` is the head nod (degrees) on strong accents."""
+
+    energy: float = 1.0
+    min_gap: float = 0.9
+    rate_jitter: float = 0.15
+    nod: float = 4.0
+
+    @classmethod
+    def random(cls, rng: np.random.Generator) -> "GestureStyle":
+        return cls(energy=float(rng.uniform(0.8, 1.2)), min_gap=float(rng.uniform(0.7, 1.4)),
+                   rate_jitter=float(rng.uniform(0.08, 0.2)), nod=float(rng.uniform(2.0, 6.0)))
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Per-element spherical interpolation of (..., 4) unit quaternions; w broadcasts over
+    (...) and may leave [0, 1] (extrapolation)."""
+    dot = np.sum(q0 * q1, axis=-1, keepdims=True)
+    q1 = np.where(dot < 0, -q1, q1)
+    dot = np.clip(np.abs(dot), 0.0, 1.0)
+    theta = np.arccos(dot)
+    sin = np.sin(theta)
+    w = np.asarray(w)[..., None]
+    small = sin < 1e-6
+    a = np.where(small, 1.0 - w, np.sin((1.0 - w) * theta) / np.where(small, 1.0, sin))
+    b = np.where(small, w, np.sin(w * theta) / np.where(small, 1.0, sin))
+    q = a * q0 + b * q1
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def _angular_speed(quats: np.ndarray, joints: list[int]) -> np.ndarray:
+    """(T,) summed rotation angle per frame of `joints`, frame t to t + 1 (last repeated)."""
+    dot = np.abs(np.sum(quats[1:, joints] * quats[:-1, joints], axis=-1)).clip(0, 1)
+    speed = (2 * np.arccos(dot)).sum(axis=1)
+    return np.append(speed, speed[-1])
+
+
+class GestureLibrary:
+    """Phrases and calm (idle) stretches of one take, and sampling at fractional frames."""
+
+    def __init__(self, rotations: np.ndarray):
+        if rotations.ndim != 3 or rotations.shape[1:] != (len(BEAT_JOINTS), 3) or len(rotations) < 60:
+            raise DiffshegError(f"gesture capture must be (T >= 60, {len(BEAT_JOINTS)}, 3) axis-angle "
+                                f"in the beat layout, got {rotations.shape}")
+        self.quats = quaternion_sequence_continuous(axis_angle_to_quaternion(rotations))
+        arms = [BEAT_JOINTS.index(n) for n in _ARM_JOINTS]
+        self.speed = gaussian_filter1d(_angular_speed(self.quats, arms), 1.0)
+        self.mean_pose = self._mean_pose()
+        self.phrases = self._cut()
+        peaks = np.array([p.peak_speed for p in self.phrases])
+        self.gestures = [p for p in self.phrases if p.peak_speed >= np.median(peaks)]
+        self.idle = [p for p in self.phrases if p.peak_speed <= np.percentile(peaks, 40)]
+
+    def _mean_pose(self) -> np.ndarray:
+        q = self.quats * np.where(np.sum(self.quats * self.quats[:1], -1, keepdims=True) < 0, -1, 1)
+        m = q.mean(axis=0)
+        return m / np.linalg.norm(m, axis=-1, keepdims=True)
+
+    def _cut(self) -> list[Phrase]:
+        minima, _ = find_peaks(-self.speed, distance=_MIN_PHRASE)
+        bounds = [0] + [int(b) for b in minima] + [len(self.speed)]
+        phrases = []
+        margin = 3 * _FADE  # clips read past their phrase; keep that inside the take
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            if _MIN_PHRASE <= b - a <= _MAX_PHRASE and margin <= a and b <= len(self.speed) - margin:
+                stroke = a + int(np.argmax(self.speed[a:b]))
+                phrases.append(Phrase(a, b, stroke, float(self.speed[stroke])))
+        if len(phrases) < 4:
+            raise DiffshegError("the gesture capture has too few phrases; is it a real talking take?")
+        return phrases
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.quats)
+
+    def sample(self, pos: np.ndarray) -> np.ndarray:
+        """(len(pos), J, 4) quaternions at fractional source frames (clamped to the take)."""
+        pos = np.clip(pos, 0, self.n_frames - 1)
+        i0 = np.minimum(np.floor(pos).astype(int), self.n_frames - 2)
+        w = np.broadcast_to((pos - i0)[:, None], (len(pos), self.quats.shape[1]))
+        return _slerp(self.quats[i0], self.quats[i0 + 1], w)
+
+
+@lru_cache(maxsize=2)
+def load_library(path: str | None = None) -> GestureLibrary:
+    """The library of a BEAT BVH take (default: the real take 2_scott_0_1_1)."""
+    from ...bvh import bvh_to_motion, read_bvh
+
+    bvh = Path(path) if path else DEFAULT_MOCAP
+    if not bvh.is_file():
+        raise DiffshegError(f"gesture capture {bvh} not found: pass the BEAT take "
+                            "2_scott_0_1_1.bvh (shared/data/beat) with --mocap")
+    return GestureLibrary(bvh_to_motion(read_bvh(bvh, fps=MOCAP_FPS)).rotations)
+
+
+@dataclass(frozen=True)
+class _Clip:
+    """Output frames from `out_start` on read source frame src_start + (u - out_start) * rate."""
+
+    out_start: float
+    src_start: float
+    rate: float
+
+    def source(self, u: np.ndarray) -> np.ndarray:
+        return self.src_start + (u - self.out_start) * self.rate
+
+
+def _pick(rng: np.random.Generator, lib: GestureLibrary, pool: list[Phrase], pose: np.ndarray | None,
+          max_prep: float | None = None) -> Phrase:
+    """A phrase from `pool`, preferring those that start near `pose` and whose preparation
+    (start to stroke) fits in `max_prep` frames."""
+    cand = [p for p in pool if max_prep is None or p.stroke - p.start <= max_prep] or pool
+    if pose is None:
+        return cand[int(rng.integers(len(cand)))]
+    starts = lib.quats[[p.start for p in cand]]
+    dist = (1 - np.abs(np.sum(starts * pose, axis=-1))).sum(axis=1)
+    weights = np.exp(-dist / (np.median(dist) + 1e-9) * 2.0)
+    return cand[int(rng.choice(len(cand), p=weights / weights.sum()))]
+
+
+def _timeline(lib: GestureLibrary, strokes: list[float], n_frames: int, fps: float,
+              style: GestureStyle, rng: np.random.Generator) -> list[_Clip]:
+    """Clips covering frames [0, n_frames): a gesture phrase per stroke time (frames), calm
+    stretches where no stroke is due. Each clip runs until the next one starts (reading on
+    in the capture); a phrase still running at the next one's preparation is cut short."""
+    clips: list[_Clip] = []
+    cursor, pose = 0.0, None
+    speed = MOCAP_FPS / fps
+    jitter = style.rate_jitter
+
+    def fill_idle(until: float) -> None:
+        nonlocal cursor, pose
+        while until - cursor > 2 * _FADE:
+            p = _pick(rng, lib, lib.idle, pose)
+            rate = speed * float(rng.uniform(0.7, 1.0))
+            clips.append(_Clip(cursor, p.start, rate))
+            cursor = min(until, cursor + max((p.end - p.start) / rate, 2 * _FADE))
+            pose = lib.sample(np.array([clips[-1].source(cursor)]))[0]
+
+    for stroke in strokes:
+        p = _pick(rng, lib, lib.gestures, pose, max_prep=(stroke - cursor) * speed * (1 + jitter))
+        rate = speed * float(rng.uniform(1 - jitter, 1 + jitter))
+        start = stroke - (p.stroke - p.start) / rate
+        if clips and start < cursor:
+            cursor = max(clips[-1].out_start + 2 * _FADE, start)
+        fill_idle(start)
+        clips.append(_Clip(cursor, p.stroke - (stroke - cursor) * rate, rate))
+        cursor = stroke + (p.end - p.stroke) / rate
+        pose = lib.sample(np.array([clips[-1].source(cursor)]))[0]
+    fill_idle(n_frames + _FADE)
+    return clips
+
+
+def _render(lib: GestureLibrary, clips: list[_Clip], n_frames: int) -> np.ndarray:
+    """(n_frames, J, 4): each frame reads its clip; within _FADE frames of a cut it is the
+    smoothstep slerp of the two clips meeting there."""
+    u = np.arange(n_frames, dtype=np.float64)
+    starts = np.array([c.out_start for c in clips])
+    k = np.clip(np.searchsorted(starts, u, side="right") - 1, 0, len(clips) - 1)
+    q = np.empty((n_frames, lib.quats.shape[1], 4))
+    for i, clip in enumerate(clips):
+        sel = k == i
+        if sel.any():
+            q[sel] = lib.sample(clip.source(u[sel]))
+    for i in range(1, len(clips)):
+        cut = clips[i].out_start
+        sel = np.abs(u - cut) < _FADE
+        if sel.any():
+            x = (u[sel] - (cut - _FADE)) / (2 * _FADE)
+            w = x * x * (3 - 2 * x)
+            a, b = lib.sample(clips[i - 1].source(u[sel])), lib.sample(clips[i].source(u[sel]))
+            q[sel] = _slerp(a, b, np.broadcast_to(w[:, None], a.shape[:2]))
+    return q
+
+
+def _nod(quats: np.ndarray, accents: list[Accent], fps: float, degrees: float) -> np.ndarray:
+    """Nod the head (Neck1, and Neck by half) forward about its X axis on accents."""
+    times = np.arange(len(quats)) / fps
+    angle = np.zeros(len(quats))
+    for a in accents:
+        angle += a.strength * np.exp(-0.5 * ((times - a.time - 0.08) / 0.12) ** 2)
+    angle = np.radians(degrees) * np.minimum(angle, 1.5)
+    out = quats.copy()
+    for name, share in (("Neck1", 1.0), ("Neck", 0.5)):
+        j = BEAT_JOINTS.index(name)
+        half = 0.5 * share * angle
+        nod = np.stack([np.cos(half), np.sin(half), np.zeros_like(half), np.zeros_like(half)], axis=-1)
+        out[:, j] = _quat_mul(quats[:, j], nod)
+    return out
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of (..., 4) (w, x, y, z) quaternions."""
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
+def choose_strokes(accents: list[Accent], min_gap: float, rng: np.random.Generator) -> list[float]:
+    """Accent times (s) that get a gesture stroke: strongest first, at least `min_gap` apart;
+    weak accents are skipped at random."""
+    chosen: list[float] = []
+    for a in sorted(accents, key=lambda a: -a.strength):
+        if rng.random() < 0.4 + 0.6 * a.strength and all(abs(a.time - c) >= min_gap for c in chosen):
+            chosen.append(a.time)
+    return sorted(chosen)
+
+
+def gesture_rotations(accents: list[Accent], n_frames: int, fps: float, style: GestureStyle,
+                      rng: np.random.Generator, library: GestureLibrary | None = None
+                      ) -> tuple[np.ndarray, list[float]]:
+    """(n_frames, 47, 3) axis-angle rotations in the beat layout, and the stroke times (s)."""
+    lib = library or load_library()
+    strokes = choose_strokes(accents, style.min_gap, rng)
+    quats = _render(lib, _timeline(lib, [t * fps for t in strokes], n_frames, fps, style, rng), n_frames)
+    quats = _slerp(np.broadcast_to(lib.mean_pose, quats.shape), quats,
+                   np.full(quats.shape[:2], style.energy))
+    quats = _nod(quats, accents, fps, style.nod)
+    return quaternion_to_axis_angle(quats).astype(np.float32), strokes

@@ -1,0 +1,101 @@
+"""The teacher: speech and its timed phones in, `beat`-layout motion out (47 joints from
+real motion capture placed on the prosody, 51 procedural ARKit face weights).
+
+The corpus builder runs it on synthetic speech; the evaluation runs it on any speech with
+phone timings (e.g. the real take's TextGrid) to score the teacher beside the model.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ... import __version__
+from ...audio import Audio, n_motion_frames
+from ...errors import DiffshegError
+from ...motion import Motion
+from ...rigs import ARKIT51, BEAT, BEAT_JOINTS
+from .face import FaceStyle, face_curves
+from .gestures import GestureLibrary, GestureStyle, gesture_rotations
+from .phones import Phone, check_phones, phones_from_arrays, phones_to_arrays
+from .prosody import find_accents
+
+TEACHER_VERSION = 1
+"""Bump when the teacher's output changes; it is stored with every utterance."""
+
+
+@dataclass(frozen=True)
+class TeacherStyle:
+    """A speaker's manner: face and gesture parameters, drawn per utterance for variety."""
+
+    face: FaceStyle = field(default_factory=FaceStyle)
+    gesture: GestureStyle = field(default_factory=GestureStyle)
+
+    @classmethod
+    def random(cls, rng: np.random.Generator) -> "TeacherStyle":
+        return cls(FaceStyle.random(rng), GestureStyle.random(rng))
+
+
+def teach(audio: Audio, phones: list[Phone], *, seed: int = 0, style: TeacherStyle | None = None,
+          library: GestureLibrary | None = None) -> Motion:
+    """Teacher motion for `audio` with its phone timings, one frame per mel frame at 15 fps.
+
+    `style` None draws one from `seed`. `library` defaults to the real take's gestures."""
+    check_phones(phones)
+    rng = np.random.default_rng(seed)
+    style = style or TeacherStyle.random(rng)
+    fps = BEAT.fps
+    n_frames = n_motion_frames(audio, fps)
+    if n_frames < 2:
+        raise DiffshegError(f"audio of {len(audio.samples) / audio.sample_rate:.2f} s is too short "
+                            "for a teacher motion (need at least two frames at 15 fps)")
+    samples = np.asarray(audio.samples, dtype=np.float32)
+    accents = find_accents(samples, audio.sample_rate, phones)
+    rotations, strokes = gesture_rotations(accents, n_frames, fps, style.gesture, rng, library)
+    face = face_curves(phones, accents, n_frames, fps, style.face, rng)
+    return Motion(
+        fps=fps, rig=BEAT.name, joint_names=list(BEAT_JOINTS), rotations=rotations,
+        face_names=list(ARKIT51), face=face,
+        meta={"model": f"teacher-v{TEACHER_VERSION}", "seed": seed, "audio": audio.path,
+              "sample_rate": audio.sample_rate, "software": __version__,
+              "style": asdict(style), "accents": [a.time for a in accents], "strokes": strokes},
+    )
+
+
+def teach_files(audio_path: str | Path, textgrid_path: str | Path, seed: int = 0) -> Motion:
+    """Teacher motion for a recording and its forced-alignment TextGrid (phone tier)."""
+    from ...audio import load_audio
+    from .phones import phones_from_textgrid
+
+    return teach(load_audio(audio_path), phones_from_textgrid(textgrid_path), seed=seed)
+
+
+def save_utterance(path: str | Path, motion: Motion, phones: list[Phone], info: dict) -> Path:
+    """Write one corpus utterance's motion: gesture (T, 141) axis-angle, face (T, 51),
+    fps, the phones (labels, start, end, stress) and `info` (JSON) into an .npz, atomically."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, gesture=motion.rotations.reshape(motion.n_frames, -1), face=motion.face,
+                 fps=np.float64(motion.fps), info=np.str_(json.dumps(info | {"meta": motion.meta})),
+                 **phones_to_arrays(phones))
+    tmp.replace(path)
+    return path
+
+
+def load_utterance(path: str | Path) -> tuple[Motion, list[Phone], dict]:
+    """The Motion, phones and info of an utterance written by `save_utterance`."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            info = json.loads(str(z["info"]))
+            gesture, face, fps, phones = z["gesture"], z["face"], float(z["fps"]), phones_from_arrays(z)
+    except (OSError, KeyError, ValueError) as exc:
+        raise DiffshegError(f"{path}: not a corpus utterance ({exc}); rebuild the corpus") from exc
+    motion = Motion(fps=fps, rig=BEAT.name, joint_names=list(BEAT_JOINTS),
+                    rotations=gesture.reshape(len(gesture), -1, 3), face_names=list(ARKIT51),
+                    face=face, meta=info.get("meta", {}))
+    return motion, phones, info

@@ -1,0 +1,116 @@
+"""Datasets for training and evaluation: configuration, reading every take of a split
+(through the BEAT, BEAT2 or folder reader) with broken takes reported and skipped, and
+the normalisation statistics."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import ModuleType
+
+from tqdm import tqdm
+
+from ...audio import SpeechEncoding, load_audio
+from ...errors import DiffshegError
+from ...rigs import Layout
+from . import beat, beat2, corpus, folder
+from .cache import cached_take
+from .normalise import NormStats, compute_stats, official_stats
+from .sources import SPLITS, TakeSource, hashed_split
+from .take import MAX_LENGTH_MISMATCH_S, Take
+
+log = logging.getLogger(__name__)
+
+READERS: dict[str, ModuleType] = {"beat": beat, "beat2": beat2, "folder": folder, "corpus": corpus}
+
+
+@dataclass
+class DataConfig:
+    """Where the data is and how it is cut into clips.
+
+    kind: 'beat', 'beat2', 'folder' or 'corpus' (the project's synthetic speech corpus).
+    stats: 'train' computes normalisation statistics from the training split; otherwise a
+    folder with the official statistics files. style: the style class of every take of a
+    'folder' or 'corpus' dataset (BEAT names carry theirs).
+    """
+
+    kind: str = "beat"
+    root: str = ""
+    fps: float = 15.0
+    clip_len: int = 34
+    stride: int = 10
+    cache_dir: str | None = None
+    stats: str = "train"
+    val_fraction: float = 0.1
+    style: int = 0
+    max_length_mismatch: float = MAX_LENGTH_MISMATCH_S
+
+    def reader(self) -> ModuleType:
+        if self.kind not in READERS:
+            raise DiffshegError(f"unknown dataset kind '{self.kind}': choose one of {', '.join(READERS)}")
+        return READERS[self.kind]
+
+    @property
+    def layout(self) -> Layout:
+        return self.reader().LAYOUT
+
+
+@dataclass
+class TakeSet:
+    """The usable takes of one split, and (name, reason) for every take that was skipped."""
+
+    layout: Layout
+    takes: list[Take]
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+
+
+def find_sources(config: DataConfig, split: str) -> list[TakeSource]:
+    if split not in SPLITS:
+        raise DiffshegError(f"unknown split '{split}': choose one of {', '.join(SPLITS)}")
+    root = Path(config.root)
+    if not root.is_dir():
+        raise DiffshegError(f"dataset folder '{root}' does not exist: check 'root' in the data configuration")
+    sources = config.reader().find_takes(root)
+    for s in sources:
+        if s.split is None:
+            s.split = hashed_split(s.name, config.val_fraction)
+    return [s for s in sources if s.split == split]
+
+
+def load_takes(config: DataConfig, split: str = "train", speech: SpeechEncoding | None = None) -> TakeSet:
+    """Read (or take from the cache) every take of `split`; broken takes are logged and
+    skipped. `speech`: the model's second speech input, computed for every take."""
+    reader = config.reader()
+    result = TakeSet(reader.LAYOUT, [])
+    settings = f"{config.kind}|{config.fps}|{config.style}|{config.max_length_mismatch}"
+    if speech is not None:
+        settings += f"|{speech.key}"
+    for source in tqdm(find_sources(config, split), desc=f"reading {split} takes", unit="take",
+                       disable=None, leave=False):
+        try:
+            if source.missing:
+                raise DiffshegError(f"{source.name}: missing {', '.join(source.missing)}")
+            take = cached_take(config.cache_dir, source.paths, settings,
+                               lambda: with_speech(reader.read_take(source, config), source, speech))
+        except DiffshegError as exc:
+            result.skipped.append((source.name, str(exc)))
+            log.warning("skipped take %s", exc)
+            continue
+        result.takes.append(take)
+    return result
+
+
+def with_speech(take: Take, source: TakeSource, speech: SpeechEncoding | None) -> Take:
+    """`take` with its second speech input, computed from the take's audio (every reader
+    aligns frame i of the take with time i / fps of its audio file)."""
+    if speech is not None:
+        take.extra = speech.encode(load_audio(source.files["audio"]), take.n_frames)
+    return take
+
+
+def normalisation(config: DataConfig, train: TakeSet) -> NormStats:
+    """Statistics from the training takes, or the official ones from `config.stats`."""
+    if config.stats == "train":
+        return compute_stats(train.takes)
+    return official_stats(train.layout, config.stats)

@@ -1,0 +1,630 @@
+"""Training DiffSHEG: `python -m diffsheg_core train --config run.toml`.
+
+The objective is the paper's (section 3.4): lambda_t * MSE on the predicted noise +
+lambda_v * MSE on the velocity of the predicted x0 + lambda_delta * Huber on x0, with
+speaker-style conditioning and classifier-free dropout. AdamW, gradient clipping, EMA
+weights, autocast on GPU, torch.distributed when launched by torchrun (gloo on CPU,
+nccl on GPU).
+
+Every random draw of step s (clips, timesteps, noise, dropout) comes from a generator
+seeded with (seed, s, rank), so a run resumed from its last checkpoint after a kill
+continues exactly as it would have. The run folder holds:
+  train_state.pt      everything needed to resume (weights, EMA, optimiser, step)
+  model.safetensors   the EMA model as a generation checkpoint (config, statistics, layout)
+  log.jsonl           one line per logged step and per validation pass
+  summary.json        final step, losses and a parameter checksum per rank
+With `export` set, the final EMA model is also written there (in `export_dtype`); running
+the same command again after the last step only rewrites that file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import time
+import tomllib
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from ..checkpoints import ModelBundle, load_model, save_checkpoint
+from ..config import ModelConfig
+from .data import ClipDataset, DataConfig, NormStats, load_takes, normalisation
+from ..diffusion import Schedule
+from ..errors import DiffshegError
+from ..foppas import PRESETS, FoppasConfig, with_overrides
+from ..export import with_graphs
+from ..model import PhoneticEncoder, UniEG, load_state_strict
+from ..pipeline import check_skip_guidance, hubert_encoding
+from .phonetic import load_phonetic, speech_encoding as phonetic_speech
+from ..prior import GesturePrior
+from ..devices import resolve_device
+
+EXPORT_DTYPES = {"float32": torch.float32, "float16": torch.float16}
+STATE_FILE = "train_state.pt"
+MODEL_FILE = "model.safetensors"
+LOG_FILE = "log.jsonl"
+SUMMARY_FILE = "summary.json"
+
+
+@dataclass
+class TrainConfig:
+    """A training run. `data` is a DataConfig; `model` overrides ModelConfig fields (the
+    layout, its sizes, the clip length and fps come from the data)."""
+
+    data: DataConfig = field(default_factory=DataConfig)
+    model: dict = field(default_factory=dict)
+    out_dir: str = "runs/diffsheg"
+    steps: int = 100_000
+    batch_size: int = 32            # over all processes together
+    lr: float = 2e-4
+    warmup_steps: int = 0
+    lr_schedule: str = "cosine"     # cosine (down to lr_min) or constant, after the warm-up
+    lr_min: float = 0.0
+    weight_decay: float = 0.0
+    grad_clip: float = 1.0
+    ema_decay: float = 0.999
+    lambda_t: float = 10.0          # noise prediction
+    lambda_v: float = 1.0           # velocity of x0
+    lambda_delta: float = 1.0       # Huber on x0
+    huber_delta: float = 1.0
+    x0_weighting: str = "abar"      # abar (x0 terms weighted by abar_t per sample) or none (unweighted)
+    cond_drop: float = 0.0          # classifier-free dropout probability (official SHOW: 0.2)
+    guidance: float | None = None   # default guidance scale stored in the checkpoints (guided models)
+    skip_guidance: float | None = None  # default gesture skip-guidance scale stored in the checkpoints
+    init_from: str = ""             # start from this checkpoint's weights (fine-tuning; see init_weights)
+    precision: str = "auto"         # auto (bf16/fp16 on GPU, fp32 on CPU), fp32, bf16, fp16
+    device: str = "auto"
+    seed: int = 0
+    log_every: int = 50
+    checkpoint_every: int = 1000
+    validate_every: int = 1000
+    val_clips: int = 256
+    sampling_preset: str = "official-beat"
+    sampling: dict = field(default_factory=dict)  # FOPPAS settings over the preset, e.g. {"eta": 1.0}
+    model_id: str = "diffsheg-trained"
+    export: str = ""                # also write the final EMA model here (e.g. a bundled weights file)
+    export_dtype: str = "float32"   # float32, or float16 to halve the exported file
+    card: dict = field(default_factory=dict)  # model card facts stored in the checkpoint's info
+    phonetic: str = ""              # phonetic encoder (.safetensors) for speech_encoder = "phonetic"
+    hubert: str = ""                # local HuBERT folder for speech_encoder = "hubert" (default: HF cache)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "TrainConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise DiffshegError(f"unknown training settings: {', '.join(sorted(unknown))} "
+                                f"(known: {', '.join(sorted(known))})")
+        values = dict(values)
+        data = values.pop("data", {})
+        data_known = {f.name for f in fields(DataConfig)}
+        if set(data) - data_known:
+            raise DiffshegError(f"unknown data settings: {', '.join(sorted(set(data) - data_known))}")
+        return cls(data=DataConfig(**data), **values)
+
+
+def read_config_file(path: str | Path, _chain: tuple[Path, ...] = ()) -> dict:
+    """A JSON (.json) or TOML (any other suffix) file as a dict.
+
+    A top-level `extends = "other.toml"` (relative to this file) starts from that file's
+    settings; this file's values replace them, table by table (so a fine-tuning run can
+    name only what differs from its base run).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DiffshegError(f"{path}: no such configuration file")
+    try:
+        if path.suffix.lower() == ".json":
+            values = json.loads(path.read_text(encoding="utf-8"))
+        else:
+            values = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, tomllib.TOMLDecodeError) as exc:
+        raise DiffshegError(f"{path}: not valid {'JSON' if path.suffix == '.json' else 'TOML'} ({exc})") from exc
+    base = values.pop("extends", None)
+    if base is None:
+        return values
+    if not isinstance(base, str):
+        raise DiffshegError(f"{path}: extends must be a file name, got {base!r}")
+    base_path = (path.parent / base).resolve()
+    if base_path in _chain or base_path == path.resolve():
+        raise DiffshegError(f"{path}: extends {base}, which extends it back")
+    return merge_settings(read_config_file(base_path, (*_chain, path.resolve())), values)
+
+
+def merge_settings(base: dict, over: dict) -> dict:
+    """`base` with `over`'s values, merged into nested tables rather than replacing them."""
+    merged = dict(base)
+    for key, value in over.items():
+        both_tables = isinstance(value, dict) and isinstance(merged.get(key), dict)
+        merged[key] = merge_settings(merged[key], value) if both_tables else value
+    return merged
+
+
+# ---------------------------------------------------------------- processes and devices
+
+@dataclass
+class Dist:
+    rank: int = 0
+    world: int = 1
+    device: torch.device = torch.device("cpu")
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def init_distributed(device: str) -> Dist:
+    """One process, or one of WORLD_SIZE processes started by torchrun."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    torch_device = resolve_device(device)
+    if world == 1:
+        return Dist(0, 1, torch_device)
+    if torch_device.type == "cuda":
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        torch.cuda.set_device(local)
+        torch_device = torch.device("cuda", local)
+    dist.init_process_group("nccl" if torch_device.type == "cuda" else "gloo")
+    return Dist(dist.get_rank(), dist.get_world_size(), torch_device)
+
+
+def autocast_dtype(precision: str, device: torch.device) -> torch.dtype | None:
+    if precision not in ("auto", "fp32", "bf16", "fp16"):
+        raise DiffshegError(f"precision must be auto, fp32, bf16 or fp16, got '{precision}'")
+    if device.type != "cuda":
+        if precision in ("bf16", "fp16"):
+            raise DiffshegError(f"precision '{precision}' needs a CUDA GPU; use auto or fp32 on the CPU")
+        return None
+    if precision == "auto":
+        return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+    return {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}[precision]
+
+
+def learning_rate(cfg: TrainConfig, step: int) -> float:
+    """Linear warm-up, then constant or cosine decay to lr_min at the last step."""
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    if cfg.lr_schedule == "constant":
+        return cfg.lr
+    if cfg.lr_schedule != "cosine":
+        raise DiffshegError(f"lr_schedule must be cosine or constant, got '{cfg.lr_schedule}'")
+    done = (step - cfg.warmup_steps) / max(cfg.steps - cfg.warmup_steps, 1)
+    return cfg.lr_min + 0.5 * (cfg.lr - cfg.lr_min) * (1 + math.cos(math.pi * min(done, 1.0)))
+
+
+def step_generator(seed: int, step: int, rank: int) -> torch.Generator:
+    """The generator of every random draw of one step on one process."""
+    return torch.Generator().manual_seed((seed * 1_000_003 + step) * 4099 + rank)
+
+
+# ---------------------------------------------------------------- loss
+
+X0_WEIGHTINGS = ("abar", "none")
+
+
+def masked_mean(values: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    weight = weight.expand_as(values)
+    return (values * weight).sum() / weight.sum().clamp_min(1.0)
+
+
+def x0_term_weight(schedule: Schedule, index: torch.Tensor, like: torch.Tensor, how: str) -> torch.Tensor:
+    """Per-sample weight (B, 1, 1) of the loss terms computed on the predicted x0.
+
+    x0_hat = sqrt(1/abar) x_t - sqrt(1/abar - 1) eps_hat, so its error is the noise error
+    times sqrt(1/abar - 1) (about 156 at t = 999). Unweighted, the velocity and Huber terms
+    of the noisiest samples dwarf everything else: gradient clipping then scales every step
+    down to them and the low-noise steps that finish sampling are barely learned.
+    'abar' multiplies the terms by abar_t = SNR / (1 + SNR): full weight where x0 is
+    recoverable, and at most the noise term's own scale where it is not (the squared
+    x0 error times abar is (1 - abar) times the squared noise error). 'none' is the
+    unweighted form, as the paper writes it.
+    """
+    if how == "none":
+        return torch.ones((like.shape[0], 1, 1), dtype=like.dtype, device=like.device)
+    if how != "abar":
+        raise DiffshegError(f"x0_weighting must be one of {', '.join(X0_WEIGHTINGS)}, got '{how}'")
+    abar = torch.from_numpy(schedule.alphas_cumprod).to(like.device, like.dtype)[index]
+    return abar.view(-1, 1, 1)
+
+
+def diffsheg_loss(model: torch.nn.Module, schedule: Schedule, batch: dict[str, torch.Tensor],
+                  cfg: TrainConfig, gen: torch.Generator, style_dim: int, null_condition: bool
+                  ) -> dict[str, torch.Tensor]:
+    """The paper's loss terms for one batch (eq. 4, 6, 7, 8), the x0 terms weighted as
+    `cfg.x0_weighting` says (see x0_term_weight)."""
+    b, device = batch["motion"].shape[0], batch["motion"].device
+    index = torch.randint(len(schedule), (b,), generator=gen).to(device)
+    noise = torch.randn(batch["motion"].shape, generator=gen).to(device)
+    style = F.one_hot(batch["style"], style_dim).float()
+    drop = (torch.rand(b, generator=gen) < cfg.cond_drop).to(device)
+    if not null_condition:  # without a null speech condition, the dropout drops the style
+        style = style * (~drop).float().unsqueeze(1)
+    order = torch.argsort(~drop, stable=True)  # dropped rows first: the model nulls the first rows
+    index, noise, style = index[order], noise[order], style[order]
+    batch = {k: v[order] for k, v in batch.items()}
+    x0, mel, mask = batch["motion"], batch["mel"], batch["mask"].unsqueeze(1)
+    n_null = int(drop.sum()) if null_condition else 0
+
+    x_t = schedule.q_sample(x0, index, noise)
+    extra = {"null_rows": n_null} if n_null else {}
+    eps = model(x_t, schedule.model_timesteps(index), mel, batch.get("extra"), style,
+                schedule.x0_coefs(index, x_t), **extra).float()
+    x0_hat = schedule.predict_x0(x_t, index, eps)
+    w = x0_term_weight(schedule, index, x0_hat, cfg.x0_weighting)
+    loss_t = masked_mean((eps - noise) ** 2, mask)
+    loss_v = masked_mean(w * (x0_hat.diff(dim=1) - x0.diff(dim=1)) ** 2, mask)
+    loss_d = masked_mean(w * F.huber_loss(x0_hat, x0, reduction="none", delta=cfg.huber_delta), mask)
+    total = cfg.lambda_t * loss_t + cfg.lambda_v * loss_v + cfg.lambda_delta * loss_d
+    return {"loss": total, "loss_t": loss_t, "loss_v": loss_v, "loss_delta": loss_d}
+
+
+# ---------------------------------------------------------------- the trainer
+
+def fit_prior(takes: list, stats: NormStats, model_cfg: ModelConfig) -> GesturePrior | None:
+    """The gesture prior of the training takes that hold every gesture channel (None if none does)."""
+    g = model_cfg.gesture_dim
+    full = [stats.normalise(t.motion) for t in takes if t.mask[:g].all() and t.n_frames >= model_cfg.clip_len]
+    return GesturePrior.fit(full, g, model_cfg.clip_len) if full else None
+
+
+def sampling_config(cfg: TrainConfig) -> FoppasConfig:
+    """The FOPPAS settings the checkpoints carry: the preset with `cfg.sampling` over it."""
+    try:
+        config = with_overrides(PRESETS[cfg.sampling_preset], **cfg.sampling)
+        config.check(cfg.data.clip_len)
+    except (TypeError, ValueError) as exc:
+        raise DiffshegError(f"sampling settings {cfg.sampling}: {exc}") from exc
+    return config
+
+
+def build_model_config(cfg: TrainConfig) -> ModelConfig:
+    """The model settings over ModelConfig's defaults (mel only unless speech_encoder is set),
+    with the layout, clip length and fps of the data."""
+    layout = cfg.data.layout
+    values = {"speech_encoder": None, **cfg.model, "gesture_dim": layout.gesture_dim,
+              "expression_dim": layout.expression_dim, "layout": layout.name,
+              "clip_len": cfg.data.clip_len, "fps": cfg.data.fps}
+    try:
+        return ModelConfig.from_dict(values)
+    except (TypeError, ValueError) as exc:
+        raise DiffshegError(f"model settings: {exc}") from exc
+
+
+def default_guidance(cfg: TrainConfig, model_cfg: ModelConfig) -> float | None:
+    """The guidance scale the run's checkpoints generate with by default; refuses settings
+    under which the null condition would never be trained or could not be used."""
+    if model_cfg.classifier_free and cfg.cond_drop <= 0:
+        raise DiffshegError("classifier_free = true needs cond_drop above 0 (e.g. 0.15), or the null "
+                            "condition is never trained")
+    if cfg.guidance is None:
+        return None
+    if not model_cfg.classifier_free:
+        raise DiffshegError("guidance needs a model with a null condition: set classifier_free = true "
+                            "in [model] and cond_drop above 0")
+    if not 0.0 <= cfg.guidance <= 10.0:
+        raise DiffshegError(f"guidance must be between 0 and 10, got {cfg.guidance}")
+    return float(cfg.guidance)
+
+
+def phonetic_encoder(cfg: TrainConfig, model_cfg: ModelConfig) -> PhoneticEncoder | None:
+    """The frozen phonetic encoder of a run whose model takes phonetic features."""
+    if not model_cfg.phonetic_input:
+        return None
+    if not cfg.phonetic:
+        raise DiffshegError("speech_encoder = \"phonetic\" needs the encoder file: set phonetic = "
+                            "\"path.safetensors\" (train one with python -m diffsheg_core train-phonetic)")
+    return load_phonetic(cfg.phonetic)
+
+
+class Trainer:
+    def __init__(self, cfg: TrainConfig, env: Dist):
+        self.cfg, self.env = cfg, env
+        if cfg.batch_size % env.world:
+            raise DiffshegError(f"batch_size {cfg.batch_size} does not split evenly over {env.world} processes")
+        if cfg.x0_weighting not in X0_WEIGHTINGS:
+            raise DiffshegError(f"x0_weighting must be one of {', '.join(X0_WEIGHTINGS)}, "
+                                f"got '{cfg.x0_weighting}'")
+        if cfg.export_dtype not in EXPORT_DTYPES:
+            raise DiffshegError(f"export_dtype must be one of {', '.join(EXPORT_DTYPES)}, "
+                                f"got '{cfg.export_dtype}'")
+        if cfg.skip_guidance is not None:
+            check_skip_guidance(cfg.skip_guidance)
+        if cfg.sampling_preset not in PRESETS:
+            raise DiffshegError(f"unknown sampling preset '{cfg.sampling_preset}': "
+                                f"choose one of {', '.join(PRESETS)}")
+        self.sampling = sampling_config(cfg)
+        self.out = Path(cfg.out_dir)
+        self.model_cfg = build_model_config(cfg)
+        self.guidance = default_guidance(cfg, self.model_cfg)
+        self.phonetic = phonetic_encoder(cfg, self.model_cfg)
+        if self.phonetic is not None:
+            self.model_cfg = replace(self.model_cfg, speech_dim=self.phonetic.cfg.dim)
+        speech = (phonetic_speech(self.phonetic) if self.phonetic is not None
+                  else hubert_encoding(cfg.hubert or None, device=str(env.device))
+                  if self.model_cfg.has_speech_input else None)
+        train = load_takes(cfg.data, "train", speech)
+        val = load_takes(cfg.data, "val", speech)
+        self.skipped = train.skipped + val.skipped
+        self.stats: NormStats = normalisation(cfg.data, train)
+        self.train_set = ClipDataset(train.takes, cfg.data.clip_len, cfg.data.stride, self.stats)
+        self.val_set = ClipDataset(val.takes, cfg.data.clip_len, cfg.data.clip_len, self.stats) \
+            if val.takes and any(t.n_frames >= cfg.data.clip_len for t in val.takes) else None
+        styles = max(t.style for t in train.takes)
+        if styles >= self.model_cfg.style_dim:
+            raise DiffshegError(f"the data has style class {styles}, but the model has only "
+                                f"{self.model_cfg.style_dim}: raise style_dim in the model settings")
+
+        torch.manual_seed(cfg.seed)
+        self.model = UniEG(self.model_cfg).to(env.device)
+        self.ema = UniEG(self.model_cfg).to(env.device).eval()
+        self.ema.load_state_dict(self.model.state_dict())
+        self.ema.requires_grad_(False)
+        # a rank whose batch drew no null rows leaves the null condition without a gradient
+        self.ddp = torch.nn.parallel.DistributedDataParallel(
+            self.model, find_unused_parameters=self.model_cfg.classifier_free) if env.world > 1 else self.model
+        self.opt = torch.optim.AdamW(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        self.amp = autocast_dtype(cfg.precision, env.device)
+        self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp == torch.float16)
+        self.schedule = Schedule.linear()
+        self.step = 0
+        self._prior: GesturePrior | None = None  # fitted when first exported, with the statistics in use
+
+    # -- state
+
+    def state(self) -> dict:
+        return {"step": self.step, "model": self.model.state_dict(), "ema": self.ema.state_dict(),
+                "optimizer": self.opt.state_dict(), "scaler": self.scaler.state_dict(),
+                "model_config": json.dumps(self.model_cfg.to_dict()),
+                "mean": torch.from_numpy(self.stats.mean), "std": torch.from_numpy(self.stats.std)}
+
+    def begin(self) -> bool:
+        """Resume from the run folder's state, or else start from `init_from` when it is set.
+        Returns whether the run resumed."""
+        if self.resume():
+            return True
+        if self.cfg.init_from:
+            self.init_weights(self.cfg.init_from)
+        return False
+
+    def resume(self) -> bool:
+        path = self.out / STATE_FILE
+        if not path.is_file():
+            return False
+        try:
+            state = torch.load(path, map_location=self.env.device, weights_only=True)
+        except Exception as exc:  # torch raises several types for damaged files
+            raise DiffshegError(f"{path}: cannot read the training state ({exc}); delete it to start over") from exc
+        if ModelConfig.from_dict(json.loads(state["model_config"])) != self.model_cfg:
+            raise DiffshegError(f"{path} was saved with another model configuration: use a new out_dir "
+                                "or the configuration the run was started with")
+        self.model.load_state_dict(state["model"])
+        self.ema.load_state_dict(state["ema"])
+        self.opt.load_state_dict(state["optimizer"])
+        self.scaler.load_state_dict(state["scaler"])
+        self.stats = NormStats(state["mean"].cpu().numpy(), state["std"].cpu().numpy())
+        self.step = int(state["step"])
+        return True
+
+    def init_weights(self, path: str) -> None:
+        """Model and EMA from a generation checkpoint of the same network on the same data.
+
+        The one difference allowed is a learned null condition (classifier_free) that the
+        checkpoint lacks: it keeps its fresh initialisation, so an unguided model can be
+        fine-tuned into a guided one.
+        """
+        source = load_model(path)
+        theirs, ours = source.config.to_dict(), self.model_cfg.to_dict()
+        differ = sorted(k for k in ours if k != "classifier_free" and theirs.get(k) != ours[k])
+        if differ:
+            raise DiffshegError(f"init_from {path}: its model differs in {', '.join(differ)}; "
+                                "make the [model] settings match it")
+        if source.mean.shape != self.stats.mean.shape or not (
+                np.allclose(source.mean, self.stats.mean, atol=1e-4)
+                and np.allclose(source.std, self.stats.std, atol=1e-4)):
+            raise DiffshegError(f"init_from {path}: it was trained with other normalisation statistics, "
+                                "so on other data; train on the data it was trained on")
+        state = {**self.model.state_dict(),
+                 **{k: torch.from_numpy(np.array(v)).float() for k, v in source.weights.items()}}
+        load_state_strict(self.model, state, f"init_from {path}")
+        self.ema.load_state_dict(self.model.state_dict())
+
+    def save(self) -> None:
+        """Training state, then the generation checkpoint, each written atomically."""
+        self.out.mkdir(parents=True, exist_ok=True)
+        tmp = self.out / (STATE_FILE + ".partial")
+        torch.save(self.state(), tmp)
+        os.replace(tmp, self.out / STATE_FILE)
+        save_checkpoint(self.bundle(), self.out / MODEL_FILE)
+
+    def bundle(self, dtype: torch.dtype = torch.float32) -> ModelBundle:
+        """The EMA model as a generation checkpoint, with its ONNX graphs exported from the
+        weights as stored (float16 weights run in float32 on both backends)."""
+        def arrays(module: torch.nn.Module) -> dict[str, np.ndarray]:
+            return {k: v.detach().cpu().to(dtype if v.is_floating_point() else v.dtype).numpy()
+                    for k, v in module.state_dict().items()}
+
+        training = {k: v for k, v in asdict(self.cfg).items() if k not in ("data", "card")}
+        if self._prior is None:
+            self._prior = fit_prior(self.train_set.takes, self.stats, self.model_cfg)
+        return with_graphs(ModelBundle(
+            config=self.model_cfg, weights=arrays(self.ema), mean=self.stats.mean, std=self.stats.std,
+            sampling=self.sampling, guidance=self.guidance, skip_guidance=self.cfg.skip_guidance,
+            model_id=self.cfg.model_id, phonetic=self.phonetic.cfg if self.phonetic else None,
+            phonetic_weights=arrays(self.phonetic) if self.phonetic else {}, prior=self._prior,
+            info={**self.cfg.card, "trained_steps": self.step, "data": asdict(self.cfg.data),
+                  "training": training}, source=f"run {self.out}"))
+
+    # -- steps
+
+    def batch(self, dataset: ClipDataset, indices: torch.Tensor) -> dict[str, torch.Tensor]:
+        items = [dataset[int(i)] for i in indices]
+        return {k: torch.stack([it[k] for it in items]).to(self.env.device) for k in items[0]}
+
+    def train_step(self) -> dict[str, float]:
+        cfg, env = self.cfg, self.env
+        gen = step_generator(cfg.seed, self.step, env.rank)
+        torch.manual_seed(int(torch.randint(2**62, (1,), generator=gen)))  # dropout inside the model
+        per_rank = cfg.batch_size // env.world
+        batch = self.batch(self.train_set, torch.randint(len(self.train_set), (per_rank,), generator=gen))
+        self.ddp.train()
+        with torch.autocast(env.device.type, dtype=self.amp, enabled=self.amp is not None):
+            losses = diffsheg_loss(self.ddp, self.schedule, batch, cfg, gen, self.model_cfg.style_dim,
+                                   self.model_cfg.classifier_free)
+        for group in self.opt.param_groups:
+            group["lr"] = learning_rate(cfg, self.step)
+        self.opt.zero_grad(set_to_none=True)
+        self.scaler.scale(losses["loss"]).backward()
+        self.scaler.unscale_(self.opt)
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+        self.scaler.step(self.opt)
+        self.scaler.update()
+        with torch.no_grad():
+            for e, p in zip(self.ema.parameters(), self.model.parameters()):
+                e.lerp_(p, 1.0 - cfg.ema_decay)
+            for e, b in zip(self.ema.buffers(), self.model.buffers()):
+                e.copy_(b)
+        self.step += 1
+        out = {k: float(v.detach()) for k, v in losses.items()}
+        out["grad_norm"] = float(grad_norm)
+        out["lr"] = self.opt.param_groups[0]["lr"]
+        return out
+
+    @torch.no_grad()
+    def validate(self) -> float | None:
+        """Mean loss of the EMA model on fixed validation clips, timesteps and noise."""
+        if self.val_set is None:
+            return None
+        gen = torch.Generator().manual_seed(self.cfg.seed + 12345)
+        cfg = replace(self.cfg, cond_drop=0.0)
+        n = min(len(self.val_set), self.cfg.val_clips)
+        total, count = 0.0, 0
+        for start in range(0, n, self.cfg.batch_size):
+            batch = self.batch(self.val_set, torch.arange(start, min(start + self.cfg.batch_size, n)))
+            losses = diffsheg_loss(self.ema, self.schedule, batch, cfg, gen, self.model_cfg.style_dim, False)
+            total += float(losses["loss"]) * len(batch["motion"])
+            count += len(batch["motion"])
+        return total / count
+
+    def param_checksum(self) -> float:
+        return float(sum(p.detach().double().sum() for p in self.model.parameters()))
+
+
+class RunLog:
+    """log.jsonl: on resume, lines past the resumed step are dropped so the curve continues."""
+
+    def __init__(self, path: Path, resumed_step: int, enabled: bool):
+        self.path, self.enabled = path, enabled
+        if enabled:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            kept = []
+            if resumed_step and path.is_file():
+                kept = [ln for ln in path.read_text().splitlines() if ln and json.loads(ln)["step"] <= resumed_step]
+            path.write_text("".join(ln + "\n" for ln in kept))
+
+    def write(self, record: dict) -> None:
+        if self.enabled:
+            with open(self.path, "a") as fh:
+                fh.write(json.dumps(record) + "\n")
+
+
+def train(cfg: TrainConfig) -> dict:
+    """Run (or resume) training; returns the summary that rank 0 writes to summary.json."""
+    env = init_distributed(cfg.device)
+    try:
+        return _train(cfg, env)
+    finally:
+        if env.world > 1:
+            dist.destroy_process_group()
+
+
+def _train(cfg: TrainConfig, env: Dist) -> dict:
+    trainer = Trainer(cfg, env)
+    resumed = trainer.begin()
+    log = RunLog(trainer.out / LOG_FILE, trainer.step if resumed else 0, env.main)
+    if env.main:
+        for name, reason in trainer.skipped:
+            tqdm.write(f"skipped take {name}: {reason}")
+        tqdm.write(f"{'resuming at step ' + str(trainer.step) if resumed else 'training'}: "
+                   f"{len(trainer.train_set)} clips of {cfg.data.clip_len} frames, "
+                   f"{env.world} process(es) on {env.device}")
+    if trainer.step == 0:
+        val = trainer.validate()
+        if val is not None:
+            log.write({"step": 0, "val_loss": round(val, 6)})
+    bar = tqdm(total=cfg.steps, initial=trainer.step, disable=not env.main, unit="step", dynamic_ncols=True)
+    window_start, window_steps = time.perf_counter(), 0
+    losses: dict[str, float] = {}
+    while trainer.step < cfg.steps:
+        losses = trainer.train_step()
+        if not math.isfinite(losses["loss"]):
+            raise DiffshegError(f"the loss became {losses['loss']} at step {trainer.step}: lower lr "
+                                "or grad_clip, or check the data for outliers")
+        window_steps += 1
+        bar.update(1)
+        step = trainer.step
+        if step % cfg.log_every == 0 or step == cfg.steps:
+            rate = window_steps * cfg.batch_size / (time.perf_counter() - window_start)
+            bar.set_postfix(loss=f"{losses['loss']:.4f}", clips_s=f"{rate:.0f}")
+            log.write({"step": step, **{k: round(v, 6) for k, v in losses.items()}, "clips_per_s": round(rate, 1)})
+            window_start, window_steps = time.perf_counter(), 0
+        if step % cfg.validate_every == 0 or step == cfg.steps:
+            val = trainer.validate()
+            if val is not None:
+                log.write({"step": step, "val_loss": round(val, 6)})
+                bar.set_postfix(loss=f"{losses['loss']:.4f}", val=f"{val:.4f}")
+        if (step % cfg.checkpoint_every == 0 or step == cfg.steps) and env.main:
+            trainer.save()
+    bar.close()
+    checksums = [trainer.param_checksum()]
+    if env.world > 1:
+        gathered = [None] * env.world
+        dist.all_gather_object(gathered, checksums[0])
+        checksums = gathered
+    summary = {"step": trainer.step, "final_loss": losses.get("loss"), "world_size": env.world,
+               "param_checksums": checksums, "skipped_takes": len(trainer.skipped),
+               "checkpoint": str(trainer.out / MODEL_FILE)}
+    if env.main and cfg.export:
+        summary["export"] = str(save_checkpoint(trainer.bundle(EXPORT_DTYPES[cfg.export_dtype]), cfg.export))
+    if env.main:
+        record = trainer.out / SUMMARY_FILE
+        if not losses and record.is_file():  # nothing trained in this call: keep the run's record
+            summary = {**json.loads(record.read_text()), "export": summary.get("export")}
+        record.write_text(json.dumps(summary, indent=1))
+    if env.world > 1:
+        # every process leaves together: a gloo process that tears down while rank 0 is
+        # still writing files can abort ("terminate called without an active exception")
+        dist.barrier()
+    if len(set(checksums)) > 1:
+        raise DiffshegError(f"processes ended with different parameters: {checksums}")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Train a DiffSHEG model from a JSON or TOML configuration."""
+    parser = argparse.ArgumentParser(prog="python -m diffsheg_core train", description=main.__doc__)
+    parser.add_argument("--config", required=True, help="JSON or TOML file: TrainConfig fields, "
+                        "with [data] (DataConfig) and [model] (ModelConfig overrides) tables")
+    parser.add_argument("--out", help="run folder (overrides out_dir)")
+    parser.add_argument("--steps", type=int, help="total steps (overrides steps)")
+    parser.add_argument("--device", help="auto, cpu or cuda (overrides device)")
+    args = parser.parse_args(argv)
+    cfg = TrainConfig.from_dict(read_config_file(args.config))
+    for name in ("out", "steps", "device"):
+        value = getattr(args, name)
+        if value is not None:
+            setattr(cfg, "out_dir" if name == "out" else name, value)
+    summary = train(cfg)
+    if int(os.environ.get("RANK", "0")) == 0:
+        print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
