@@ -185,6 +185,11 @@ def run_one(args, audio: Path, label: str, several: bool) -> None:
     if not args.no_render and scene.camera is None:
         raise DiffshegError("the scene has no camera to render with: add one, or pass --no-render")
     armature, faces = find_targets(args)
+    from diffsheg_core.files import check_outputs
+
+    check_outputs([output_for(args, audio, several, ".blend", args.save) if args.save else None,
+                   None if args.no_render else output_for(args, audio, several, ".mp4", args.output)],
+                  inputs=[audio, args.model, bpy.data.filepath or None])
     options = BakeOptions(armature=armature, face_meshes=faces, preset=load_preset(args.preset),
                           start_frame=args.start_frame, tolerance=args.tolerance)
     motion = diffsheg_core.generate(str(audio), model=args.model, seed=args.seed, steps=args.steps,
@@ -248,6 +253,9 @@ def main(argv: list[str]) -> int:
     except DiffshegError as exc:
         print(f"batch_render: error: {exc}", file=sys.stderr, flush=True)
         return 1
+    except KeyboardInterrupt:  # Ctrl-C: the outputs already finished stay, the one under way is not written
+        print("batch_render: cancelled", file=sys.stderr, flush=True)
+        return 130
     except Exception as exc:  # one line, not a traceback
         print(f"batch_render: unexpected {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
         return 1

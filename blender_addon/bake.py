@@ -48,6 +48,19 @@ class BakeResult:
     notes: list[str] = field(default_factory=list)
 
 
+MIN_FRAME, MAX_FRAME = -1_048_574, 1_048_574  # Blender's frame range
+
+
+def check_frames(start: int, n_frames: int = 1) -> None:
+    """Refuse a start frame from which `n_frames` keys would leave Blender's frame range
+    (keys, frame range and sound strip would fall out of step)."""
+    last = start + n_frames - 1
+    if start < MIN_FRAME or last > MAX_FRAME:
+        raise DiffshegError(f"start frame {start} with {n_frames} frames of motion ends at frame {last}, "
+                            f"outside Blender's frames {MIN_FRAME} to {MAX_FRAME}: choose an earlier "
+                            "start frame")
+
+
 def scene_fps(scene) -> float:
     return scene.render.fps / scene.render.fps_base
 
@@ -63,6 +76,7 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
         raise DiffshegError("no rig preset chosen: pick one in the panel")
     fps = scene_fps(scene)
     motion = resample_motion(motion, fps)
+    check_frames(options.start_frame, motion.n_frames)
     name = options.action_name or Path(audio_path or motion.meta.get("audio_file") or "speech").stem
 
     plans: list[tuple[object, str, list[Channel]]] = []

@@ -18,6 +18,7 @@ import bpy
 from diffsheg_core.errors import DiffshegError
 
 from . import preset
+from .bake import check_frames
 from .preferences import INSTALL_GPU_HINT, RUNTIME, missing_runtime, runtime_fix, torch_installed
 from .properties import CUSTOM_PRESET
 
@@ -26,10 +27,9 @@ def audio_file(settings) -> Path:
     raw = settings.audio_path.strip()
     if not raw:
         raise DiffshegError("no audio file chosen: pick a speech recording in the panel")
-    path = Path(bpy.path.abspath(raw))
-    if not path.is_file():
-        raise DiffshegError(f"{path}: audio file not found")
-    return path
+    from diffsheg_core.audio import check_audio_path
+
+    return check_audio_path(bpy.path.abspath(raw))
 
 
 def preset_of(settings) -> preset.Preset:
@@ -126,7 +126,16 @@ def check_ready(settings) -> tuple:
     options = bake_options(settings)
     if options.armature is None and not options.face_meshes:
         raise DiffshegError("no target: choose an armature and/or a face mesh in the panel")
+    check_frames(options.start_frame)
+    from diffsheg_core.checkpoints import stored_layout  # the runtime's packages: checked above
+
+    layout = stored_layout(bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None)
+    if options.armature is not None and layout is not None:
+        options.preset.joint_map(layout)  # names the missing section before generating
     return path, options
+
+
+
 
 
 def model_label(meta: dict) -> str:

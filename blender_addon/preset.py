@@ -10,6 +10,7 @@ presets before its Python dependencies are installed.
 from __future__ import annotations
 
 import json
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,6 +23,9 @@ PRESET_DIRS: tuple[Path, ...] = (
 )
 
 
+MAX_JAW_DEGREES = 90.0
+
+
 @dataclass(frozen=True)
 class JawDrive:
     """Drive a jaw bone from a face weight (for layouts with no jaw joint)."""
@@ -30,6 +34,34 @@ class JawDrive:
     source: str = "jawOpen"
     axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
     degrees: float = 25.0
+
+    def __post_init__(self):
+        for name in ("bone", "source"):
+            if not isinstance(getattr(self, name), str) or not getattr(self, name):
+                raise ValueError(f'"jaw"."{name}" must be a name (text), got {getattr(self, name)!r}')
+        axis = self.axis
+        if (not isinstance(axis, (list, tuple)) or len(axis) != 3
+                or not all(_is_number(a) for a in axis)):
+            raise ValueError(f'"jaw"."axis" must be three numbers such as [1, 0, 0], got {axis!r}')
+        if sum(float(a) ** 2 for a in axis) < 1e-12:
+            raise ValueError('"jaw"."axis" is zero: give the axis the jaw opens about, e.g. [1, 0, 0]')
+        if not _is_number(self.degrees) or not 0 < abs(float(self.degrees)) <= MAX_JAW_DEGREES:
+            raise ValueError(f'"jaw"."degrees" must be a number of degrees between 0 and '
+                             f'{MAX_JAW_DEGREES:g} (how far the jaw opens), got {self.degrees!r}')
+        object.__setattr__(self, "axis", tuple(float(a) for a in axis))
+        object.__setattr__(self, "degrees", float(self.degrees))
+
+
+def _is_number(value) -> bool:
+    """A finite int or float (not a bool, a string or NaN)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _names(section: str, value) -> dict:
+    """A {name: name} table of the preset (bones of one layout, custom properties)."""
+    if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+        raise ValueError(f'"{section}" must be a table of names, got {type(value).__name__}')
+    return dict(value)
 
 
 @dataclass(frozen=True)
@@ -69,18 +101,28 @@ def load_preset(name_or_path: str) -> Preset:
         raise DiffshegError(f"{path}: rig preset file not found")
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
+        if not isinstance(data, dict):
+            raise ValueError("the file must hold one JSON object")
         jaw = data.get("jaw")
+        if jaw is not None and not isinstance(jaw, dict):
+            raise ValueError('"jaw" must be a table such as {"bone": "jaw", "degrees": 25}')
+        for bones in data.get("bones", {}).values():
+            for joint, bone in _names("bones", bones).items():
+                if not isinstance(bone, str):
+                    raise ValueError(f'"bones": joint {joint!r} must map to a bone name, got {bone!r}')
         return Preset(
             name=data.get("name", path.stem),
             description=data.get("description", ""),
-            bones={k: dict(v) for k, v in data.get("bones", {}).items()},
+            bones={k: _names(f"bones.{k}", v) for k, v in _names("bones", data.get("bones", {})).items()},
             shape_key_aliases={k: list(v) for k, v in data.get("shape_key_aliases", {}).items()},
             jaw=JawDrive(**jaw) if jaw else None,
             align_rest=bool(data.get("align_rest", False)),
-            properties={k: dict(v) for k, v in data.get("properties", {}).items()},
+            properties={k: _names(f"properties.{k}", v)
+                        for k, v in _names("properties", data.get("properties", {})).items()},
         )
     except (ValueError, TypeError, AttributeError) as exc:
-        raise DiffshegError(f"{path}: not a valid rig preset ({exc}); compare it with presets/beat.json") from exc
+        raise DiffshegError(f"rig preset {path}: {exc}; fix the file (compare it with "
+                            "presets/beat.json)") from None
 
 
 # ---------------------------------------------------------------- name matching

@@ -25,6 +25,8 @@ import functools
 import importlib.util
 import math
 import os
+import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Union
@@ -33,7 +35,7 @@ import numpy as np
 import soundfile as sf
 import soxr
 
-from .errors import AudioError, DiffshegError
+from .errors import AudioError, AudioWarning, DiffshegError
 
 SAMPLE_SPEECH = Path(__file__).resolve().parent / "samples" / "sample_speech.wav"
 
@@ -132,15 +134,7 @@ def load_audio(source: AudioSource, sample_rate: int | None = None) -> Audio:
 
 def read_audio_file(path: str | os.PathLike) -> Audio:
     """Decode an audio file to mono float32 at its own rate (no checks on the content)."""
-    path = Path(path)
-    if not path.exists():
-        raise AudioError(f"audio file '{path}' does not exist: check the path")
-    if path.is_dir():
-        raise AudioError(f"'{path}' is a folder, not an audio file: choose a WAV, FLAC, OGG or MP3 file")
-    if not os.access(path, os.R_OK):
-        raise AudioError(f"audio file '{path}' cannot be read: check its permissions")
-    if path.stat().st_size == 0:
-        raise AudioError(f"audio file '{path}' is empty (0 bytes): record or export it again")
+    path = check_audio_path(path)
     try:
         frames, rate = _decode_with_soundfile(path)
     except sf.SoundFileError as sf_error:
@@ -148,10 +142,43 @@ def read_audio_file(path: str | os.PathLike) -> Audio:
     return Audio(_mixdown(frames), int(rate), str(path))
 
 
+def check_audio_path(path: str | os.PathLike) -> Path:
+    """`path` if it names a readable, non-empty regular file; else an AudioError saying why."""
+    path = Path(path)
+    if path.is_symlink() and not path.exists():
+        raise AudioError(f"audio file '{path}' is a symbolic link to nothing (its target is missing, "
+                         "or the links form a loop): point it at a real file")
+    if not path.exists():
+        raise AudioError(f"audio file '{path}' does not exist: check the path")
+    if path.is_dir():
+        raise AudioError(f"'{path}' is a folder, not an audio file: choose a WAV, FLAC, OGG or MP3 file")
+    if not path.is_file():
+        raise AudioError(f"'{path}' is not a regular file (a pipe, device or socket): save the audio "
+                         "to a file first")
+    if not os.access(path, os.R_OK):
+        raise AudioError(f"audio file '{path}' cannot be read: check its permissions")
+    if path.stat().st_size == 0:
+        raise AudioError(f"audio file '{path}' is empty (0 bytes): record or export it again")
+    return path
+
+
 def _decode_with_soundfile(path: Path) -> tuple[np.ndarray, int]:
-    """(N, C) float32 frames via libsndfile, which recognises WAV/FLAC/OGG/MP3 by content."""
+    """(N, C) float32 frames via libsndfile, which recognises WAV/FLAC/OGG/MP3 by content.
+    A file shorter than its header says is read as far as it goes, with an AudioWarning."""
     frames, rate = sf.read(path, dtype="float32", always_2d=True)
+    _warn_if_truncated(path, len(frames), rate)
     return frames, rate
+
+
+def _warn_if_truncated(path: Path, n_frames: int, rate: int) -> None:
+    """libsndfile notes a WAV data chunk that the file does not hold as `data : N (should be M)`."""
+    found = re.search(r"^data\s*:\s*(\d+)\s*\(should be (\d+)\)", sf.info(str(path)).extra_info, re.M)
+    if found and int(found.group(2)) < int(found.group(1)):
+        promised = n_frames * int(found.group(1)) / max(int(found.group(2)), 1)
+        warnings.warn(AudioWarning(
+            f"'{path}' is cut short: its header promises {promised / rate:.1f} s of audio, the file "
+            f"holds {n_frames / rate:.1f} s; the motion covers what is there. Export the recording "
+            "again if it should be longer"), stacklevel=4)
 
 
 def _decode_with_audioread(path: Path, sf_error: Exception) -> tuple[np.ndarray, int]:

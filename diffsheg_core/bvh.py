@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import DiffshegError
+from .files import atomic_write
 from .motion import Motion, nominal_fps
 from .rigs import BEAT, Layout, get_layout
 from .rotations import axis_angle_to_euler, convert, euler_continuous, euler_to_axis_angle
@@ -327,8 +328,7 @@ def write_bvh_data(data: BvhData, path: str | Path) -> Path:
         raise DiffshegError(f"BVH frame time must be positive, got {data.frame_time}")
     body = io.StringIO()
     np.savetxt(body, data.frames, fmt="%.6f", delimiter=" ")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", encoding="ascii", newline="\n") as fh:
+    with atomic_write(path, "w", encoding="ascii", newline="\n") as fh:
         fh.write(_hierarchy_text(data))
         fh.write(f"MOTION\nFrames: {data.n_frames}\nFrame Time: {data.frame_time:.8f}\n")
         fh.write(body.getvalue())
@@ -416,7 +416,8 @@ def save_skeleton_json(data: BvhData, path: str | Path, template_row: int = 0,
     text = (f'{{"note": {json.dumps(note)},\n"joints": [\n' + ",\n".join(lines) + "\n],\n"
             f'"template": {json.dumps(data.frames[template_row].tolist())}\n}}\n')
     path = Path(path)
-    path.write_text(text, encoding="utf-8")
+    with atomic_write(path, "w", encoding="utf-8") as fh:
+        fh.write(text)
     return path
 
 

@@ -27,6 +27,7 @@ import numpy as np
 
 from .config import ModelConfig
 from .errors import CheckpointError
+from .files import atomic_write
 from .foppas import PRESETS, FoppasConfig
 from .phonetic import PhoneticConfig
 from .prior import GesturePrior
@@ -81,13 +82,12 @@ class ModelBundle:
 
 def write_safetensors(tensors: dict[str, np.ndarray], meta: dict[str, str], path: str | Path) -> Path:
     """Write atomically: a run killed mid-write leaves the previous file, not a broken one."""
-    from safetensors.numpy import save_file
+    from safetensors.numpy import save
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    save_file({k: np.require(v, requirements="C") for k, v in tensors.items()}, str(tmp), metadata=meta)
-    os.replace(tmp, path)
+    data = save({k: np.require(v, requirements="C") for k, v in tensors.items()}, metadata=meta)
+    with atomic_write(path) as fh:
+        fh.write(data)
     return path
 
 
@@ -101,6 +101,35 @@ def read_safetensors(path: Path, fix: str) -> tuple[dict[str, str], dict[str, np
             return fh.metadata() or {}, {k: fh.get_tensor(k) for k in fh.keys()}
     except Exception as exc:  # safetensors raises several types for damaged files
         raise CheckpointError(f"{path}: cannot read this safetensors file ({exc}); {fix}") from exc
+
+
+MAX_WEIGHT = 1e6  # trained weights stay within a few hundred; past this a file is damaged
+
+
+def check_weights(tensors: dict[str, np.ndarray], source: str) -> None:
+    """Refuse NaN, infinite or exploding floating-point values, naming the tensors."""
+    bad = []
+    for name, value in tensors.items():
+        if value.dtype.kind != "f" or value.size == 0:
+            continue
+        values = value.astype(np.float32, copy=False)
+        if not np.isfinite(values).all():
+            bad.append(f"{name} (NaN or infinite)")
+        elif float(np.abs(values).max()) > MAX_WEIGHT:
+            bad.append(f"{name} (values up to {float(np.abs(values).max()):.3g})")
+    if bad:
+        shown = ", ".join(bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
+        raise CheckpointError(f"{source}: damaged weights in {shown}: the file is corrupt or its "
+                              "training diverged; download or export it again")
+
+
+def _json(meta: dict[str, str], key: str, default: Optional[str], path: Path):
+    """The JSON value of metadata `key` (`default` if absent; None: required, KeyError)."""
+    try:
+        return json.loads(meta[key] if default is None else meta.get(key, default))
+    except ValueError as exc:
+        raise CheckpointError(f"{path}: its metadata '{key}' is not valid JSON ({exc}); the file is "
+                              "damaged: download or export it again") from None
 
 
 def _prefixed(tensors: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
@@ -135,19 +164,22 @@ def _load_ours(path: Path) -> ModelBundle:
         raise CheckpointError(f"{path}: not a diffsheg-core checkpoint (format tag "
                               f"{meta.get('format')!r}, expected {FORMAT!r})")
     try:
-        cfg = ModelConfig.from_dict(json.loads(meta["config"]))
-        sampling = FoppasConfig(**json.loads(meta["sampling"]))
+        cfg = ModelConfig.from_dict(_json(meta, "config", None, path))
+        sampling = FoppasConfig(**_json(meta, "sampling", None, path))
         mean, std = tensors.pop("norm.mean"), tensors.pop("norm.std")
     except (KeyError, ValueError, TypeError) as exc:
-        raise CheckpointError(f"{path}: checkpoint metadata is incomplete ({exc})") from exc
+        raise CheckpointError(f"{path}: checkpoint metadata is incomplete ({exc}); export it again") from None
+    check_weights({"norm.mean": mean, "norm.std": std, **tensors}, str(path))
+    if not (std > 0).all():
+        raise CheckpointError(f"{path}: its normalisation std holds zero or negative values; export it again")
     weights = _prefixed(tensors, MODEL_PREFIX)
     if not weights:
         raise CheckpointError(f"{path}: the file holds no network weights (model.*); export it again")
     return ModelBundle(
         config=cfg, weights=weights, mean=mean, std=std, sampling=sampling,
-        guidance=json.loads(meta.get("guidance", "null")),
-        skip_guidance=json.loads(meta.get("skip_guidance", "null")), model_id=meta.get("model_id", path.stem),
-        trained=json.loads(meta.get("trained", "true")), info=json.loads(meta.get("info", "{}")),
+        guidance=_json(meta, "guidance", "null", path),
+        skip_guidance=_json(meta, "skip_guidance", "null", path), model_id=meta.get("model_id", path.stem),
+        trained=_json(meta, "trained", "true", path), info=_json(meta, "info", "{}", path),
         **_stored_phonetic(cfg, meta, tensors, path), prior=_stored_prior(cfg, tensors, path),
         graphs={k: v.tobytes() for k, v in _prefixed(tensors, GRAPH_PREFIX).items()}, source=str(path))
 
@@ -296,6 +328,7 @@ def official_stats(dataset: str, stats_dir: Optional[str | Path],
 
 def _load_official(path: Path, dataset: Optional[str], stats_dir) -> ModelBundle:
     state = official_state_dict(_read_pickle(path), path)
+    check_weights(state, str(path))
     from .model import UniEG, load_state_strict  # torch: _read_pickle has checked it is there
 
     cfg = config_from_state(state, dataset, path)
@@ -312,6 +345,22 @@ def _load_official(path: Path, dataset: Optional[str], stats_dir) -> ModelBundle
 
 
 # ---------------------------------------------------------------- the default and entry point
+
+def stored_layout(source: str | Path | None = None) -> Optional[str]:
+    """The channel layout of one of our model files (None: the bundled default) from its
+    metadata alone, without reading the weights; None for official checkpoints (their
+    layout shows in their tensors) and files that cannot tell."""
+    path = DEFAULT_WEIGHTS if source is None else Path(source).expanduser()
+    if not path.is_file() or path.suffix != ".safetensors":
+        return None
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="numpy") as fh:
+            return ModelConfig.from_dict(json.loads((fh.metadata() or {})["config"])).layout
+    except Exception:  # damaged files are reported when they load
+        return None
+
 
 def load_model(source: str | Path | None = None, *, dataset: Optional[str] = None,
                stats_dir: str | Path | None = None) -> ModelBundle:

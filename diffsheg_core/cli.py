@@ -6,6 +6,7 @@ import argparse
 import sys
 import threading
 import time
+import warnings
 from dataclasses import replace
 from typing import Optional, Sequence
 
@@ -55,6 +56,7 @@ def run_generate(args: argparse.Namespace) -> int:
     from . import motion as motion_io
     from .audio import SAMPLE_SPEECH, load_audio
     from .checkpoints import load_model
+    from .files import check_outputs
     from .foppas import PRESETS
     from .pipeline import generate
     from .runtime.backends import open_network
@@ -62,6 +64,8 @@ def run_generate(args: argparse.Namespace) -> int:
     audio_path = args.audio or str(SAMPLE_SPEECH)
     if args.audio is None:
         print(f"no audio given: using the bundled sample speech {SAMPLE_SPEECH}")
+    check_outputs([args.output, args.bvh, args.arkit_json, args.csv, args.talkshow],
+                  inputs=[audio_path, args.checkpoint])
     started = time.perf_counter()
     speech = load_audio(audio_path)
     bundle = load_model(args.checkpoint, dataset=args.config, stats_dir=args.stats)
@@ -117,8 +121,13 @@ def _delegate(module: str, argv: Sequence[str]) -> int:
     return importlib.import_module(f"diffsheg_core.{module}").main(list(argv)) or 0
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"warning: {message}", file=sys.stderr)
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    warnings.showwarning = _show_warning  # one plain line per warning, not a source location
     delegated = {"train": "training.train", "evaluate": "training.evaluate",
                  "train-autoencoder": "training.autoencoder", "train-phonetic": "training.phonetic",
                  "export-onnx": "export"}

@@ -16,3 +16,7 @@ class CheckpointError(DiffshegError):
 
 class Cancelled(DiffshegError):
     """Generation was cancelled by the caller between two diffusion steps."""
+
+
+class AudioWarning(UserWarning):
+    """The audio is usable but not what its file says (e.g. a header promising more data)."""

@@ -19,6 +19,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .errors import DiffshegError
+from .files import atomic_write
 from .rigs import ARKIT51, ARKIT52
 from .rotations import resample_weights, slerp_resample
 
@@ -89,8 +90,7 @@ class Motion:
         }
         if self.root_translation is not None:
             arrays["root_translation"] = self.root_translation
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "wb") as fh:
+        with atomic_write(path) as fh:
             np.savez(fh, **arrays)
         return path
 
@@ -269,8 +269,8 @@ def write_arkit_json(motion: Motion, path: str | Path) -> Path:
     weights = np.round(np.stack([curves[n] for n in names], axis=1).astype(np.float64), 6)
     frames = [{"weights": w, "time": round(i / motion.fps, 6)} for i, w in enumerate(weights.tolist())]
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"names": names, "frames": frames}), encoding="utf-8")
+    with atomic_write(path, "w", encoding="utf-8") as fh:
+        fh.write(json.dumps({"names": names, "frames": frames}))
     return path
 
 
@@ -319,8 +319,8 @@ def write_livelink_csv(motion: Motion, path: str | Path) -> Path:
     lines += [f"{tc},{count},{row}" for tc, row in
               zip(_timecodes(motion.n_frames, motion.fps), body.getvalue().splitlines())]
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    with atomic_write(path, "w", encoding="utf-8") as fh:
+        fh.write("\n".join(lines) + "\n")
     return path
 
 
@@ -396,8 +396,7 @@ def write_talkshow_npz(motion: Motion, path: str | Path) -> Path:
     n_exp = min(100, motion.face.shape[1])
     expression[:, :n_exp] = motion.face[:, :n_exp]
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as fh:
+    with atomic_write(path) as fh:
         np.savez(fh, pose=pose.reshape(motion.n_frames, -1), expression=expression,
                  fps=np.float64(motion.fps))
     return path

@@ -175,6 +175,7 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
 
     cond = speech_features(bundle, network, speech, hubert_path, hubert_quirk)
     normalised = sample_long(sampler, make_eps_fn, cond, seed, progress, cancel)
+    check_finite(bundle, normalised)
     return to_motion(bundle, normalised, meta={
         "model_id": bundle.model_id, "trained": bundle.trained, "seed": seed,
         "audio_file": speech.path, "sample_rate": speech.sample_rate, "style": int(style),
@@ -184,6 +185,15 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
         "clip_len": bundle.config.clip_len, "backend": network.name,
         "device": str(network.device), "software": f"diffsheg_core {__version__}",
     })
+
+
+def check_finite(bundle: ModelBundle, normalised: np.ndarray) -> None:
+    """Refuse NaN or infinite model output before anything is made of it."""
+    bad = ~np.isfinite(normalised)
+    if bad.any():
+        raise DiffshegError(f"{bundle.source}: the model produced NaN or infinite motion "
+                            f"({100 * bad.mean():.1f} % of the values): its weights are damaged; "
+                            "nothing was written. Download or export the model again")
 
 
 def to_motion(bundle: ModelBundle, normalised: np.ndarray, meta: dict) -> Motion:

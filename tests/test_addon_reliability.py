@@ -1,0 +1,113 @@
+"""The add-on and batch_render.py refuse what cannot work before generating, with messages
+that name the file or field and the fix, and leave the scene as it was."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from addon_fixtures import REPO, append_face, bpy, cut_speech, import_beat_armature, reset_scene, scene_state
+from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
+
+import diffsheg_core
+from blender_addon.bake import MAX_FRAME
+from blender_addon.preset import load_preset
+from blender_addon.properties import CUSTOM_PRESET
+from diffsheg_core.errors import DiffshegError
+
+
+@pytest.fixture(scope="module")
+def speech(tmp_path_factory):
+    return cut_speech(tmp_path_factory.mktemp("speech"), seconds=3.0)
+
+
+def _configure(scene, audio, armature, face, preset="beat", start=1):
+    s = scene.diffsheg
+    s.audio_path = str(audio)
+    s.armature = armature
+    s.preset = preset
+    s.steps = 3
+    s.device = "CPU"
+    s.start_frame = start
+    s.face_meshes.add().object = face
+    return s
+
+
+def _refused(scene, match: str, monkeypatch) -> None:
+    """The operator refuses with `match` before generating, and the scene is unchanged."""
+    def never(*args, **kwargs):
+        raise AssertionError("generated although the settings could be refused up front")
+
+    monkeypatch.setattr(diffsheg_core, "generate", never)
+    before = scene_state(scene)
+    with pytest.raises(RuntimeError, match=match) as err:
+        bpy.ops.diffsheg.generate()
+    assert "Traceback" not in str(err.value)
+    assert scene_state(scene) == before
+
+
+def test_a_folder_as_audio_is_named_a_folder(tmp_path, monkeypatch):
+    scene = reset_scene()
+    _configure(scene, tmp_path, import_beat_armature(), append_face())
+    _refused(scene, "is a folder, not an audio file", monkeypatch)
+
+
+def test_a_start_frame_beyond_blenders_range_is_refused(speech, monkeypatch):
+    scene = reset_scene()
+    settings = _configure(scene, speech, import_beat_armature(), append_face(), start=MAX_FRAME)
+    settings.start_frame = MAX_FRAME
+    if settings.start_frame != MAX_FRAME:
+        pytest.skip("this Blender's start frame property stops short of its frame range")
+    with pytest.raises(RuntimeError, match="outside Blender's frames"):
+        bpy.ops.diffsheg.generate()
+
+
+def test_a_preset_without_the_models_layout_is_refused_before_generating(speech, tmp_path, monkeypatch):
+    preset = tmp_path / "show_only.json"
+    preset.write_text(json.dumps({"name": "show only", "bones": {"smplx": {"neck": "neck"}}}))
+    scene = reset_scene()
+    settings = _configure(scene, speech, import_beat_armature(), append_face(), preset=CUSTOM_PRESET)
+    settings.preset_file = str(preset)
+    _refused(scene, "no bone map for the 'beat' layout", monkeypatch)
+
+
+@pytest.mark.parametrize("jaw,match", [
+    ({"bone": "jaw", "degrees": float("nan")}, '"jaw"."degrees" must be a number of degrees'),
+    ({"bone": "jaw", "degrees": 1e9}, '"jaw"."degrees" must be a number of degrees between 0 and 90'),
+    ({"bone": "jaw", "degrees": "25"}, '"jaw"."degrees"'),
+    ({"bone": "jaw", "axis": [0, 0, 0]}, '"jaw"."axis" is zero'),
+    ({"bone": "jaw", "axis": "x"}, '"jaw"."axis" must be three numbers'),
+    ({"bone": 3}, '"jaw"."bone" must be a name'),
+    ({"bone": "jaw", "strength": 2}, "strength"),
+])
+def test_bad_preset_numbers_name_the_preset_and_the_field(tmp_path, jaw, match):
+    path = tmp_path / "mine.json"
+    path.write_text(json.dumps({"name": "mine", "bones": {"beat": {"Neck": "neck"}}, "jaw": jaw}))
+    with pytest.raises(DiffshegError, match=match) as err:
+        load_preset(str(path))
+    assert str(path) in str(err.value) and "compare it with presets/beat.json" in str(err.value)
+
+
+def test_bad_bone_tables_name_the_joint(tmp_path):
+    path = tmp_path / "mine.json"
+    path.write_text(json.dumps({"bones": {"beat": {"Neck": 7}}}))
+    with pytest.raises(DiffshegError, match="joint 'Neck' must map to a bone name"):
+        load_preset(str(path))
+
+
+def test_ctrl_c_in_batch_render_is_one_line(speech, tmp_path):
+    proc = subprocess.Popen([sys.executable, str(REPO / "batch_render.py"), "--audio", str(speech),
+                             "--no-render", "--save", str(tmp_path / "out.blend"), "--steps", "25"],
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for line in proc.stdout:
+        if "generating" in line:
+            proc.send_signal(signal.SIGINT)
+            break
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130, err
+    assert "batch_render: cancelled" in err and "Traceback" not in err
+    assert not (tmp_path / "out.blend").exists()

@@ -1,0 +1,180 @@
+"""Nothing the user had is lost and nothing silently wrong comes out: damaged models are
+refused when they load, non-finite motion before anything is written, outputs never
+overwrite an input and are written atomically, odd inputs get messages that name them."""
+
+from __future__ import annotations
+
+import errno
+import os
+import subprocess
+import sys
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import soundfile as sf
+from conftest import random_bundle
+
+from diffsheg_core import AudioError, CheckpointError, DiffshegError, generate
+from diffsheg_core.audio import load_audio
+from diffsheg_core.checkpoints import DEFAULT_WEIGHTS, load_model, read_safetensors, write_safetensors
+from diffsheg_core.errors import AudioWarning
+from diffsheg_core.motion import Motion
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def speech(data_dir, tmp_path_factory) -> Path:
+    """Three seconds of real speech."""
+    samples, rate = sf.read(data_dir / "audio" / "2_scott_0_4_4.wav", dtype="float32")
+    path = tmp_path_factory.mktemp("speech") / "talk.wav"
+    sf.write(path, samples[: 3 * rate], rate)
+    return path
+
+
+@pytest.fixture(scope="module")
+def default_file():
+    return read_safetensors(DEFAULT_WEIGHTS, "")
+
+
+def damaged_copy(default_file, path: Path, name: str, change) -> Path:
+    meta, tensors = default_file
+    tensors = {**tensors, name: change(tensors[name].copy())}
+    return write_safetensors(tensors, meta, path)
+
+
+def cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "diffsheg_core", "generate", *args], cwd=cwd,
+                          capture_output=True, text=True, timeout=300)
+
+
+def nan_at_first(values: np.ndarray) -> np.ndarray:
+    values.flat[0] = np.nan
+    return values
+
+
+@pytest.mark.parametrize("name,change,match", [
+    ("model.encoder_ges.out.weight", nan_at_first, "model.encoder_ges.out.weight \\(NaN or infinite\\)"),
+    ("model.encoder_exp.joint_embed.weight", lambda v: (v.astype(np.float32) * 1e30).astype(np.float32),
+     "model.encoder_exp.joint_embed.weight \\(values up to"),
+    ("norm.std", lambda v: np.full_like(v, np.inf), "norm.std \\(NaN or infinite\\)"),
+])
+def test_damaged_weights_are_refused_when_the_model_loads(default_file, tmp_path, speech, name, change, match):
+    path = damaged_copy(default_file, tmp_path / "damaged.safetensors", name, change)
+    with pytest.raises(CheckpointError, match=match) as err:
+        load_model(path)
+    assert str(path) in str(err.value) and "again" in str(err.value)
+    out = tmp_path / "motion.npz"
+    result = cli(str(speech), "--checkpoint", str(path), "-o", str(out))
+    assert result.returncode == 2 and "damaged weights" in result.stderr
+    assert "Traceback" not in result.stderr and not out.exists()
+
+
+def test_non_finite_motion_is_refused_before_anything_is_written(speech):
+    bundle = random_bundle(graphs=False)
+    weights = dict(bundle.weights)
+    weights["encoder_ges.out.bias"] = np.full_like(weights["encoder_ges.out.bias"], np.nan)
+    with pytest.raises(DiffshegError, match="NaN or infinite motion .*nothing was written"):
+        generate(speech, model=replace(bundle, weights=weights), steps=2)
+
+
+def test_bad_checkpoint_metadata_names_the_field(default_file, tmp_path):
+    meta, tensors = default_file
+    path = write_safetensors(tensors, {**meta, "info": "{not json"}, tmp_path / "bad_meta.safetensors")
+    with pytest.raises(CheckpointError, match="metadata 'info' is not valid JSON"):
+        load_model(path)
+
+
+def test_an_output_that_is_an_input_is_refused_and_the_input_kept(speech, tmp_path):
+    talk = tmp_path / "talk.wav"
+    talk.write_bytes(speech.read_bytes())
+    before = talk.read_bytes()
+    for option in ("-o", "--bvh", "--arkit-json", "--csv"):
+        result = cli(str(talk), *(["-o", str(tmp_path / "m.npz")] if option != "-o" else []), option, str(talk))
+        assert result.returncode == 2 and "is an input of this run" in result.stderr, option
+        assert "Traceback" not in result.stderr
+    assert talk.read_bytes() == before
+    result = cli(str(talk), "-o", str(tmp_path / "m.npz"), "--bvh", str(tmp_path / "m.npz"))
+    assert result.returncode == 2 and "named twice" in result.stderr
+
+
+def test_a_folder_as_output_is_refused_before_generating(speech, tmp_path):
+    result = cli(str(speech), "-o", str(tmp_path))
+    assert result.returncode == 2 and "is a folder" in result.stderr
+    assert "frames at" not in result.stdout  # refused up front: nothing was generated
+
+
+@pytest.fixture(scope="module")
+def motion(speech) -> Motion:
+    return generate(speech, steps=2)
+
+
+@pytest.mark.parametrize("failure", [OSError(errno.ENOSPC, "No space left on device"), KeyboardInterrupt()])
+def test_a_failed_save_leaves_the_previous_file_byte_for_byte(motion, tmp_path, monkeypatch, failure):
+    """A full disk or Ctrl-C in the middle of writing: the old file stays, no partial file is left."""
+    from diffsheg_core import motion as motion_module
+
+    path = motion.save_npz(tmp_path / "talk.npz")
+    before = path.read_bytes()
+
+    def failing_savez(fh, **arrays):
+        fh.write(b"PK\x03\x04 half an archive")
+        raise failure
+
+    monkeypatch.setattr(motion_module.np, "savez", failing_savez)
+    expected = DiffshegError if isinstance(failure, OSError) else KeyboardInterrupt
+    with pytest.raises(expected) as err:
+        motion.save_npz(path)
+    if expected is DiffshegError:
+        assert str(path) in str(err.value) and "unchanged" in str(err.value)
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["talk.npz"]
+
+
+def test_every_writer_replaces_its_file_only_when_complete(motion, tmp_path):
+    from diffsheg_core.bvh import write_bvh
+    from diffsheg_core.motion import write_arkit_json, write_livelink_csv
+
+    for write, name in ((write_bvh, "m.bvh"), (write_arkit_json, "m.json"), (write_livelink_csv, "m.csv"),
+                        (lambda m, p: m.save_npz(p), "m.npz")):
+        path = tmp_path / name
+        path.write_text("the previous take")
+        write(motion, path)
+        assert path.stat().st_size > 100 and oct(path.stat().st_mode & 0o777) != "0o600"
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".partial")]
+
+
+def test_seeds_beyond_64_bits_are_used_as_given(speech):
+    a = generate(speech, steps=2, seed=5)
+    b = generate(speech, steps=2, seed=5 + 2**64)
+    assert b.meta["seed"] == 5 + 2**64 and not np.allclose(a.rotations, b.rotations)
+
+
+def test_odd_audio_files_are_named_for_what_they_are(tmp_path, speech):
+    fifo = tmp_path / "pipe.wav"
+    os.mkfifo(fifo)
+    loop = tmp_path / "loop.wav"
+    loop.symlink_to(tmp_path / "loop2.wav")
+    (tmp_path / "loop2.wav").symlink_to(loop)
+    folder = tmp_path / "folder.wav"
+    folder.mkdir()
+    for path, match in ((fifo, "not a regular file"), (loop, "symbolic link to nothing"), (folder, "is a folder")):
+        with pytest.raises(AudioError, match=match):
+            load_audio(path)
+
+
+def test_a_wav_cut_short_of_its_header_is_generated_with_a_warning(speech, tmp_path):
+    data = speech.read_bytes()
+    cut = tmp_path / "cut.wav"
+    cut.write_bytes(data[: len(data) // 2])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        motion = generate(cut, steps=2)
+    messages = [str(w.message) for w in caught if issubclass(w.category, AudioWarning)]
+    assert messages and "cut short" in messages[0] and "3.0 s" in messages[0] and "1.5 s" in messages[0]
+    assert motion.n_frames == 22
+    result = cli(str(cut), "-o", str(tmp_path / "m.npz"), "--steps", "2")
+    assert result.returncode == 0 and "warning: " in result.stderr and "cut short" in result.stderr
