@@ -93,6 +93,14 @@ class Audio:
         return len(self.samples) / self.sample_rate
 
     @property
+    def n_samples(self) -> int:
+        return len(self.samples)
+
+    def read(self, start: int, stop: int) -> "Audio":
+        """Samples [start, stop) as an Audio (the interface `AudioFile` shares)."""
+        return Audio(self.samples[start:stop], self.sample_rate, self.path)
+
+    @property
     def name(self) -> str:
         """How error messages refer to this audio."""
         return f"'{self.path}'" if self.path is not None else "the audio array"
@@ -130,6 +138,69 @@ def load_audio(source: AudioSource, sample_rate: int | None = None) -> Audio:
     raise AudioError(
         f"cannot read audio from a {type(source).__name__}: pass a file path or a numpy array "
         "(with sample_rate)")
+
+
+@dataclass
+class AudioFile:
+    """A recording read piece by piece, never whole: long files in bounded memory.
+
+    `read(start, stop)` gives samples [start, stop) mixed down to mono, as `Audio`.
+    `open_audio_file` checks the file as `load_audio` checks an `Audio`."""
+
+    path: str
+    sample_rate: int
+    n_samples: int
+
+    @property
+    def duration(self) -> float:
+        return self.n_samples / self.sample_rate
+
+    @property
+    def name(self) -> str:
+        return f"'{self.path}'"
+
+    def read(self, start: int, stop: int) -> Audio:
+        with sf.SoundFile(self.path) as fh:
+            fh.seek(max(0, start))
+            frames = fh.read(max(0, min(stop, self.n_samples) - max(0, start)), dtype="float32", always_2d=True)
+        return Audio(_mixdown(frames), self.sample_rate, self.path)
+
+
+PIECE_SECONDS = 60  # how much of a long recording is read, checked or featurised at once
+
+
+def open_audio_file(path: str | os.PathLike) -> AudioFile | Audio:
+    """A checked recording: an `AudioFile` read in pieces where libsndfile can seek in it,
+    else (formats only audioread decodes) the whole `Audio`."""
+    path = check_audio_path(path)
+    try:
+        info = sf.info(str(path))
+    except sf.SoundFileError:
+        audio = read_audio_file(path)
+        check_audio(audio)
+        return audio
+    recording = AudioFile(str(path), int(info.samplerate), 0)
+    recording.n_samples = _check_pieces(recording)
+    _warn_if_truncated(path, recording.n_samples, recording.sample_rate)
+    return recording
+
+
+def _check_pieces(recording: AudioFile) -> int:
+    """Check `recording` piece by piece as `check_audio` checks an array; its true length."""
+    step = PIECE_SECONDS * recording.sample_rate
+    n, peak, finite = 0, 0.0, True
+    with sf.SoundFile(recording.path) as fh:
+        while True:
+            frames = fh.read(step, dtype="float32", always_2d=True)
+            if not len(frames):
+                break
+            mono = _mixdown(frames)
+            n += len(mono)
+            finite = finite and bool(np.isfinite(mono).all())
+            if finite:
+                peak = max(peak, float(np.abs(mono).max()))
+    _check_summary(recording.name, recording.sample_rate, n, peak, finite)
+    return n
 
 
 def read_audio_file(path: str | os.PathLike) -> Audio:
@@ -250,27 +321,32 @@ def _check_rate(sample_rate: Any, subject: str, fix: str) -> int:
 
 def check_audio(audio: Audio) -> None:
     """Raise AudioError unless `audio` is finite, audible mono speech of at least one motion frame."""
-    _check_rate(audio.sample_rate, f"the sample rate of {audio.name}",
+    finite = bool(np.isfinite(audio.samples).all())
+    peak = float(np.abs(audio.samples).max()) if finite and len(audio.samples) else 0.0
+    _check_summary(audio.name, audio.sample_rate, len(audio.samples), peak, finite)
+
+
+def _check_summary(name: str, sample_rate: int, n: int, peak: float, finite: bool) -> None:
+    """The checks of `check_audio`, on what they need: rate, length, finiteness, peak."""
+    _check_rate(sample_rate, f"the sample rate of {name}",
                 "its header is wrong or it is not speech; resample it to 16000-48000 Hz")
-    n = len(audio.samples)
     if n == 0:
-        raise AudioError(f"{audio.name} contains no audio samples: record or export it again")
-    if n < audio.sample_rate * MIN_DURATION_S:
+        raise AudioError(f"{name} contains no audio samples: record or export it again")
+    if n < sample_rate * MIN_DURATION_S:
         raise AudioError(
-            f"{audio.name} is only {audio.duration * 1000:.1f} ms long: at least "
+            f"{name} is only {n / sample_rate * 1000:.1f} ms long: at least "
             f"{MIN_DURATION_S * 1000:.1f} ms (one motion frame) of speech is needed")
-    if not np.isfinite(audio.samples).all():
+    if not finite:
         raise AudioError(
-            f"{audio.name} contains NaN or infinite samples: the file or array is corrupt; "
+            f"{name} contains NaN or infinite samples: the file or array is corrupt; "
             "export the audio again")
-    peak = float(np.abs(audio.samples).max())
     if peak < SILENCE_PEAK:
         raise AudioError(
-            f"{audio.name} is silent (peak level {peak:.1e}, below {SILENCE_PEAK:.0e}): "
+            f"{name} is silent (peak level {peak:.1e}, below {SILENCE_PEAK:.0e}): "
             "use a recording with audible speech")
     if peak > MAX_FLOAT_PEAK:
         raise AudioError(
-            f"{audio.name} has samples up to {peak:.0f}, but float audio must lie in [-1, 1]: "
+            f"{name} has samples up to {peak:.0f}, but float audio must lie in [-1, 1]: "
             "it looks like unscaled integer PCM; divide 16-bit samples by 32768")
 
 
@@ -290,7 +366,7 @@ def resample(audio: Audio, sample_rate: int) -> Audio:
         samples = samples.astype(np.float32, copy=False)
     resampled = soxr.resample(np.ascontiguousarray(samples), audio.sample_rate, sample_rate,
                               quality=SOXR_QUALITY)
-    n = _resampled_length(len(samples), audio.sample_rate, sample_rate)
+    n = resampled_length(len(samples), audio.sample_rate, sample_rate)
     if len(resampled) >= n:
         resampled = resampled[:n]
     else:
@@ -298,7 +374,7 @@ def resample(audio: Audio, sample_rate: int) -> Audio:
     return Audio(resampled.astype(np.float32, copy=False), int(sample_rate), audio.path)
 
 
-def _resampled_length(n: int, orig_sr: int, target_sr: int) -> int:
+def resampled_length(n: int, orig_sr: int, target_sr: int) -> int:
     """Sample count `resample` produces, computed exactly as librosa does."""
     if orig_sr == target_sr:
         return n
@@ -405,17 +481,23 @@ def mel_features(audio: Audio, fps: float = 15.0) -> np.ndarray:
     spectrogram uses n_fft 2048, hop 18000 / fps, hann window, centred frames, power
     (no log, no normalisation); the last frame, centred past the end, is dropped.
     """
-    hop = mel_hop(fps)
+    return mel_frames(audio, fps)[: n_motion_frames(audio, fps)]
+
+
+def mel_frames(audio: Audio, fps: float = 15.0) -> np.ndarray:
+    """(T + 1, 128): `mel_features` with the last frame kept (frame j centred at j / fps s),
+    for computing the features of a long recording piece by piece."""
     speech = resample(resample(audio, LOAD_RATE), MEL_RATE)
-    mel = mel_spectrogram(speech.samples, MEL_N_FFT, hop, MEL_N_MELS)
-    return np.ascontiguousarray(mel[:, :-1].T, dtype=np.float32)
+    return np.ascontiguousarray(mel_spectrogram(speech.samples, MEL_N_FFT, mel_hop(fps), MEL_N_MELS).T,
+                                dtype=np.float32)
 
 
-def n_motion_frames(audio: Audio, fps: float = 15.0) -> int:
-    """Number of motion frames for `audio` at `fps`; equals len(mel_features(audio, fps))."""
+def n_motion_frames(audio, fps: float = 15.0) -> int:
+    """Number of motion frames for `audio` (an Audio or AudioFile) at `fps`; equals
+    len(mel_features(audio, fps))."""
     hop = mel_hop(fps)
-    n_load = _resampled_length(len(audio.samples), audio.sample_rate, LOAD_RATE)
-    return _resampled_length(n_load, LOAD_RATE, MEL_RATE) // hop
+    n_load = resampled_length(audio.n_samples, audio.sample_rate, LOAD_RATE)
+    return resampled_length(n_load, LOAD_RATE, MEL_RATE) // hop
 
 
 # --- the second speech input ---------------------------------------------------

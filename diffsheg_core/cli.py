@@ -54,11 +54,11 @@ def run_generate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from . import motion as motion_io
-    from .audio import SAMPLE_SPEECH, load_audio
+    from .audio import SAMPLE_SPEECH
     from .checkpoints import load_model
     from .files import check_outputs
     from .foppas import PRESETS
-    from .pipeline import generate
+    from .pipeline import generate, open_speech
     from .runtime.backends import open_network
 
     audio_path = args.audio or str(SAMPLE_SPEECH)
@@ -67,7 +67,7 @@ def run_generate(args: argparse.Namespace) -> int:
     check_outputs([args.output, args.bvh, args.arkit_json, args.csv, args.talkshow],
                   inputs=[audio_path, args.checkpoint])
     started = time.perf_counter()
-    speech = load_audio(audio_path)
+    speech = open_speech(audio_path)  # checked now, read piece by piece while generating
     bundle = load_model(args.checkpoint, dataset=args.config, stats_dir=args.stats)
     network = open_network(bundle, args.backend, args.device, args.precision, args.threads)
     if not bundle.trained:

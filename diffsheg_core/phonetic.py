@@ -91,7 +91,13 @@ class PhoneticConfig:
         return cls(**values)
 
 
-def log_mel(audio: Audio, cfg: PhoneticConfig) -> np.ndarray:
+def raw_log_mel(audio: Audio, cfg: PhoneticConfig) -> np.ndarray:
+    """(n_mels, N) log10 power mel at the recogniser rate, before any level normalisation."""
+    speech = resample(audio, MEL_RATE)
+    return np.log10(mel_spectrogram(speech.samples, cfg.n_fft, cfg.hop, cfg.n_mels) + 1e-5)
+
+
+def log_mel(audio: Audio, cfg: PhoneticConfig, level: np.ndarray | None = None) -> np.ndarray:
     """(n_mels, N) log10 power mel at the recogniser rate; frame j is centred at j * hop.
 
     With `normalise = "utterance"` each band's mean over the recording is taken off
@@ -99,12 +105,19 @@ def log_mel(audio: Audio, cfg: PhoneticConfig) -> np.ndarray:
     (not all: frames at the 1e-5 floor keep their level). On the real take 2_scott_0_1_1
     this raised the bilabial probability at p/b/m from 0.37 to 0.41 (same corpus, same
     network). With the shipped encoder the phone picked per frame stays the same for 89 %
-    of frames when the recording is 5 dB louder or quieter (v2's encoder, on raw levels: 85 %)."""
-    speech = resample(audio, MEL_RATE)
-    mel = np.log10(mel_spectrogram(speech.samples, cfg.n_fft, cfg.hop, cfg.n_mels) + 1e-5)
+    of frames when the recording is 5 dB louder or quieter (v2's encoder, on raw levels: 85 %).
+
+    `level`: (n_mels, 1) band means to take off instead of `audio`'s own (a piece of a long
+    recording takes off the whole recording's)."""
+    mel = raw_log_mel(audio, cfg)
     if cfg.normalise == "utterance":
-        mel = mel - mel.mean(axis=1, keepdims=True)
+        mel = mel - (mel.mean(axis=1, keepdims=True) if level is None else level)
     return mel.astype(np.float32)
+
+
+def receptive_field(cfg: PhoneticConfig) -> int:
+    """Recogniser frames the encoder looks at on either side of a frame."""
+    return sum(d * (cfg.kernel // 2) for d in cfg.dilations)
 
 
 def stack_posteriors(post: np.ndarray, n_frames: int, subframes: int) -> np.ndarray:

@@ -11,19 +11,21 @@ from __future__ import annotations
 import threading
 from functools import lru_cache
 from pathlib import Path
-from typing import Callable, Optional, Union
+from typing import Callable, Iterator, Optional, Union
 
 import numpy as np
 
 from . import __version__
-from .audio import Audio, SpeechEncoding, hubert_features, load_audio, load_hubert, mel_features
+from .audio import (MEL_RATE, PIECE_SECONDS, Audio, AudioFile, SpeechEncoding, resampled_length,
+                    hubert_features, load_audio, load_hubert, mel_features, mel_frames, n_motion_frames,
+                    open_audio_file)
 from .checkpoints import ModelBundle, load_model
 from .diffusion import Schedule
 from .errors import DiffshegError
-from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, check_seed, sample_long, with_overrides
+from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, check_seed, with_overrides
 from .guidance import Guidance, step_eps
 from .motion import Motion
-from .phonetic import fingerprint, phonetic_encoding
+from .phonetic import PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel
 from .progress import ProgressCallback
 from .runtime.backends import open_network
 
@@ -103,6 +105,72 @@ def speech_features(bundle: ModelBundle, network, audio: Audio, hubert_path: Opt
     return np.concatenate(parts, axis=1).astype(np.float32)
 
 
+MARGIN_SECONDS = 2  # audio read either side of a piece: far more than the resampler's and the encoder's reach
+
+
+def speech_chunks(bundle: ModelBundle, network, speech: Union[Audio, AudioFile],
+                  hubert_path: Optional[str] = None, hubert_quirk: bool = False) -> Iterator[np.ndarray]:
+    """`speech_features` of `speech` in order, PIECE_SECONDS at a time, so a long recording is
+    never held whole: each piece is read with MARGIN_SECONDS of audio either side, its
+    features computed as for the whole recording and the margins' frames dropped (equal to
+    float32 rounding; a recording that fits one piece gives exactly `speech_features`).
+    HuBERT models still read the whole recording."""
+    cfg = bundle.config
+    fps, rate = cfg.fps, speech.sample_rate
+    if (cfg.has_speech_input and not cfg.phonetic_input) or not float(fps).is_integer() \
+            or speech.duration <= PIECE_SECONDS:
+        yield speech_features(bundle, network, speech.read(0, speech.n_samples), hubert_path, hubert_quirk)
+        return
+    fps = int(fps)
+    total = n_motion_frames(speech, fps)
+    phonetic = bundle.phonetic if cfg.phonetic_input else None
+    level = _phonetic_level(speech, phonetic) if phonetic is not None else None
+    for t0 in range(0, int(np.ceil(speech.duration)), PIECE_SECONDS):
+        first, last = t0 * fps, min((t0 + PIECE_SECONDS) * fps, total)
+        if first >= last:
+            return
+        start = max(0, t0 - MARGIN_SECONDS)
+        piece = speech.read(start * rate, (t0 + PIECE_SECONDS + MARGIN_SECONDS) * rate)
+        parts = [mel_frames(piece, fps)[first - start * fps: last - start * fps]]
+        if phonetic is not None:
+            parts.append(_phonetic_piece(network, phonetic, piece, speech, start, first, last, level))
+        yield np.concatenate(parts, axis=1).astype(np.float32)
+
+
+def _posterior_count(speech, phonetic: PhoneticConfig) -> int:
+    """Recogniser frames of the whole recording (centred frames at 18 kHz)."""
+    return 1 + resampled_length(speech.n_samples, speech.sample_rate, MEL_RATE) // phonetic.hop
+
+
+def _phonetic_level(speech: AudioFile, phonetic: PhoneticConfig) -> Optional[np.ndarray]:
+    """The whole recording's mean log-mel per band (the encoder's utterance normalisation),
+    summed piece by piece."""
+    if phonetic.normalise != "utterance":
+        return None
+    rate, per_second = speech.sample_rate, phonetic.fps * phonetic.subframes
+    total = _posterior_count(speech, phonetic)
+    level = np.zeros((phonetic.n_mels, 1))
+    for t0 in range(0, int(np.ceil(speech.duration)), PIECE_SECONDS):
+        start = max(0, t0 - MARGIN_SECONDS)
+        piece = speech.read(start * rate, (t0 + PIECE_SECONDS + MARGIN_SECONDS) * rate)
+        frames = raw_log_mel(piece, phonetic)
+        offset = round(start * per_second)
+        first, last = round(t0 * per_second), min(round((t0 + PIECE_SECONDS) * per_second), total)
+        level[:, 0] += frames[:, first - offset: last - offset].sum(axis=1, dtype=np.float64)
+    return (level / total).astype(np.float32)
+
+
+def _phonetic_piece(network, phonetic: PhoneticConfig, piece: Audio, speech, start: int, first: int,
+                    last: int, level: Optional[np.ndarray]) -> np.ndarray:
+    """The stacked phone posteriors of motion frames [first, last) from a piece that starts
+    `start` seconds into the recording (see `phonetic.stack_posteriors`)."""
+    posteriors = network.phone_posteriors(log_mel(piece, phonetic, level))
+    s = phonetic.subframes
+    index = np.arange(first, last)[:, None] * s + np.arange(-(s // 2), s - s // 2)[None]
+    index = np.clip(index, 0, _posterior_count(speech, phonetic) - 1) - round(start * phonetic.fps * s)
+    return posteriors[index].reshape(last - first, -1)
+
+
 def uses_prior(bundle: ModelBundle, config: FoppasConfig) -> bool:
     """Whether later windows start from the model's gesture prior (it has one and `config` asks)."""
     return bundle.prior is not None and config.prior_start
@@ -169,12 +237,14 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     seed = check_seed(seed)
     bundle = model if isinstance(model, ModelBundle) else load_model(model)
     network = open_network(bundle, backend, device, precision, threads)
-    speech = audio if isinstance(audio, Audio) else load_audio(audio, sample_rate)
+    speech = open_speech(audio, sample_rate)
     config = with_overrides(sampling or bundle.sampling, steps=steps, overlap=overlap)
     sampler, make_eps_fn = build_sampling(bundle, network, config, style, guidance, skip_guidance)
 
-    cond = speech_features(bundle, network, speech, hubert_path, hubert_quirk)
-    normalised = sample_long(sampler, make_eps_fn, cond, seed, progress, cancel)
+    stream = FoppasStream(sampler, make_eps_fn, seed, progress, cancel,
+                          expected_frames=n_motion_frames(speech, bundle.config.fps))
+    parts = [stream.push(chunk) for chunk in speech_chunks(bundle, network, speech, hubert_path, hubert_quirk)]
+    normalised = np.concatenate(parts + [stream.finish()])
     check_finite(bundle, normalised)
     return to_motion(bundle, normalised, meta={
         "model_id": bundle.model_id, "trained": bundle.trained, "seed": seed,
@@ -194,6 +264,16 @@ def check_finite(bundle: ModelBundle, normalised: np.ndarray) -> None:
         raise DiffshegError(f"{bundle.source}: the model produced NaN or infinite motion "
                             f"({100 * bad.mean():.1f} % of the values): its weights are damaged; "
                             "nothing was written. Download or export the model again")
+
+
+def open_speech(audio: AudioInput, sample_rate: Optional[int] = None) -> Union[Audio, AudioFile]:
+    """The checked speech of `audio`: a file is read piece by piece (an AudioFile), unless it
+    must be resampled first (`sample_rate`); an array or Audio is held as it is."""
+    if isinstance(audio, (Audio, AudioFile)):
+        return audio
+    if isinstance(audio, (str, Path)) and sample_rate is None:
+        return open_audio_file(audio)
+    return load_audio(audio, sample_rate)
 
 
 def to_motion(bundle: ModelBundle, normalised: np.ndarray, meta: dict) -> Motion:

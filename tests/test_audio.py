@@ -15,7 +15,7 @@ import pytest
 import soundfile as sf
 
 from diffsheg_core.audio import (
-    HUBERT_REPO_ID, MEL_FILTERS, SAMPLE_SPEECH, Audio, _resampled_length, hubert_features,
+    HUBERT_REPO_ID, MEL_FILTERS, SAMPLE_SPEECH, Audio, resampled_length, hubert_features,
     hubert_status, load_audio, mel_features, mel_filter_key, mel_spectrogram, n_motion_frames,
     resample,
 )
@@ -135,7 +135,7 @@ def test_resample_equals_librosa_soxr_hq(path, rate):
     ours = resample(audio, rate)
     reference = librosa.resample(audio.samples, orig_sr=audio.sample_rate, target_sr=rate, res_type="soxr_hq")
     assert ours.sample_rate == rate and ours.path == audio.path and ours.samples.dtype == np.float32
-    assert len(ours.samples) == _resampled_length(len(audio.samples), audio.sample_rate, rate)
+    assert len(ours.samples) == resampled_length(len(audio.samples), audio.sample_rate, rate)
     assert len(ours.samples) == math.ceil(len(audio.samples) * rate / audio.sample_rate)
     np.testing.assert_array_equal(ours.samples, reference)
     at_22k = resample(audio, 22050)  # the official chain 22050 -> 18000, as mel_features runs it
