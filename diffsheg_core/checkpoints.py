@@ -75,7 +75,9 @@ class ModelBundle:
         return (motion - self.mean) / self.std
 
     def denormalise(self, motion: np.ndarray) -> np.ndarray:
-        return motion * self.std + self.mean
+        out = motion * self.std
+        out += self.mean  # in place: one array the size of the motion, not two
+        return out
 
 
 # ---------------------------------------------------------------- our format

@@ -245,6 +245,7 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
                           expected_frames=n_motion_frames(speech, bundle.config.fps))
     parts = [stream.push(chunk) for chunk in speech_chunks(bundle, network, speech, hubert_path, hubert_quirk)]
     normalised = np.concatenate(parts + [stream.finish()])
+    del parts  # a long take's motion is held once, not twice
     check_finite(bundle, normalised)
     return to_motion(bundle, normalised, meta={
         "model_id": bundle.model_id, "trained": bundle.trained, "seed": seed,
@@ -279,7 +280,7 @@ def open_speech(audio: AudioInput, sample_rate: Optional[int] = None) -> Union[A
 def to_motion(bundle: ModelBundle, normalised: np.ndarray, meta: dict) -> Motion:
     """Denormalise (T, D) model output and split it into named rotations and face weights."""
     layout = bundle.layout
-    rotations, face = layout.split(bundle.denormalise(normalised).astype(np.float32))
+    rotations, face = layout.split(bundle.denormalise(normalised).astype(np.float32, copy=False))
     if layout.name == "beat":
         face = np.clip(face, 0.0, 1.0)  # ARKit weights are defined on [0, 1]
     return Motion(fps=bundle.config.fps, rig=layout.name, joint_names=list(layout.joint_names),
