@@ -111,3 +111,23 @@ def test_ctrl_c_in_batch_render_is_one_line(speech, tmp_path):
     assert proc.returncode == 130, err
     assert "batch_render: cancelled" in err and "Traceback" not in err
     assert not (tmp_path / "out.blend").exists()
+
+
+def test_a_model_with_a_nan_weight_is_reported_by_name_and_the_scene_kept(speech, tmp_path):
+    import numpy as np
+
+    from diffsheg_core.checkpoints import DEFAULT_WEIGHTS, read_safetensors, write_safetensors
+
+    meta, tensors = read_safetensors(DEFAULT_WEIGHTS, "")
+    weight = tensors["model.encoder_ges.out.weight"].copy()
+    weight.flat[0] = np.nan
+    damaged = write_safetensors({**tensors, "model.encoder_ges.out.weight": weight}, meta,
+                                tmp_path / "damaged.safetensors")
+    scene = reset_scene()
+    settings = _configure(scene, speech, import_beat_armature(), append_face())
+    settings.model_path = str(damaged)
+    before = scene_state(scene)
+    with pytest.raises(RuntimeError, match="damaged weights in model.encoder_ges.out.weight") as err:
+        bpy.ops.diffsheg.generate()
+    assert "damaged.safetensors" in str(err.value) and "Traceback" not in str(err.value)
+    assert scene_state(scene) == before
