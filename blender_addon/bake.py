@@ -129,7 +129,8 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
         raise DiffshegError(f"could not write the animation into the scene: {exc}") from exc
     return BakeResult(actions=actions, n_frames=motion.n_frames, n_keys=n_keys,
                       unmatched_bones=unmatched_bones, unmatched_shape_keys=unmatched_keys,
-                      sound_strip=strip, notes=notes)
+                      sound_strip=strip,
+                      notes=notes + [f"warning: {w}" for w in motion.meta.get("warnings", [])])
 
 
 def smooth(values: np.ndarray, sigma: float) -> np.ndarray:

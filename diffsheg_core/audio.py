@@ -27,9 +27,9 @@ import math
 import os
 import re
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Union
+from typing import Any, Callable, Optional, Union
 
 import numpy as np
 import soundfile as sf
@@ -150,6 +150,7 @@ class AudioFile:
     path: str
     sample_rate: int
     n_samples: int
+    notes: list[str] = field(default_factory=list)  # what is odd about the file (AudioWarning texts)
 
     @property
     def duration(self) -> float:
@@ -181,7 +182,8 @@ def open_audio_file(path: str | os.PathLike) -> AudioFile | Audio:
         return audio
     recording = AudioFile(str(path), int(info.samplerate), 0)
     recording.n_samples = _check_pieces(recording)
-    _warn_if_truncated(path, recording.n_samples, recording.sample_rate)
+    note = _warn_if_truncated(path, recording.n_samples, recording.sample_rate)
+    recording.notes += [note] if note else []
     return recording
 
 
@@ -241,15 +243,18 @@ def _decode_with_soundfile(path: Path) -> tuple[np.ndarray, int]:
     return frames, rate
 
 
-def _warn_if_truncated(path: Path, n_frames: int, rate: int) -> None:
-    """libsndfile notes a WAV data chunk that the file does not hold as `data : N (should be M)`."""
+def _warn_if_truncated(path: Path, n_frames: int, rate: int) -> Optional[str]:
+    """Warn (AudioWarning) of a WAV whose data chunk the file does not hold, which libsndfile
+    notes as `data : N (should be M)`; the warning's text, or None."""
     found = re.search(r"^data\s*:\s*(\d+)\s*\(should be (\d+)\)", sf.info(str(path)).extra_info, re.M)
-    if found and int(found.group(2)) < int(found.group(1)):
-        promised = n_frames * int(found.group(1)) / max(int(found.group(2)), 1)
-        warnings.warn(AudioWarning(
-            f"'{path}' is cut short: its header promises {promised / rate:.1f} s of audio, the file "
+    if not (found and int(found.group(2)) < int(found.group(1))):
+        return None
+    promised = n_frames * int(found.group(1)) / max(int(found.group(2)), 1)
+    note = (f"'{path}' is cut short: its header promises {promised / rate:.1f} s of audio, the file "
             f"holds {n_frames / rate:.1f} s; the motion covers what is there. Export the recording "
-            "again if it should be longer"), stacklevel=4)
+            "again if it should be longer")
+    warnings.warn(AudioWarning(note), stacklevel=4)
+    return note
 
 
 def _decode_with_audioread(path: Path, sf_error: Exception) -> tuple[np.ndarray, int]:

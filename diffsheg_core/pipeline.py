@@ -254,6 +254,7 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
         "skip_guidance": resolve_skip_guidance(bundle, skip_guidance),
         "steps": config.steps, "overlap": config.overlap, "prior_start": uses_prior(bundle, config),
         "clip_len": bundle.config.clip_len, "backend": network.name,
+        "warnings": list(getattr(speech, "notes", [])),
         "device": str(network.device), "software": f"diffsheg_core {__version__}",
     })
 

@@ -131,3 +131,13 @@ def test_a_model_with_a_nan_weight_is_reported_by_name_and_the_scene_kept(speech
         bpy.ops.diffsheg.generate()
     assert "damaged.safetensors" in str(err.value) and "Traceback" not in str(err.value)
     assert scene_state(scene) == before
+
+
+def test_a_wav_cut_short_is_keyed_and_the_report_says_so(speech, tmp_path):
+    data = speech.read_bytes()
+    cut = tmp_path / "cut.wav"
+    cut.write_bytes(data[: len(data) // 2])
+    scene = reset_scene()
+    settings = _configure(scene, cut, import_beat_armature(), append_face())
+    assert bpy.ops.diffsheg.generate() == {"FINISHED"}
+    assert "warning: " in settings.last_report and "is cut short" in settings.last_report

@@ -223,3 +223,13 @@ def test_pieces_of_a_long_recording_give_the_features_of_the_whole(data_dir, mon
     mel = bundle.config.mel_dim
     assert np.abs(joined[:, :mel] - whole[:, :mel]).max() < 1e-6 * np.abs(whole[:, :mel]).max()
     assert np.abs(joined[:, mel:] - whole[:, mel:]).max() < 2e-3  # phone probabilities
+
+
+def test_the_motion_records_what_was_odd_about_the_audio(speech, tmp_path):
+    data = speech.read_bytes()
+    cut = tmp_path / "cut.wav"
+    cut.write_bytes(data[: len(data) // 2])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert "cut short" in generate(cut, steps=2).meta["warnings"][0]
+    assert generate(speech, steps=2).meta["warnings"] == []
