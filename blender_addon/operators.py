@@ -45,6 +45,7 @@ def generate_kwargs(settings) -> dict:
     return {
         "model": bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None,
         "seed": settings.seed,
+        "face_seed": settings.face_seed if settings.keep_face else None,
         "steps": settings.steps,
         "overlap": settings.overlap or None,
         "style": settings.style,

@@ -65,6 +65,11 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
         row = col.row(align=True)
         row.prop(s, "seed")
         row.operator("diffsheg.new_seed", text="", icon="FILE_REFRESH")
+        row = col.row(align=True)
+        row.prop(s, "keep_face")
+        sub = row.row(align=True)
+        sub.active = s.keep_face
+        sub.prop(s, "face_seed")
         col.prop(s, "steps")
         col.prop(s, "overlap")
         col.prop(s, "style")

@@ -49,6 +49,11 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
                                description="a model file (.safetensors); empty = the bundled default model. "
                                            "Official DiffSHEG checkpoints (.pth) need the GPU support (torch)")
     seed: IntProperty(name="Seed", default=0, min=0, description="same seed, same motion")
+    keep_face: BoolProperty(name="Keep face", default=False,
+                            description="keep the face (lip-sync, blinks, brows) of the face seed while the "
+                                        "seed changes the gestures")
+    face_seed: IntProperty(name="Face seed", default=0, min=0,
+                           description="the seed the face is sampled with when Keep face is on")
     steps: IntProperty(name="Steps", default=25, min=1, max=1000,
                        description="diffusion steps: fewer are faster, 25 is the model's default")
     overlap: IntProperty(name="Overlap", default=0, min=0, max=64,

@@ -28,6 +28,9 @@ def _generate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", choices=["beat", "show"], help="force the official configuration")
     p.add_argument("--stats", help="folder of the official normalisation statistics (official checkpoints)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--face-seed", type=int,
+                   help="fix the face's noise apart from --seed: the same face (lip-sync, blinks) for "
+                        "every seed, new gestures")
     p.add_argument("--steps", type=int, help="DDIM steps (default: the model's, 25)")
     p.add_argument("--overlap", type=int, help="FOPPAS overlap frames (default: the model's)")
     p.add_argument("--preset", choices=sorted(PRESETS), help="FOPPAS settings preset")
@@ -85,7 +88,8 @@ def run_generate(args: argparse.Namespace) -> int:
         sampling = replace(sampling, prior_start=False)
     cancel = threading.Event()
     try:
-        result = generate(speech, model=bundle, seed=args.seed, steps=args.steps, overlap=args.overlap,
+        result = generate(speech, model=bundle, seed=args.seed, face_seed=args.face_seed,
+                          steps=args.steps, overlap=args.overlap,
                           style=args.style, guidance=args.guidance, skip_guidance=args.skip_guidance,
                           sampling=sampling,
                           device=args.device, backend=args.backend, precision=args.precision,

@@ -32,6 +32,7 @@ from .errors import DiffshegError
 from .progress import Progress, ProgressCallback, check_cancel
 
 PROPOSAL_STREAM = 0x5EED0F9A0D  # the proposal's generator is seeded with (seed, this)
+FACE_STREAM = 0xFACE5EED  # the face's generator is seeded with (face_seed, this)
 
 EpsFn = Callable[[np.ndarray, int], np.ndarray]
 """(x_t of shape (1, L, D), schedule index) -> predicted noise (1, L, D)."""
@@ -144,22 +145,17 @@ class Foppas:
             return list(range(self.config.steps - 1, -1, -1)) + [-1]
         return jump_schedule(self.config.start_index, self.config.jump_length, self.config.jump_n_sample)
 
-    def sample_window(self, eps_fn: EpsFn, length: int, known: Optional[np.ndarray],
-                      generator: np.random.Generator,
-                      on_step: Callable[[int, int], None] = lambda step, n: None,
-                      proposal_generator: Optional[np.random.Generator] = None) -> np.ndarray:
+    def sample_window(self, eps_fn: EpsFn, length: int, known: Optional[np.ndarray], noise: "Noise",
+                      on_step: Callable[[int, int], None] = lambda step, n: None) -> np.ndarray:
         """Sample a (1, length, dim) window; `known` (1, overlap, dim) fixes its first frames.
         The proposal draws from its own generator, so the noise of every channel it does not
         cover is the same as without it."""
         cfg, sched = self.config, self.schedule
-
-        def randn(*shape: int) -> np.ndarray:
-            return generator.standard_normal(shape, dtype=np.float32)
+        randn = noise.draw
 
         x = randn(1, length, self.dim)
         if known is not None and self.proposal is not None:
-            own = generator if proposal_generator is None else proposal_generator
-            draw = self.proposal(known[0], length, own)[None].astype(np.float32)
+            draw = self.proposal(known[0], length, noise.proposal)[None].astype(np.float32)
             c = draw.shape[-1]
             x[..., :c] = sched.q_sample(draw, cfg.start_index, x[..., :c])
         times = self.times(known is not None)
@@ -185,6 +181,30 @@ class Foppas:
         return x
 
 
+class Noise:
+    """The sampler's random numbers: float32 standard normal draws from numpy's PCG64, seeded
+    with the sampling seed, the same on every backend and device. With a `face_seed`, the
+    channels from `face_from` on (the face) come from a stream of their own: the expression
+    branch sees only them, so the face is the same whatever the seed, while the gestures,
+    which see the face, follow it and the seed. The gesture prior draws from a third stream."""
+
+    def __init__(self, seed: int, face_seed: Optional[int] = None, face_from: Optional[int] = None):
+        self.main = np.random.default_rng(check_seed(seed))
+        self.face = None if face_seed is None else np.random.default_rng([check_seed(face_seed), FACE_STREAM])
+        if self.face is not None and face_from is None:
+            raise ValueError("a face seed needs the channel the face starts at")
+        self.face_from = face_from
+        self.proposal = np.random.default_rng([seed, PROPOSAL_STREAM])
+
+    def draw(self, *shape: int) -> np.ndarray:
+        if self.face is None:
+            return self.main.standard_normal(shape, dtype=np.float32)
+        lead, channels = shape[:-1], shape[-1]
+        return np.concatenate([self.main.standard_normal(lead + (self.face_from,), dtype=np.float32),
+                               self.face.standard_normal(lead + (channels - self.face_from,), dtype=np.float32)],
+                              axis=-1)
+
+
 class FoppasStream:
     """Streaming FOPPAS: push conditioning frames, get back final motion frames.
 
@@ -196,12 +216,11 @@ class FoppasStream:
 
     def __init__(self, sampler: Foppas, make_eps_fn: Callable[[np.ndarray], EpsFn], seed: int,
                  progress: Optional[ProgressCallback] = None,
-                 cancel: Optional[threading.Event] = None, expected_frames: Optional[int] = None):
+                 cancel: Optional[threading.Event] = None, expected_frames: Optional[int] = None,
+                 face_seed: Optional[int] = None, face_from: Optional[int] = None):
         self.sampler = sampler
         self.make_eps_fn = make_eps_fn
-        self.generator = np.random.default_rng(check_seed(seed))
-        # a second stream for the proposal, so the noise of everything else does not depend on it
-        self.proposal_generator = np.random.default_rng([seed, PROPOSAL_STREAM])
+        self.noise = Noise(seed, face_seed, face_from)
         self.progress = progress
         self.cancel = cancel
         self.expected_windows = (
@@ -246,8 +265,7 @@ class FoppasStream:
             return base_fn(x, index)
 
         base_fn = self.make_eps_fn(cond)
-        window = self.sampler.sample_window(eps_fn, length, known, self.generator, on_step,
-                                            self.proposal_generator)
+        window = self.sampler.sample_window(eps_fn, length, known, self.noise, on_step)
         self._window += 1
         keep = length - overlap if length == self.sampler.clip_len else length
         self._tail = window[:, keep:] if keep < length else None

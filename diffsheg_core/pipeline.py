@@ -213,7 +213,8 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
              model: Union[None, str, Path, ModelBundle] = None, seed: int = 0,
              overlap: Optional[int] = None, steps: Optional[int] = None, style: int = 0,
              guidance: Optional[float] = None, skip_guidance: Optional[float] = None,
-             sampling: Optional[FoppasConfig] = None, device: str = "auto", backend: str = "auto",
+             sampling: Optional[FoppasConfig] = None, face_seed: Optional[int] = None,
+             device: str = "auto", backend: str = "auto",
              precision: str = "fp32", threads: Optional[int] = None,
              hubert_path: Optional[str] = None, hubert_quirk: bool = False,
              progress: Optional[ProgressCallback] = None,
@@ -224,6 +225,8 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     model: None for the bundled default, a checkpoint path, or a loaded `ModelBundle`.
     seed: any whole number >= 0; the noise comes from numpy's PCG64 seeded with it, the
     same on every backend and device.
+    face_seed: fixes the face's noise apart from `seed` (SpeechAct's fixed face beside a
+    stochastic body): the same face for every seed, other gestures. None: `seed` drives both.
     guidance / skip_guidance: classifier-free and gesture skip-guidance scales (None: the
     model's defaults; 1 and 0 turn them off).
     sampling: FOPPAS settings (default: the model's); `steps` / `overlap` override them.
@@ -235,6 +238,7 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     The result has one frame per 1/fps s of audio (fps of the model, 15 for BEAT).
     """
     seed = check_seed(seed)
+    face_seed = None if face_seed is None else check_seed(face_seed)
     bundle = model if isinstance(model, ModelBundle) else load_model(model)
     network = open_network(bundle, backend, device, precision, threads)
     speech = open_speech(audio, sample_rate)
@@ -242,13 +246,14 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     sampler, make_eps_fn = build_sampling(bundle, network, config, style, guidance, skip_guidance)
 
     stream = FoppasStream(sampler, make_eps_fn, seed, progress, cancel,
-                          expected_frames=n_motion_frames(speech, bundle.config.fps))
+                          expected_frames=n_motion_frames(speech, bundle.config.fps),
+                          face_seed=face_seed, face_from=bundle.config.gesture_dim)
     parts = [stream.push(chunk) for chunk in speech_chunks(bundle, network, speech, hubert_path, hubert_quirk)]
     normalised = np.concatenate(parts + [stream.finish()])
     del parts  # a long take's motion is held once, not twice
     check_finite(bundle, normalised)
     return to_motion(bundle, normalised, meta={
-        "model_id": bundle.model_id, "trained": bundle.trained, "seed": seed,
+        "model_id": bundle.model_id, "trained": bundle.trained, "seed": seed, "face_seed": face_seed,
         "audio_file": speech.path, "sample_rate": speech.sample_rate, "style": int(style),
         "guidance": resolve_guidance(bundle, guidance),
         "skip_guidance": resolve_skip_guidance(bundle, skip_guidance),
@@ -290,8 +295,8 @@ def to_motion(bundle: ModelBundle, normalised: np.ndarray, meta: dict) -> Motion
 
 def open_stream(bundle: ModelBundle, *, seed: int = 0, style: int = 0,
                 guidance: Optional[float] = None, skip_guidance: Optional[float] = None,
-                sampling: Optional[FoppasConfig] = None, device: str = "auto",
-                backend: str = "auto", threads: Optional[int] = None) -> FoppasStream:
+                sampling: Optional[FoppasConfig] = None, face_seed: Optional[int] = None,
+                device: str = "auto", backend: str = "auto", threads: Optional[int] = None) -> FoppasStream:
     """A `FoppasStream` for live use: push (n, F) speech features from `speech_features`
     (computed on audio chunks whose lengths are multiples of 1/fps s), get normalised
     motion frames back; `to_motion` turns them into a Motion. For a model with the phonetic
@@ -300,4 +305,5 @@ def open_stream(bundle: ModelBundle, *, seed: int = 0, style: int = 0,
     network = open_network(bundle, backend, device, threads=threads)
     sampler, make = build_sampling(bundle, network, sampling or bundle.sampling, style, guidance,
                                    skip_guidance)
-    return FoppasStream(sampler, make, check_seed(seed))
+    return FoppasStream(sampler, make, check_seed(seed), face_seed=face_seed,
+                        face_from=bundle.config.gesture_dim)

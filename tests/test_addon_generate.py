@@ -277,3 +277,22 @@ def test_gesture_energy_is_the_models_default_until_set(speech):
     settings.steps, settings.device = STEPS, "CPU"
     motion = diffsheg_core.generate(str(speech), **generate_kwargs(settings))
     assert motion.meta["skip_guidance"] == 0.25
+
+
+def test_keep_face_keys_the_same_face_for_a_new_seed(speech):
+    scene = reset_scene()
+    face = append_face()
+    settings = _configure(scene, speech, None, "beat", face)
+    settings.keep_face, settings.face_seed = True, 11
+
+    def jaw_keys():
+        assert bpy.ops.diffsheg.generate() == {"FINISHED"}
+        curves = {fc.data_path: _keys(fc)[:, 1] for fc in fcurves_of(face.data.shape_keys)}
+        return curves['key_blocks["jawOpen"].value']
+
+    first = jaw_keys()
+    settings.seed = 5
+    second = jaw_keys()
+    assert np.array_equal(first, second)
+    settings.keep_face = False
+    assert not np.array_equal(jaw_keys(), second)
