@@ -99,6 +99,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--save", help=".blend to save (a folder when several audio files)")
     p.add_argument("--model", default=None, help="checkpoint path (default: the bundled model)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--candidates", type=int, default=None,
+                   help="best-of-N: sample every window after the first N times, keep the best continuation")
     p.add_argument("--face-seed", type=int, default=None,
                    help="keep the face of this seed while --seed changes the gestures")
     p.add_argument("--steps", type=int, default=None, help="diffusion steps (default: the model's)")
@@ -195,7 +197,7 @@ def run_one(args, audio: Path, label: str, several: bool) -> None:
     options = BakeOptions(armature=armature, face_meshes=faces, preset=load_preset(args.preset),
                           start_frame=args.start_frame, tolerance=args.tolerance)
     motion = diffsheg_core.generate(str(audio), model=args.model, seed=args.seed, face_seed=args.face_seed,
-                                    steps=args.steps,
+                                    steps=args.steps, candidates=args.candidates,
                                     device=args.device, progress=printer(label))
     result = bake_motion(scene, motion, str(audio), options)
     print(f"{label}: {summary(result)} [model {model_label(motion.meta)}]", flush=True)

@@ -47,6 +47,7 @@ def generate_kwargs(settings) -> dict:
         "seed": settings.seed,
         "face_seed": settings.face_seed if settings.keep_face else None,
         "steps": settings.steps,
+        "candidates": settings.candidates,
         "overlap": settings.overlap or None,
         "style": settings.style,
         "guidance": settings.guidance or None,

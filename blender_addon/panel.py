@@ -71,6 +71,7 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
         sub.active = s.keep_face
         sub.prop(s, "face_seed")
         col.prop(s, "steps")
+        col.prop(s, "candidates")
         col.prop(s, "overlap")
         col.prop(s, "style")
         col.prop(s, "guidance")

@@ -54,6 +54,10 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
                                         "seed changes the gestures")
     face_seed: IntProperty(name="Face seed", default=0, min=0,
                            description="the seed the face is sampled with when Keep face is on")
+    candidates: IntProperty(name="Candidates", default=1, min=1, max=16,
+                            description="sample every window after the first this many times and keep the one "
+                                        "that best continues the motion (smoother seams; costs that many times "
+                                        "the time)")
     steps: IntProperty(name="Steps", default=25, min=1, max=1000,
                        description="diffusion steps: fewer are faster, 25 is the model's default")
     overlap: IntProperty(name="Overlap", default=0, min=0, max=64,

@@ -34,6 +34,9 @@ def _generate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, help="DDIM steps (default: the model's, 25)")
     p.add_argument("--overlap", type=int, help="FOPPAS overlap frames (default: the model's)")
     p.add_argument("--preset", choices=sorted(PRESETS), help="FOPPAS settings preset")
+    p.add_argument("--candidates", type=int,
+                   help="sample every window after the first N times and keep the one that best continues "
+                        "the motion (best-of-N; N times the compute of those windows)")
     p.add_argument("--no-prior", action="store_true",
                    help="start later FOPPAS windows from pure noise, as in the paper, instead of from "
                         "the model's gesture prior (models that have one)")
@@ -89,7 +92,7 @@ def run_generate(args: argparse.Namespace) -> int:
     cancel = threading.Event()
     try:
         result = generate(speech, model=bundle, seed=args.seed, face_seed=args.face_seed,
-                          steps=args.steps, overlap=args.overlap,
+                          steps=args.steps, overlap=args.overlap, candidates=args.candidates,
                           style=args.style, guidance=args.guidance, skip_guidance=args.skip_guidance,
                           sampling=sampling,
                           device=args.device, backend=args.backend, precision=args.precision,

@@ -33,6 +33,8 @@ from .progress import Progress, ProgressCallback, check_cancel
 
 PROPOSAL_STREAM = 0x5EED0F9A0D  # the proposal's generator is seeded with (seed, this)
 FACE_STREAM = 0xFACE5EED  # the face's generator is seeded with (face_seed, this)
+MAX_CANDIDATES = 16
+SEAM_FRAMES = 5  # frames either side of a seam that best-of-N selection compares
 
 EpsFn = Callable[[np.ndarray, int], np.ndarray]
 """(x_t of shape (1, L, D), schedule index) -> predicted noise (1, L, D)."""
@@ -56,6 +58,7 @@ class FoppasConfig:
     reference_renoise: bool = True     # jump back with the beta of the current index, as the official code
     eta: float = 0.0                   # 0: deterministic DDIM
     prior_start: bool = True           # later windows start from the model's gesture prior, if it has one
+    candidates: int = 1                # later windows sampled this many times in one batch; the best continues
 
     def check(self, clip_len: int) -> None:
         """Raise ValueError naming any setting that cannot work with `clip_len`-frame windows."""
@@ -70,6 +73,9 @@ class FoppasConfig:
                 f"later windows must start at a step index below {self.steps}, got {self.later_start}")
         if self.jump_length < 1 or self.jump_n_sample < 1:
             raise ValueError("jump_length and jump_n_sample must be at least 1")
+        if isinstance(self.candidates, bool) or not isinstance(self.candidates, int) \
+                or not 1 <= self.candidates <= MAX_CANDIDATES:
+            raise ValueError(f"candidates must be a whole number from 1 to {MAX_CANDIDATES}, got {self.candidates!r}")
 
     def with_steps(self, steps: int) -> "FoppasConfig":
         """The same settings with `steps` DDIM steps; later windows keep starting at the
@@ -132,13 +138,15 @@ class Foppas:
     """Samples one window at a time with a fixed schedule, settings and window size."""
 
     def __init__(self, schedule: Schedule, config: FoppasConfig, clip_len: int, dim: int,
-                 proposal: Optional[Proposal] = None):
+                 proposal: Optional[Proposal] = None, scored: Optional[int] = None):
+        """scored: the leading channels best-of-N selection compares (the gestures; default all)."""
         config.check(clip_len)
         self.schedule = schedule.respaced(config.steps)
         self.config = config
         self.clip_len = clip_len
         self.dim = dim
         self.proposal = proposal
+        self.scored = dim if scored is None else scored
 
     def times(self, has_known: bool) -> list[int]:
         if not has_known:
@@ -149,15 +157,17 @@ class Foppas:
                       on_step: Callable[[int, int], None] = lambda step, n: None) -> np.ndarray:
         """Sample a (1, length, dim) window; `known` (1, overlap, dim) fixes its first frames.
         The proposal draws from its own generator, so the noise of every channel it does not
-        cover is the same as without it."""
+        cover is the same as without it. A later window is sampled `candidates` times in one
+        batch and the one that best continues `known` is kept (see `seam_scores`)."""
         cfg, sched = self.config, self.schedule
         randn = noise.draw
+        batch = cfg.candidates if known is not None else 1
 
-        x = randn(1, length, self.dim)
+        x = randn(batch, length, self.dim)
         if known is not None and self.proposal is not None:
-            draw = self.proposal(known[0], length, noise.proposal)[None].astype(np.float32)
+            draw = np.stack([self.proposal(known[0], length, noise.proposal) for _ in range(batch)])
             c = draw.shape[-1]
-            x[..., :c] = sched.q_sample(draw, cfg.start_index, x[..., :c])
+            x[..., :c] = sched.q_sample(draw.astype(np.float32), cfg.start_index, x[..., :c])
         times = self.times(known is not None)
         n_calls, call = model_calls(times), 0
         if known is not None:
@@ -172,13 +182,33 @@ class Foppas:
             x, _ = sched.ddim_step(x, t_now, eps, cfg.eta, randn(*x.shape) if cfg.eta > 0 else None)
             if known is not None:
                 level = sched.noise_level_prev(t_now)
-                noisy_known = float((1 - level ** 2) ** 0.5) * known + level * randn(*known.shape)
+                noisy_known = float((1 - level ** 2) ** 0.5) * known + level * randn(batch, *known.shape[1:])
                 if cfg.blend and level < cfg.blend_below:
                     noisy_known = noisy_known * (1 - ramp) + x[:, :n_known] * ramp
                 x = np.concatenate([noisy_known, x[:, n_known:]], axis=1)
             on_step(call, n_calls)
             call += 1
+        if batch > 1:
+            best = int(np.argmin(seam_scores(x[..., : self.scored], known[..., : self.scored])))
+            x = x[best: best + 1]
         return x
+
+
+def seam_scores(candidates: np.ndarray, known: np.ndarray, frames: int = SEAM_FRAMES) -> np.ndarray:
+    """(N,) lower-better scores of (N, L, C) candidate windows continuing `known` (1, n, C),
+    after S2G-MDDiffusion's optimal motion selection: position coherence (L1 distance between
+    the mean of the last `frames` frames before the seam and of the first `frames` after it,
+    per channel) plus velocity consistency (the angle between the mean velocity over those
+    frames before and after). The seam is where the known overlap ends."""
+    n = known.shape[1]
+    before = candidates[:, max(0, n - frames): n]
+    after = candidates[:, n: n + frames]
+    position = np.abs(after.mean(axis=1) - before.mean(axis=1)).mean(axis=1)
+    v_before = np.diff(candidates[:, max(0, n - frames - 1): n], axis=1).mean(axis=1)
+    v_after = np.diff(candidates[:, n - 1: n + frames], axis=1).mean(axis=1)
+    cosine = (v_before * v_after).sum(1) / np.maximum(
+        np.linalg.norm(v_before, axis=1) * np.linalg.norm(v_after, axis=1), 1e-12)
+    return position + np.arccos(np.clip(cosine, -1.0, 1.0))
 
 
 class Noise:
@@ -197,12 +227,14 @@ class Noise:
         self.proposal = np.random.default_rng([seed, PROPOSAL_STREAM])
 
     def draw(self, *shape: int) -> np.ndarray:
+        """Noise of `shape` (batch, frames, channels); with a face seed, every candidate of a
+        batch gets the same face noise, so best-of-N keeps the face too."""
         if self.face is None:
             return self.main.standard_normal(shape, dtype=np.float32)
         lead, channels = shape[:-1], shape[-1]
+        face = self.face.standard_normal((1,) + lead[1:] + (channels - self.face_from,), dtype=np.float32)
         return np.concatenate([self.main.standard_normal(lead + (self.face_from,), dtype=np.float32),
-                               self.face.standard_normal(lead + (channels - self.face_from,), dtype=np.float32)],
-                              axis=-1)
+                               np.broadcast_to(face, lead + face.shape[-1:])], axis=-1)
 
 
 class FoppasStream:

@@ -183,11 +183,16 @@ def build_sampling(bundle: ModelBundle, network, config: FoppasConfig, style: in
     style and guidance scales to one window's speech features. Bad settings raise DiffshegError."""
     try:
         sampler = Foppas(Schedule.linear(), config, bundle.config.clip_len, bundle.config.dim,
-                         proposal=bundle.prior.propose if uses_prior(bundle, config) else None)
+                         proposal=bundle.prior.propose if uses_prior(bundle, config) else None,
+                         scored=bundle.config.gesture_dim)
     except ValueError as exc:
         raise DiffshegError(str(exc)) from None
     scales = Guidance(resolve_guidance(bundle, guidance), resolve_skip_guidance(bundle, skip_guidance))
     return sampler, make_eps_fn_factory(bundle, network, sampler, style_onehot(bundle, style), scales)
+
+
+def _repeat(values: Optional[np.ndarray], rows: int) -> Optional[np.ndarray]:
+    return values if values is None or len(values) == rows else np.repeat(values, rows, axis=0)
 
 
 def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas, style: np.ndarray,
@@ -200,9 +205,10 @@ def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas, style: np
         speech = cond[..., cfg.mel_dim:] if cfg.has_speech_input else None
 
         def eps_fn(x: np.ndarray, index: int) -> np.ndarray:
-            idx = np.array([index])
-            return step_eps(network, cfg.gesture_dim, x, sched.model_timesteps(idx), mel, speech, style,
-                            sched.x0_coefs(idx, x), guidance)
+            rows = len(x)  # best-of-N: one window, several candidates
+            idx = np.full(rows, index)
+            return step_eps(network, cfg.gesture_dim, x, sched.model_timesteps(idx), _repeat(mel, rows),
+                            _repeat(speech, rows), _repeat(style, rows), sched.x0_coefs(idx, x), guidance)
 
         return eps_fn
 
@@ -211,7 +217,8 @@ def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas, style: np
 
 def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
              model: Union[None, str, Path, ModelBundle] = None, seed: int = 0,
-             overlap: Optional[int] = None, steps: Optional[int] = None, style: int = 0,
+             overlap: Optional[int] = None, steps: Optional[int] = None, candidates: Optional[int] = None,
+             style: int = 0,
              guidance: Optional[float] = None, skip_guidance: Optional[float] = None,
              sampling: Optional[FoppasConfig] = None, face_seed: Optional[int] = None,
              device: str = "auto", backend: str = "auto",
@@ -229,7 +236,9 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     stochastic body): the same face for every seed, other gestures. None: `seed` drives both.
     guidance / skip_guidance: classifier-free and gesture skip-guidance scales (None: the
     model's defaults; 1 and 0 turn them off).
-    sampling: FOPPAS settings (default: the model's); `steps` / `overlap` override them.
+    sampling: FOPPAS settings (default: the model's); `steps` / `overlap` / `candidates`
+    override them. candidates: every window after the first is sampled this many times in
+    one batch and the one that best continues the motion is kept (`foppas.seam_scores`).
     backend: 'auto' (onnx where the model has its graphs and no GPU is asked for or found),
     'onnx' (onnxruntime, CPU) or 'torch'; device: 'auto', 'cpu' or 'cuda' (torch).
     precision: 'fp32', or 'bf16' / 'fp16' autocast on CUDA. threads: CPU threads
@@ -242,7 +251,7 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     bundle = model if isinstance(model, ModelBundle) else load_model(model)
     network = open_network(bundle, backend, device, precision, threads)
     speech = open_speech(audio, sample_rate)
-    config = with_overrides(sampling or bundle.sampling, steps=steps, overlap=overlap)
+    config = with_overrides(sampling or bundle.sampling, steps=steps, overlap=overlap, candidates=candidates)
     sampler, make_eps_fn = build_sampling(bundle, network, config, style, guidance, skip_guidance)
 
     stream = FoppasStream(sampler, make_eps_fn, seed, progress, cancel,
@@ -257,7 +266,8 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
         "audio_file": speech.path, "sample_rate": speech.sample_rate, "style": int(style),
         "guidance": resolve_guidance(bundle, guidance),
         "skip_guidance": resolve_skip_guidance(bundle, skip_guidance),
-        "steps": config.steps, "overlap": config.overlap, "prior_start": uses_prior(bundle, config),
+        "steps": config.steps, "overlap": config.overlap, "candidates": config.candidates,
+        "prior_start": uses_prior(bundle, config),
         "clip_len": bundle.config.clip_len, "backend": network.name,
         "warnings": list(getattr(speech, "notes", [])),
         "device": str(network.device), "software": f"diffsheg_core {__version__}",

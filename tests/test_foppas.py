@@ -323,3 +323,44 @@ def test_a_seed_gives_the_same_motion_on_either_backend(data_dir, tmp_path, mode
     assert np.abs(onnx_run.face - torch_run.face).max() <= 1e-3
     other = generate(path, model=bundle, seed=12, backend="torch", device="cpu")
     assert np.abs(other.rotations - torch_run.rotations).max() > 100 * 1e-3  # the seed does matter
+
+
+def test_best_of_n_keeps_the_candidate_that_continues_the_motion():
+    """A toy model that knows each candidate's target: candidate k continues the known tail
+    with a jump of size k at the seam (candidate 2 none). The selection keeps candidate 2."""
+    from diffsheg_core.foppas import Noise, seam_scores
+
+    config = FoppasConfig(overlap=4, blend=False, candidates=4, jump_length=1, jump_n_sample=1)
+    sampler = Foppas(Schedule.linear(), config, 34, 3)
+    sched = sampler.schedule
+    ramp = np.linspace(0.0, 1.0, 34, dtype=np.float32)[:, None] * np.ones(3, np.float32)
+    known = ramp[None, :4]
+    jumps = np.array([3.0, 1.0, 0.0, 2.0], np.float32)
+    targets = np.stack([np.concatenate([ramp[:4], ramp[4:] + j]) for j in jumps])
+
+    def eps_fn(x, index):
+        a, b = sched.x0_coefs(np.full(len(x), index), x)
+        return (a * x - targets[: len(x)]) / b
+
+    window = sampler.sample_window(eps_fn, 34, known, Noise(0))
+    assert window.shape == (1, 34, 3)
+    np.testing.assert_allclose(window[0, 4:], targets[2, 4:], atol=1e-3)
+    scores = seam_scores(targets, known)
+    assert int(np.argmin(scores)) == 2 and list(np.argsort(scores)) == [2, 1, 3, 0]
+
+
+def test_best_of_n_is_recorded_changes_only_later_windows_and_keeps_a_fixed_face(model, data_dir):
+    from diffsheg_core.audio import Audio
+
+    speech = load_audio(data_dir / "audio" / "2_scott_0_4_4.wav")
+    speech = Audio(speech.samples[: 6 * speech.sample_rate], speech.sample_rate)
+    one = generate(speech, model=model, steps=3, seed=2, face_seed=5)
+    four = generate(speech, model=model, steps=3, seed=2, face_seed=5, candidates=4)
+    assert one.meta["candidates"] == 1 and four.meta["candidates"] == 4
+    first = model.config.clip_len - model.sampling.overlap
+    assert np.array_equal(one.rotations[:first], four.rotations[:first])
+    assert not np.allclose(one.rotations[first:], four.rotations[first:])
+    assert np.array_equal(one.face, four.face)  # every candidate had the face seed's face
+    for bad in (0, 17, 2.5):
+        with pytest.raises(DiffshegError, match="candidates must be a whole number from 1 to 16"):
+            generate(speech, model=model, steps=3, candidates=bad)
