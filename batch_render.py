@@ -105,7 +105,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    help="keep the face of this seed while --seed changes the gestures")
     p.add_argument("--steps", type=int, default=None, help="diffusion steps (default: the model's)")
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
-    p.add_argument("--start-frame", type=int, default=1)
+    p.add_argument("--start-frame", type=int, default=None,
+                   help="frame of the first key and the sound strip (default: the scene's start frame)")
     p.add_argument("--tolerance", type=float, default=0.0, help="key reduction tolerance; 0 keys every frame")
     return p.parse_args(argv)
 
@@ -195,7 +196,8 @@ def run_one(args, audio: Path, label: str, several: bool) -> None:
                    None if args.no_render else output_for(args, audio, several, ".mp4", args.output)],
                   inputs=[audio, args.model, bpy.data.filepath or None])
     options = BakeOptions(armature=armature, face_meshes=faces, preset=load_preset(args.preset),
-                          start_frame=args.start_frame, tolerance=args.tolerance)
+                          start_frame=scene.frame_start if args.start_frame is None else args.start_frame,
+                          tolerance=args.tolerance)
     motion = diffsheg_core.generate(str(audio), model=args.model, seed=args.seed, face_seed=args.face_seed,
                                     steps=args.steps, candidates=args.candidates,
                                     device=args.device, progress=printer(label))

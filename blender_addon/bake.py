@@ -18,7 +18,7 @@ from diffsheg_core.motion import Motion, resample_motion
 
 from .keying import Channel, Undo, new_action, rotation_channels, shape_key_channel, write_channels
 from .retarget import Preset, bone_quaternions, map_armature, map_shape_keys
-from .sound import NO_AUDIO_NOTE, add_sound_strip, audio_supported
+from .sound import NO_AUDIO_NOTE, add_sound_strip, audio_supported, remove_strips, strips_added_for
 
 
 @dataclass
@@ -61,6 +61,23 @@ def check_frames(start: int, n_frames: int = 1) -> None:
                             "start frame")
 
 
+def check_local(objects) -> None:
+    """Refuse objects whose animation would not be saved with the file: linked from a
+    library, or library overrides (the override's Action lives in the linked file's data)."""
+    for ob in objects:
+        if ob is None:
+            continue
+        for block in (ob, ob.data, getattr(ob.data, "shape_keys", None)):
+            if block is None:
+                continue
+            if block.library is not None:
+                raise DiffshegError(f"'{ob.name}' is linked from {block.library.filepath}: keys on it would "
+                                    "not be saved. Make it local (Object > Relations > Make Local) first")
+            if getattr(block, "override_library", None) is not None:
+                raise DiffshegError(f"'{ob.name}' is a library override: keys on it are lost when the "
+                                    "library reloads. Make it local (Object > Relations > Make Local) first")
+
+
 def scene_fps(scene) -> float:
     return scene.render.fps / scene.render.fps_base
 
@@ -74,6 +91,7 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
         raise DiffshegError("no target: choose an armature and/or a face mesh in the panel")
     if options.preset is None:
         raise DiffshegError("no rig preset chosen: pick one in the panel")
+    check_local([options.armature, *options.face_meshes])
     fps = scene_fps(scene)
     motion = resample_motion(motion, fps)
     check_frames(options.start_frame, motion.n_frames)
@@ -113,9 +131,10 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
             actions.append(action.name)
         if options.armature is not None:
             _set_properties(options.armature, options.preset.properties, undo)
-        strip, notes = None, []
+        strip, notes, replaced = None, [], []
         if options.add_sound and audio_path:
             if audio_supported():
+                replaced = strips_added_for(scene, audio_path)  # an earlier run's strip of this audio
                 strip = add_sound_strip(scene, audio_path, options.start_frame, undo).name
             else:
                 notes.append(NO_AUDIO_NOTE)
@@ -127,6 +146,7 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
         if isinstance(exc, DiffshegError):
             raise
         raise DiffshegError(f"could not write the animation into the scene: {exc}") from exc
+    remove_strips(scene, replaced)  # only once everything else has succeeded
     return BakeResult(actions=actions, n_frames=motion.n_frames, n_keys=n_keys,
                       unmatched_bones=unmatched_bones, unmatched_shape_keys=unmatched_keys,
                       sound_strip=strip,

@@ -84,7 +84,11 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
         col.label(text=f"Runs on: {device_label(s.device)}")
 
         col = layout.column(align=True)
-        col.prop(s, "start_frame")
+        row = col.row(align=True)
+        row.prop(s, "start_at_scene_start")
+        sub = row.row(align=True)
+        sub.active = not s.start_at_scene_start
+        sub.prop(s, "start_frame")
         col.prop(s, "smoothing")
         col.prop(s, "key_mode")
         if s.key_mode == "REDUCED":

@@ -70,7 +70,14 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
     gesture_energy: FloatProperty(name="Gesture energy", default=0.1, min=0.0, max=1.0,
                                   description="skip-guidance scale of the gestures: higher gives larger, "
                                               "livelier gestures; 0 = off")
+    start_at_scene_start: BoolProperty(name="Scene start", default=True,
+                                       description="key from the scene's start frame (1001 in film pipelines); "
+                                                   "off: from the start frame below")
     start_frame: IntProperty(name="Start frame", default=1, description="frame of the first key and the sound strip")
+
+    def start(self) -> int:
+        """The frame of the first key and the sound strip (these settings live on the scene)."""
+        return self.id_data.frame_start if self.start_at_scene_start else self.start_frame
     device: EnumProperty(name="Device", default="AUTO", items=[
         ("AUTO", "Auto", "a CUDA GPU when the GPU support (torch) is installed and finds one, "
                          "else the CPU (onnxruntime)"),

@@ -22,9 +22,27 @@ def _strips(editor):
     return editor.strips if hasattr(editor, "strips") else editor.sequences
 
 
+MARK = "diffsheg_audio"  # custom property on the strips this add-on adds: the audio file they play
+
+
+def _audio_key(audio_path: str) -> str:
+    return str(Path(audio_path).expanduser().resolve())
+
+
+def strips_added_for(scene, audio_path: str) -> list:
+    """The sound strips this add-on added for `audio_path` (a user's own strips are not)."""
+    key = _audio_key(audio_path)
+    return [s for s in sound_strips(scene) if s.get(MARK) == key]
+
+
+def remove_strips(scene, strips: list) -> None:
+    for strip in strips:
+        _strips(scene.sequence_editor).remove(strip)
+
+
 def add_sound_strip(scene, audio_path: str, frame_start: int, undo: list[Undo]):
     """Add `audio_path` as a sound strip starting at `frame_start` on the lowest
-    channel free over the clip; returns the strip."""
+    channel free over the clip, marked as this add-on's; returns the strip."""
     created = scene.sequence_editor is None
     editor = scene.sequence_editor_create()
     if created:
@@ -33,6 +51,7 @@ def add_sound_strip(scene, audio_path: str, frame_start: int, undo: list[Undo]):
     used = {s.channel for s in strips if s.frame_final_end > frame_start}
     channel = next(c for c in range(1, 129) if c not in used)
     strip = strips.new_sound(Path(audio_path).stem, str(audio_path), channel=channel, frame_start=int(frame_start))
+    strip[MARK] = _audio_key(audio_path)
     if not created:
         undo.append(lambda: strips.remove(strip))
     return strip

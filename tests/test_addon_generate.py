@@ -41,6 +41,7 @@ def _configure(scene, speech, armature, preset, face=None, start=1):
     s.preset = preset
     s.steps = STEPS
     s.device = "CPU"
+    s.start_at_scene_start = False
     s.start_frame = start
     if face is not None:
         s.face_meshes.add().object = face
@@ -296,3 +297,48 @@ def test_keep_face_keys_the_same_face_for_a_new_seed(speech):
     assert np.array_equal(first, second)
     settings.keep_face = False
     assert not np.array_equal(jaw_keys(), second)
+
+
+def test_keys_start_at_the_scenes_start_frame_by_default(speech):
+    """Film pipelines start at 1001, at 29.97 fps: the first key and the sound strip land there."""
+    scene = reset_scene(fps=29.97)
+    scene.frame_start = 1001
+    ob, face = import_beat_armature(), append_face()
+    settings = _configure(scene, speech, ob, "beat", face)
+    settings.start_at_scene_start = True
+    assert bpy.ops.diffsheg.generate() == {"FINISHED"}
+    first = min(_keys(fc)[0, 0] for fc in fcurves_of(ob))
+    assert first == 1001 and min(_keys(fc)[0, 0] for fc in fcurves_of(face.data.shape_keys)) == 1001
+    if HAS_AUDIO:
+        assert [s.frame_start for s in sound_strips(scene)] == [1001]
+
+
+@pytest.mark.skipif(not HAS_AUDIO, reason="this Blender build has no audio support")
+def test_generating_again_replaces_this_addons_sound_strip_and_keeps_the_users(speech):
+    scene = reset_scene()
+    ob = import_beat_armature()
+    settings = _configure(scene, speech, ob, "beat")
+    editor = scene.sequence_editor_create()
+    strips = editor.strips if hasattr(editor, "strips") else editor.sequences
+    strips.new_sound("mine", str(speech), channel=5, frame_start=40)  # the user's own strip of the audio
+    for _ in range(3):
+        assert bpy.ops.diffsheg.generate() == {"FINISHED"}
+    names = sorted(s.name for s in sound_strips(scene))
+    assert len(names) == 2 and "mine" in names  # one of the add-on's, and the user's
+
+
+def test_linked_objects_are_refused_by_name(speech, tmp_path):
+    library = tmp_path / "library.blend"
+    reset_scene()
+    import_beat_armature().name = "LinkedRig"
+    bpy.ops.wm.save_as_mainfile(filepath=str(library))
+    scene = reset_scene()
+    with bpy.data.libraries.load(str(library), link=True) as (source, target):
+        target.objects = ["LinkedRig"]
+    rig = target.objects[0]
+    scene.collection.objects.link(rig)
+    _configure(scene, speech, rig, "beat")
+    before = scene_state(scene)
+    with pytest.raises(RuntimeError, match="'LinkedRig' is linked from .*library.blend.*Make Local"):
+        bpy.ops.diffsheg.generate()
+    assert scene_state(scene) == before

@@ -32,6 +32,7 @@ def _configure(scene, audio, armature, face, preset="beat", start=1):
     s.preset = preset
     s.steps = 3
     s.device = "CPU"
+    s.start_at_scene_start = False
     s.start_frame = start
     s.face_meshes.add().object = face
     return s
