@@ -89,6 +89,7 @@ AUDIO_SUFFIXES = {".wav", ".flac", ".ogg", ".mp3", ".m4a", ".aiff", ".aif"}
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="batch_render.py", description=__doc__.split("\n\n")[0])
+    p.set_defaults(stems={})  # stem -> how many inputs have it (filled in for a folder)
     p.add_argument("--audio", help="an audio file or a folder of audio files")
     p.add_argument("--blend", help="scene to open (python mode; with blender, pass it before -P)")
     p.add_argument("--armature", help="armature object name (default: the scene's only armature)")
@@ -174,7 +175,13 @@ def output_for(args, audio: Path, several: bool, suffix: str, explicit: str | No
     if explicit and not several:
         return Path(explicit).expanduser().resolve()
     folder = Path(explicit).expanduser().resolve() if explicit else OUT
-    return folder / f"{audio.stem}{suffix}"
+    return folder / f"{output_stem(audio, args.stems)}{suffix}"
+
+
+def output_stem(audio: Path, stems: dict[str, int]) -> str:
+    """The outputs' name for `audio`: its stem, or stem_extension where another input of the
+    folder has the same stem (talk.wav and talk.flac give talk_wav and talk_flac)."""
+    return f"{audio.stem}_{audio.suffix.lstrip('.').lower()}" if stems.get(audio.stem, 0) > 1 else audio.stem
 
 
 def run_one(args, audio: Path, label: str, several: bool) -> None:
@@ -250,6 +257,7 @@ def main(argv: list[str]) -> int:
             run_demo(args)
             return 0
         files = audio_files(args.audio)
+        args.stems = {stem: [f.stem for f in files].count(stem) for stem in {f.stem for f in files}}
         with tempfile.TemporaryDirectory() as tmp:
             start = Path(tmp) / "start.blend"
             bpy.ops.wm.save_as_mainfile(filepath=str(start), copy=True)

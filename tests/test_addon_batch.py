@@ -85,3 +85,19 @@ def test_failure_is_one_line_and_a_nonzero_exit(scene_blend, tmp_path):
     assert proc.returncode == 1
     assert proc.stderr.strip().splitlines()[-1].startswith("batch_render: error: ")
     assert "missing.wav" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_inputs_with_the_same_stem_get_outputs_of_their_own(scene_blend, tmp_path):
+    import soundfile as sf
+
+    folder = tmp_path / "talks"
+    folder.mkdir()
+    samples, rate = sf.read(str(cut_speech(tmp_path, seconds=1.0)), dtype="float32")
+    sf.write(folder / "talk.wav", samples, rate)
+    sf.write(folder / "talk.flac", samples, rate)
+    sf.write(folder / "other.wav", samples, rate)
+    proc = _batch("--blend", str(scene_blend), "--audio", str(folder), "--preset", "beat", "--steps", "2",
+                  "--no-render", "--save", str(tmp_path / "saved"), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert sorted(p.name for p in (tmp_path / "saved").iterdir()) == ["other.blend", "talk_flac.blend",
+                                                                       "talk_wav.blend"]
