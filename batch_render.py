@@ -105,6 +105,13 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--face-seed", type=int, default=None,
                    help="keep the face of this seed while --seed changes the gestures")
     p.add_argument("--steps", type=int, default=None, help="diffusion steps (default: the model's)")
+    p.add_argument("--overlap", type=int, default=None, help="FOPPAS overlap frames (default: the model's)")
+    p.add_argument("--style", type=int, default=0, help="style / speaker index (default 0)")
+    p.add_argument("--guidance", type=float, default=None,
+                   help="classifier-free guidance scale (default: the model's; 1 = off)")
+    p.add_argument("--gesture-energy", type=float, default=None,
+                   help="gesture skip-guidance scale, 0-1 (default: the model's; 0 = off)")
+    p.add_argument("--smoothing", type=float, default=0.0, help="Gaussian smoothing in scene frames (0 = none)")
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
     p.add_argument("--start-frame", type=int, default=None,
                    help="frame of the first key and the sound strip (default: the scene's start frame)")
@@ -204,9 +211,10 @@ def run_one(args, audio: Path, label: str, several: bool) -> None:
                   inputs=[audio, args.model, bpy.data.filepath or None])
     options = BakeOptions(armature=armature, face_meshes=faces, preset=load_preset(args.preset),
                           start_frame=scene.frame_start if args.start_frame is None else args.start_frame,
-                          tolerance=args.tolerance)
+                          tolerance=args.tolerance, smoothing=args.smoothing)
     motion = diffsheg_core.generate(str(audio), model=args.model, seed=args.seed, face_seed=args.face_seed,
-                                    steps=args.steps, candidates=args.candidates,
+                                    steps=args.steps, candidates=args.candidates, overlap=args.overlap,
+                                    style=args.style, guidance=args.guidance, skip_guidance=args.gesture_energy,
                                     device=args.device, progress=printer(label))
     result = bake_motion(scene, motion, str(audio), options)
     print(f"{label}: {summary(result)} [model {model_label(motion.meta)}]", flush=True)

@@ -101,3 +101,17 @@ def test_inputs_with_the_same_stem_get_outputs_of_their_own(scene_blend, tmp_pat
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert sorted(p.name for p in (tmp_path / "saved").iterdir()) == ["other.blend", "talk_flac.blend",
                                                                        "talk_wav.blend"]
+
+
+def test_every_generation_option_of_the_panel_is_a_batch_option(scene_blend, tmp_path):
+    speech = cut_speech(tmp_path, seconds=1.5)
+    proc = _batch("--blend", str(scene_blend), "--audio", str(speech), "--preset", "beat", "--steps", "3",
+                  "--overlap", "6", "--style", "0", "--guidance", "1.5", "--gesture-energy", "0.2",
+                  "--smoothing", "1", "--candidates", "2", "--face-seed", "3", "--start-frame", "10",
+                  "--tolerance", "0.001", "--no-render", "--save", str(tmp_path / "all.blend"), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (tmp_path / "all.blend").is_file()
+    bad = _batch("--blend", str(scene_blend), "--audio", str(speech), "--gesture-energy", "3", "--no-render",
+                 cwd=tmp_path)
+    assert bad.returncode == 1 and "skip guidance scale must be between 0 and 1" in bad.stderr
+    assert "Traceback" not in bad.stderr
