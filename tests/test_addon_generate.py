@@ -317,7 +317,7 @@ def test_keys_start_at_the_scenes_start_frame_by_default(speech):
 def test_generating_again_replaces_this_addons_sound_strip_and_keeps_the_users(speech):
     scene = reset_scene()
     ob = import_beat_armature()
-    settings = _configure(scene, speech, ob, "beat")
+    _configure(scene, speech, ob, "beat")
     editor = scene.sequence_editor_create()
     strips = editor.strips if hasattr(editor, "strips") else editor.sequences
     strips.new_sound("mine", str(speech), channel=5, frame_start=40)  # the user's own strip of the audio

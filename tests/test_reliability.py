@@ -208,7 +208,6 @@ def test_long_audio_is_generated_in_bounded_memory(data_dir, tmp_path):
 
 
 def test_pieces_of_a_long_recording_give_the_features_of_the_whole(data_dir, monkeypatch):
-    from diffsheg_core import audio as audio_module
     from diffsheg_core import pipeline
     from diffsheg_core.runtime.backends import open_network
 

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from ..audio import Audio, load_audio
+from ..audio import load_audio
 from ..checkpoints import read_safetensors, write_safetensors
 from ..errors import CheckpointError, DiffshegError
 from ..model import PhoneticEncoder, load_state_strict

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import DiffshegError
-from ...phonetic import ARPABET, CONSONANTS, SILENCE, VOWELS  # noqa: F401  (the one phone alphabet)
+from ...phonetic import ARPABET, SILENCE, VOWELS  # the one phone alphabet
 
 
 
