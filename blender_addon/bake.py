@@ -111,14 +111,18 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
             channels += rotation_channels(bone, mode, quats)
         plans.append((options.armature, name, channels))
     unmatched_keys: dict[str, list[str]] = {}
+    face_notes: list[str] = []
     for mesh in options.face_meshes:
         keys = map_shape_keys(mesh, options.preset, motion)
         unmatched_keys[mesh.name] = keys.unmatched
+        face_notes += [f"{mesh.name}: shape key {k} moves no vertex, skipped" for k in keys.empty]
+        if keys.derived:
+            face_notes.append(f"{mesh.name}: {', '.join(k for _, k in keys.derived)} driven from the ARKit weights")
         face = smooth(motion.face, options.smoothing) if options.smoothing > 0 else motion.face
         channels = []
-        for index, key_name in keys.pairs:
+        for key_name, weights in keys.curves(face):
             block = mesh.data.shape_keys.key_blocks[key_name]
-            channels.append(shape_key_channel(key_name, np.clip(face[:, index], block.slider_min, block.slider_max)))
+            channels.append(shape_key_channel(key_name, np.clip(weights, block.slider_min, block.slider_max)))
         plans.append((mesh.data.shape_keys, f"{name}_{mesh.name}", channels))
 
     undo: list[Undo] = []
@@ -150,7 +154,7 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
     return BakeResult(actions=actions, n_frames=motion.n_frames, n_keys=n_keys,
                       unmatched_bones=unmatched_bones, unmatched_shape_keys=unmatched_keys,
                       sound_strip=strip,
-                      notes=notes + [f"warning: {w}" for w in motion.meta.get("warnings", [])])
+                      notes=notes + face_notes + [f"warning: {w}" for w in motion.meta.get("warnings", [])])
 
 
 def smooth(values: np.ndarray, sigma: float) -> np.ndarray:

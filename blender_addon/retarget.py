@@ -12,7 +12,7 @@ themselves are in preset.py.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -21,6 +21,7 @@ from diffsheg_core.motion import Motion
 from diffsheg_core.rotations import axis_angle_to_matrix, convert, quaternion_sequence_continuous
 
 from .preset import JawDrive, Preset, find_name
+from .visemes import derived_keys
 
 # Landmark vectors of each layout's rest skeleton in its canonical frame, used to find
 # the canonical axes on a target rig: "up" from the first to the second joint, "left"
@@ -216,6 +217,24 @@ class ShapeKeyMapping:
     mesh: str
     pairs: list[tuple[int, str]]   # (face channel index, shape key name)
     unmatched: list[str]
+    derived: list[tuple[dict[int, float], str]] = field(default_factory=list)  # (weights, key): see visemes
+    empty: list[str] = field(default_factory=list)  # keys named like a channel that move no vertex
+
+    def curves(self, face: np.ndarray) -> list[tuple[str, np.ndarray]]:
+        """(shape key, weights over time) for every key this mapping drives."""
+        out = [(key, face[:, index]) for index, key in self.pairs]
+        out += [(key, np.clip(sum(w * face[:, i] for i, w in weights.items()), 0.0, 1.0))
+                for weights, key in self.derived]
+        return out
+
+
+def moves_vertices(key_block) -> bool:
+    """Whether a shape key displaces any vertex from the key it is relative to."""
+    n = len(key_block.data)
+    here, base = np.empty(3 * n), np.empty(3 * n)
+    key_block.data.foreach_get("co", here)
+    key_block.relative_key.data.foreach_get("co", base)
+    return bool(np.abs(here - base).max(initial=0.0) > 1e-7)
 
 
 def map_shape_keys(mesh, preset: Preset, motion: Motion) -> ShapeKeyMapping:
@@ -225,17 +244,26 @@ def map_shape_keys(mesh, preset: Preset, motion: Motion) -> ShapeKeyMapping:
         raise DiffshegError(
             f"mesh '{mesh.name}' has no shape keys: pick the face mesh with the expression "
             f"shape keys (e.g. ARKit jawOpen, eyeBlinkLeft)")
-    available = [kb.name for kb in keys.key_blocks[1:]]
+    working = [kb.name for kb in keys.key_blocks[1:] if moves_vertices(kb)]
+    empty = [kb.name for kb in keys.key_blocks[1:] if kb.name not in working]
     pairs, unmatched = [], []
     for i, name in enumerate(motion.face_names):
-        found = find_name([name] + preset.shape_key_aliases.get(name, []), available)
+        found = find_name([name] + preset.shape_key_aliases.get(name, []), working)
         if found is None:
             unmatched.append(name)
         else:
             pairs.append((i, found))
-    if not pairs:
+    used = {key for _, key in pairs}
+    derived = []
+    for names, weights in derived_keys({motion.face_names[i] for i, _ in pairs}, motion.face_names):
+        found = find_name(list(names), [k for k in working if k not in used])
+        if found is not None and weights:
+            derived.append((weights, found))
+            used.add(found)
+    if not pairs and not derived:
         raise DiffshegError(
             f"mesh '{mesh.name}' has no shape key matching the model's face channels "
             f"({', '.join(motion.face_names[:3])}, ...): rename its shape keys or add aliases "
             f"to preset '{preset.name}'")
-    return ShapeKeyMapping(mesh=mesh.name, pairs=pairs, unmatched=unmatched)
+    empty = [k for k in empty if find_name([k], motion.face_names) is not None]
+    return ShapeKeyMapping(mesh=mesh.name, pairs=pairs, unmatched=unmatched, derived=derived, empty=empty)

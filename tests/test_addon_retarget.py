@@ -7,12 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from addon_fixtures import (append_face, armature_pose_matrices, bpy, build_smplx_armature,
+from addon_fixtures import (append_face, armature_pose_matrices, bpy, build_smplx_armature, cut_speech,
                             import_beat_armature, mocap_motion, reset_scene, set_fps,
                             smplx_mocap_motion, world_direction)
 from addon_fixtures import exit_before_blender_teardown, rigify_blend  # noqa: F401 (fixtures)
 
 from blender_addon.bake import BakeOptions, bake_motion
+from blender_addon.keying import fcurves_of
 from blender_addon.preset import available_presets, find_name, load_preset, normalise_name
 from blender_addon.retarget import map_armature, map_shape_keys
 from diffsheg_core.errors import DiffshegError
@@ -168,3 +169,55 @@ def test_same_motion_looks_the_same_on_rigify_and_beat(rigify_blend):
         scene.frame_set(f)
         for a, b in pairs:
             assert world_direction(rig, a) @ world_direction(beat, b) > np.cos(np.radians(1)), (f, a)
+
+
+@pytest.fixture(scope="module")
+def speech_motion(tmp_path_factory):
+    import diffsheg_core
+
+    return diffsheg_core.generate(str(cut_speech(tmp_path_factory.mktemp("speech"), seconds=3.0)), steps=5)
+
+
+def _viseme_face(name: str, keys: dict[str, bool]):
+    """A mesh with a Basis and the given shape keys; True: the key moves vertices."""
+    bpy.ops.mesh.primitive_grid_add(x_subdivisions=4, y_subdivisions=4)
+    ob = bpy.context.object
+    ob.name = name
+    ob.shape_key_add(name="Basis", from_mix=False)
+    for key, moves in keys.items():
+        block = ob.shape_key_add(name=key, from_mix=False)
+        if moves:
+            for point in block.data[:5]:
+                point.co.z += 0.1
+    return ob
+
+
+def test_a_vroid_style_face_talks_and_blinks_through_its_own_keys(speech_motion):
+    """jawOpen that moves nothing is skipped; the mouth and eye-close keys are driven from
+    the ARKit weights instead, and the report says so."""
+    scene = reset_scene()
+    face = _viseme_face("VRoidFace", {"jawOpen": False, "Fcl_MTH_A": True, "Fcl_MTH_O": True,
+                                      "Fcl_EYE_Close_L": True, "Fcl_EYE_Close_R": True})
+    result = bake_motion(scene, speech_motion, None, BakeOptions(
+        armature=None, face_meshes=[face], preset=load_preset("beat"), start_frame=1, add_sound=False))
+    assert any("jawOpen moves no vertex" in n for n in result.notes)
+    assert any("Fcl_MTH_A" in n and "driven from the ARKit weights" in n for n in result.notes)
+    curves = {fc.data_path: fc for fc in fcurves_of(face.data.shape_keys)}
+    assert 'key_blocks["jawOpen"].value' not in curves
+    mouth = curves['key_blocks["Fcl_MTH_A"].value']
+    values = np.array([k.co[1] for k in mouth.keyframe_points])
+    assert values.max() > 0.2 and 'key_blocks["Fcl_EYE_Close_L"].value' in curves
+    # at the jaw's peak the mouth's vertices have moved
+    peak = int(mouth.keyframe_points[int(values.argmax())].co[0])
+    scene.frame_set(peak)
+    moved = face.evaluated_get(bpy.context.evaluated_depsgraph_get()).to_mesh()
+    assert max(abs(v.co.z) for v in moved.vertices) > 0.02
+
+
+def test_a_face_with_arkit_keys_ignores_its_visemes(speech_motion):
+    scene = reset_scene()
+    face = _viseme_face("RPMFace", {"jawOpen": True, "viseme_aa": True})
+    bake_motion(scene, speech_motion, None, BakeOptions(
+        armature=None, face_meshes=[face], preset=load_preset("beat"), start_frame=1, add_sound=False))
+    paths = {fc.data_path for fc in fcurves_of(face.data.shape_keys)}
+    assert 'key_blocks["jawOpen"].value' in paths and 'key_blocks["viseme_aa"].value' not in paths
