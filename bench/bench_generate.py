@@ -29,7 +29,7 @@ from diffsheg_core.bvh import write_bvh
 from diffsheg_core.checkpoints import ModelBundle, load_model
 from diffsheg_core.config import ModelConfig
 from diffsheg_core.foppas import PRESETS, sample_long
-from diffsheg_core.model import UniEG
+from diffsheg_core.model import UniEG, state_arrays
 from diffsheg_core.motion import write_arkit_json
 from diffsheg_core.pipeline import build_sampling, speech_features, to_motion
 from diffsheg_core.runtime.backends import open_network
@@ -41,7 +41,7 @@ def official_bundle() -> ModelBundle:
     torch.manual_seed(0)
     model = UniEG(ModelConfig()).eval()
     dim = model.cfg.dim
-    return ModelBundle(config=model.cfg, weights={k: v.numpy() for k, v in model.state_dict().items()},
+    return ModelBundle(config=model.cfg, weights=state_arrays(model),
                        mean=np.zeros(dim, np.float32), std=np.ones(dim, np.float32),
                        sampling=PRESETS["official-beat"], model_id="official-size-random")
 

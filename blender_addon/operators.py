@@ -94,24 +94,17 @@ def bundled_wheels_need() -> str | None:
         return None
 
 
-def is_official_checkpoint(path: Path) -> bool:
-    """A torch pickle (official DiffSHEG .pth/.pt), not our safetensors format: as
-    `diffsheg_core.checkpoints.load_model` tells them apart."""
-    if path.suffix == ".safetensors":
-        return False
-    with open(path, "rb") as fh:
-        return fh.read(16)[8:9] != b"{"
-
-
 def check_model(settings) -> None:
     """What the chosen model and device need besides the runtime: torch for official
     checkpoints and CUDA GPUs (the GPU support of the preferences)."""
+    from diffsheg_core.checkpoints import is_ours  # the runtime's packages: check_runtime came first
+
     if torch_installed():
         return
     raw = settings.model_path.strip()
     if raw:
         path = Path(bpy.path.abspath(raw))
-        if path.is_file() and is_official_checkpoint(path):
+        if path.is_file() and not is_ours(path):
             raise DiffshegError(f"{path.name} is an official DiffSHEG checkpoint (a torch file): it needs "
                                 f"torch, which is not installed: {INSTALL_GPU_HINT} (or choose a "
                                 ".safetensors model, or none for the bundled one)")

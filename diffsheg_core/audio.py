@@ -45,8 +45,7 @@ MIN_DURATION_S = 1.0 / 15.0  # one motion frame of the BEAT model
 SILENCE_PEAK = 1e-4
 MAX_FLOAT_PEAK = 16.0  # beyond this, float samples are integer PCM that was never scaled
 MAX_CHANNELS = 16
-RESAMPLER = "soxr_hq"  # librosa's name for it; soxr itself calls it "HQ"
-SOXR_QUALITY = "HQ"
+SOXR_QUALITY = "HQ"  # the resampler librosa.load uses by default (its "soxr_hq")
 
 # Official DiffSHEG mel front end (DESIGN.md section 5).
 LOAD_RATE = 22050
@@ -182,7 +181,7 @@ def open_audio_file(path: str | os.PathLike) -> AudioFile | Audio:
         return audio
     recording = AudioFile(str(path), int(info.samplerate), 0)
     recording.n_samples = _check_pieces(recording)
-    note = _warn_if_truncated(path, recording.n_samples, recording.sample_rate)
+    note = _warn_if_truncated(path, info, recording.n_samples)
     recording.notes += [note] if note else []
     return recording
 
@@ -239,14 +238,15 @@ def _decode_with_soundfile(path: Path) -> tuple[np.ndarray, int]:
     """(N, C) float32 frames via libsndfile, which recognises WAV/FLAC/OGG/MP3 by content.
     A file shorter than its header says is read as far as it goes, with an AudioWarning."""
     frames, rate = sf.read(path, dtype="float32", always_2d=True)
-    _warn_if_truncated(path, len(frames), rate)
+    _warn_if_truncated(path, sf.info(str(path)), len(frames))
     return frames, rate
 
 
-def _warn_if_truncated(path: Path, n_frames: int, rate: int) -> Optional[str]:
+def _warn_if_truncated(path: Path, info, n_frames: int) -> Optional[str]:
     """Warn (AudioWarning) of a WAV whose data chunk the file does not hold, which libsndfile
-    notes as `data : N (should be M)`; the warning's text, or None."""
-    found = re.search(r"^data\s*:\s*(\d+)\s*\(should be (\d+)\)", sf.info(str(path)).extra_info, re.M)
+    notes in `info` (its sf.info) as `data : N (should be M)`; the warning's text, or None."""
+    rate = info.samplerate
+    found = re.search(r"^data\s*:\s*(\d+)\s*\(should be (\d+)\)", info.extra_info, re.M)
     if not (found and int(found.group(2)) < int(found.group(1))):
         return None
     promised = n_frames * int(found.group(1)) / max(int(found.group(2)), 1)

@@ -348,12 +348,21 @@ def _load_official(path: Path, dataset: Optional[str], stats_dir) -> ModelBundle
 
 # ---------------------------------------------------------------- the default and entry point
 
+def is_ours(path: Path) -> bool:
+    """Whether `path` is in our safetensors format (by name, or by its JSON header), not an
+    official DiffSHEG torch pickle."""
+    if path.suffix == ".safetensors":
+        return True
+    with open(path, "rb") as fh:
+        return fh.read(16)[8:9] == b"{"
+
+
 def stored_layout(source: str | Path | None = None) -> Optional[str]:
     """The channel layout of one of our model files (None: the bundled default) from its
     metadata alone, without reading the weights; None for official checkpoints (their
     layout shows in their tensors) and files that cannot tell."""
     path = DEFAULT_WEIGHTS if source is None else Path(source).expanduser()
-    if not path.is_file() or path.suffix != ".safetensors":
+    if not path.is_file() or not is_ours(path):
         return None
     from safetensors import safe_open
 
@@ -377,8 +386,6 @@ def load_model(source: str | Path | None = None, *, dataset: Optional[str] = Non
         raise CheckpointError(f"{path}: no such checkpoint file")
     if dataset is not None and dataset not in OFFICIAL:
         raise CheckpointError(f"unknown configuration '{dataset}': choose beat or show")
-    with open(path, "rb") as fh:
-        head = fh.read(16)
-    if path.suffix == ".safetensors" or head[8:9] == b"{":
+    if is_ours(path):
         return _load_ours(path)
     return _load_official(path, dataset, stats_dir)

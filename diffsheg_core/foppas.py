@@ -138,15 +138,16 @@ class Foppas:
     """Samples one window at a time with a fixed schedule, settings and window size."""
 
     def __init__(self, schedule: Schedule, config: FoppasConfig, clip_len: int, dim: int,
-                 proposal: Optional[Proposal] = None, scored: Optional[int] = None):
-        """scored: the leading channels best-of-N selection compares (the gestures; default all)."""
+                 proposal: Optional[Proposal] = None, gestures: Optional[int] = None):
+        """gestures: how many leading channels are gestures, the rest face (default: all
+        gestures). Best-of-N compares the gestures; a face seed draws the face's noise apart."""
         config.check(clip_len)
         self.schedule = schedule.respaced(config.steps)
         self.config = config
         self.clip_len = clip_len
         self.dim = dim
         self.proposal = proposal
-        self.scored = dim if scored is None else scored
+        self.gestures = dim if gestures is None else gestures
 
     def times(self, has_known: bool) -> list[int]:
         if not has_known:
@@ -189,7 +190,7 @@ class Foppas:
             on_step(call, n_calls)
             call += 1
         if batch > 1:
-            best = int(np.argmin(seam_scores(x[..., : self.scored], known[..., : self.scored])))
+            best = int(np.argmin(seam_scores(x[..., : self.gestures], known[..., : self.gestures])))
             x = x[best: best + 1]
         return x
 
@@ -249,10 +250,10 @@ class FoppasStream:
     def __init__(self, sampler: Foppas, make_eps_fn: Callable[[np.ndarray], EpsFn], seed: int,
                  progress: Optional[ProgressCallback] = None,
                  cancel: Optional[threading.Event] = None, expected_frames: Optional[int] = None,
-                 face_seed: Optional[int] = None, face_from: Optional[int] = None):
+                 face_seed: Optional[int] = None):
         self.sampler = sampler
         self.make_eps_fn = make_eps_fn
-        self.noise = Noise(seed, face_seed, face_from)
+        self.noise = Noise(seed, face_seed, sampler.gestures)
         self.progress = progress
         self.cancel = cancel
         self.expected_windows = (

@@ -287,6 +287,13 @@ class PhoneticEncoder(nn.Module):
         return self.net((mel - self.mel_mean) / self.mel_std)
 
 
+def state_arrays(module: nn.Module, dtype: torch.dtype = torch.float32) -> dict[str, np.ndarray]:
+    """`module`'s state dict as numpy arrays (what model files hold), floating-point tensors
+    in `dtype` and integer buffers as they are."""
+    return {k: v.detach().cpu().to(dtype if v.is_floating_point() else v.dtype).numpy()
+            for k, v in module.state_dict().items()}
+
+
 def load_state_strict(model: nn.Module, state: dict, source: str, hint: str = "") -> None:
     """Load `state` (torch tensors or numpy arrays) into `model`, refusing any missing,
     unexpected or misshapen key.

@@ -120,12 +120,16 @@ def receptive_field(cfg: PhoneticConfig) -> int:
     return sum(d * (cfg.kernel // 2) for d in cfg.dilations)
 
 
-def stack_posteriors(post: np.ndarray, n_frames: int, subframes: int) -> np.ndarray:
-    """(n_frames, subframes * P) features: motion frame i (at i / fps) gets the recogniser
-    frames centred from 2 subframes before it to 1 after (4 subframes)."""
+def stack_posteriors(post: np.ndarray, n_frames: int, subframes: int, first: int = 0,
+                     total: int | None = None, offset: int = 0) -> np.ndarray:
+    """(n_frames, subframes * P) features of motion frames first .. first + n_frames - 1:
+    motion frame i (at i / fps) gets the recogniser frames centred from 2 subframes before
+    it to 1 after (4 subframes), clipped to the recording's `total` recogniser frames.
+    `post` holds the recording's recogniser frames from `offset` on (default: all of them)."""
     s = subframes
-    index = np.arange(n_frames)[:, None] * s + np.arange(-(s // 2), s - s // 2)[None]
-    return post[np.clip(index, 0, len(post) - 1)].reshape(n_frames, -1).astype(np.float32)
+    total = len(post) if total is None else total
+    index = np.arange(first, first + n_frames)[:, None] * s + np.arange(-(s // 2), s - s // 2)[None]
+    return post[np.clip(index, 0, total - 1) - offset].reshape(n_frames, -1).astype(np.float32)
 
 
 def fingerprint(cfg: PhoneticConfig, weights: dict[str, np.ndarray]) -> str:

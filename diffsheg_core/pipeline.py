@@ -25,7 +25,7 @@ from .errors import DiffshegError
 from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, check_seed, with_overrides
 from .guidance import Guidance, step_eps
 from .motion import Motion
-from .phonetic import PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel
+from .phonetic import PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel, stack_posteriors
 from .progress import ProgressCallback
 from .runtime.backends import open_network
 
@@ -116,25 +116,35 @@ def speech_chunks(bundle: ModelBundle, network, speech: Union[Audio, AudioFile],
     float32 rounding; a recording that fits one piece gives exactly `speech_features`).
     HuBERT models still read the whole recording."""
     cfg = bundle.config
-    fps, rate = cfg.fps, speech.sample_rate
-    if (cfg.has_speech_input and not cfg.phonetic_input) or not float(fps).is_integer() \
+    if (cfg.has_speech_input and not cfg.phonetic_input) or not float(cfg.fps).is_integer() \
             or speech.duration <= PIECE_SECONDS:
         yield speech_features(bundle, network, speech.read(0, speech.n_samples), hubert_path, hubert_quirk)
         return
-    fps = int(fps)
+    fps = int(cfg.fps)
     total = n_motion_frames(speech, fps)
     phonetic = bundle.phonetic if cfg.phonetic_input else None
-    level = _phonetic_level(speech, phonetic) if phonetic is not None else None
-    for t0 in range(0, int(np.ceil(speech.duration)), PIECE_SECONDS):
+    if phonetic is not None:
+        n_post = _posterior_count(speech, phonetic)
+        level = _phonetic_level(speech, phonetic, n_post)
+    for t0, start, piece in _pieces(speech):
         first, last = t0 * fps, min((t0 + PIECE_SECONDS) * fps, total)
         if first >= last:
             return
-        start = max(0, t0 - MARGIN_SECONDS)
-        piece = speech.read(start * rate, (t0 + PIECE_SECONDS + MARGIN_SECONDS) * rate)
         parts = [mel_frames(piece, fps)[first - start * fps: last - start * fps]]
         if phonetic is not None:
-            parts.append(_phonetic_piece(network, phonetic, piece, speech, start, first, last, level))
+            posteriors = network.phone_posteriors(log_mel(piece, phonetic, level))
+            parts.append(stack_posteriors(posteriors, last - first, phonetic.subframes, first, n_post,
+                                          offset=round(start * phonetic.fps * phonetic.subframes)))
         yield np.concatenate(parts, axis=1).astype(np.float32)
+
+
+def _pieces(speech: Union[Audio, AudioFile]) -> Iterator[tuple[int, int, Audio]]:
+    """(t0, start, piece) for each PIECE_SECONDS of `speech` from t0 seconds: the audio from
+    `start` = t0 - MARGIN_SECONDS (or 0) to MARGIN_SECONDS past the piece."""
+    rate = speech.sample_rate
+    for t0 in range(0, int(np.ceil(speech.duration)), PIECE_SECONDS):
+        start = max(0, t0 - MARGIN_SECONDS)
+        yield t0, start, speech.read(start * rate, (t0 + PIECE_SECONDS + MARGIN_SECONDS) * rate)
 
 
 def _posterior_count(speech, phonetic: PhoneticConfig) -> int:
@@ -142,33 +152,19 @@ def _posterior_count(speech, phonetic: PhoneticConfig) -> int:
     return 1 + resampled_length(speech.n_samples, speech.sample_rate, MEL_RATE) // phonetic.hop
 
 
-def _phonetic_level(speech: AudioFile, phonetic: PhoneticConfig) -> Optional[np.ndarray]:
-    """The whole recording's mean log-mel per band (the encoder's utterance normalisation),
-    summed piece by piece."""
+def _phonetic_level(speech: AudioFile, phonetic: PhoneticConfig, n_post: int) -> Optional[np.ndarray]:
+    """The whole recording's mean log-mel per band over its `n_post` recogniser frames (the
+    encoder's utterance normalisation), summed piece by piece."""
     if phonetic.normalise != "utterance":
         return None
-    rate, per_second = speech.sample_rate, phonetic.fps * phonetic.subframes
-    total = _posterior_count(speech, phonetic)
+    per_second = phonetic.fps * phonetic.subframes
     level = np.zeros((phonetic.n_mels, 1))
-    for t0 in range(0, int(np.ceil(speech.duration)), PIECE_SECONDS):
-        start = max(0, t0 - MARGIN_SECONDS)
-        piece = speech.read(start * rate, (t0 + PIECE_SECONDS + MARGIN_SECONDS) * rate)
+    for t0, start, piece in _pieces(speech):
         frames = raw_log_mel(piece, phonetic)
         offset = round(start * per_second)
-        first, last = round(t0 * per_second), min(round((t0 + PIECE_SECONDS) * per_second), total)
+        first, last = round(t0 * per_second), min(round((t0 + PIECE_SECONDS) * per_second), n_post)
         level[:, 0] += frames[:, first - offset: last - offset].sum(axis=1, dtype=np.float64)
-    return (level / total).astype(np.float32)
-
-
-def _phonetic_piece(network, phonetic: PhoneticConfig, piece: Audio, speech, start: int, first: int,
-                    last: int, level: Optional[np.ndarray]) -> np.ndarray:
-    """The stacked phone posteriors of motion frames [first, last) from a piece that starts
-    `start` seconds into the recording (see `phonetic.stack_posteriors`)."""
-    posteriors = network.phone_posteriors(log_mel(piece, phonetic, level))
-    s = phonetic.subframes
-    index = np.arange(first, last)[:, None] * s + np.arange(-(s // 2), s - s // 2)[None]
-    index = np.clip(index, 0, _posterior_count(speech, phonetic) - 1) - round(start * phonetic.fps * s)
-    return posteriors[index].reshape(last - first, -1)
+    return (level / n_post).astype(np.float32)
 
 
 def uses_prior(bundle: ModelBundle, config: FoppasConfig) -> bool:
@@ -184,7 +180,7 @@ def build_sampling(bundle: ModelBundle, network, config: FoppasConfig, style: in
     try:
         sampler = Foppas(Schedule.linear(), config, bundle.config.clip_len, bundle.config.dim,
                          proposal=bundle.prior.propose if uses_prior(bundle, config) else None,
-                         scored=bundle.config.gesture_dim)
+                         gestures=bundle.config.gesture_dim)
     except ValueError as exc:
         raise DiffshegError(str(exc)) from None
     scales = Guidance(resolve_guidance(bundle, guidance), resolve_skip_guidance(bundle, skip_guidance))
@@ -256,7 +252,7 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
 
     stream = FoppasStream(sampler, make_eps_fn, seed, progress, cancel,
                           expected_frames=n_motion_frames(speech, bundle.config.fps),
-                          face_seed=face_seed, face_from=bundle.config.gesture_dim)
+                          face_seed=face_seed)
     parts = [stream.push(chunk) for chunk in speech_chunks(bundle, network, speech, hubert_path, hubert_quirk)]
     normalised = np.concatenate(parts + [stream.finish()])
     del parts  # a long take's motion is held once, not twice
@@ -315,5 +311,4 @@ def open_stream(bundle: ModelBundle, *, seed: int = 0, style: int = 0,
     network = open_network(bundle, backend, device, threads=threads)
     sampler, make = build_sampling(bundle, network, sampling or bundle.sampling, style, guidance,
                                    skip_guidance)
-    return FoppasStream(sampler, make, check_seed(seed), face_seed=face_seed,
-                        face_from=bundle.config.gesture_dim)
+    return FoppasStream(sampler, make, check_seed(seed), face_seed=face_seed)

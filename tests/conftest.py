@@ -51,7 +51,7 @@ def random_bundle(graphs: bool = True, seed: int = 0, **config):
     from diffsheg_core.config import ModelConfig
     from diffsheg_core.export import with_graphs
     from diffsheg_core.foppas import PRESETS
-    from diffsheg_core.model import UniEG
+    from diffsheg_core.model import UniEG, state_arrays
 
     cfg = ModelConfig(**{"latent": 64, "layers": 2, "ff": 128, "heads": 4, "speech_encoder": None, **config})
     with torch.random.fork_rng(devices=[]):
@@ -60,7 +60,7 @@ def random_bundle(graphs: bool = True, seed: int = 0, **config):
         for name, p in model.named_parameters():  # wake the zero-initialised layers up
             if p.abs().max() == 0:
                 torch.nn.init.normal_(p, std=0.02)
-    bundle = ModelBundle(config=cfg, weights={k: v.numpy() for k, v in model.state_dict().items()},
+    bundle = ModelBundle(config=cfg, weights=state_arrays(model),
                          mean=np.zeros(cfg.dim, np.float32), std=np.full(cfg.dim, 0.05, np.float32),
                          sampling=PRESETS["official-beat"], model_id="random-small", trained=False,
                          source="random-small")

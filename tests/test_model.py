@@ -17,7 +17,7 @@ from diffsheg_core.errors import CheckpointError
 from diffsheg_core.export import network_graphs
 from diffsheg_core.foppas import PRESETS
 from diffsheg_core.guidance import Guidance, step_eps
-from diffsheg_core.model import ModelConfig, UniEG, load_state_strict
+from diffsheg_core.model import ModelConfig, UniEG, load_state_strict, state_arrays
 from diffsheg_core.runtime.backends import OnnxNetwork, TorchNetwork, open_network
 
 SMALL = dict(latent=64, layers=2, ff=128, heads=4)
@@ -156,7 +156,7 @@ def test_skip_guidance_steers_gestures_away_from_the_branch_without_self_attenti
     for p in model.parameters():  # wake the zero-initialised layers up
         torch.nn.init.normal_(p, std=0.05)
     cfg = model.cfg
-    bundle = ModelBundle(config=cfg, weights={k: v.numpy() for k, v in model.state_dict().items()},
+    bundle = ModelBundle(config=cfg, weights=state_arrays(model),
                          mean=np.zeros(cfg.dim, np.float32), std=np.ones(cfg.dim, np.float32),
                          sampling=PRESETS["official-beat"], source="skip-test")
     network = TorchNetwork(bundle, "cpu", "fp32")

@@ -16,7 +16,7 @@ from diffsheg_core.checkpoints import ModelBundle, load_model, save_checkpoint
 from diffsheg_core.errors import CheckpointError, DiffshegError
 from diffsheg_core.export import with_graphs
 from diffsheg_core.foppas import PRESETS
-from diffsheg_core.model import PhoneticEncoder
+from diffsheg_core.model import PhoneticEncoder, state_arrays
 from diffsheg_core.phonetic import PHONES, PhoneticConfig, log_mel, stack_posteriors
 from diffsheg_core.pipeline import generate, speech_features
 from diffsheg_core.runtime.backends import open_network
@@ -24,7 +24,7 @@ from diffsheg_core.training.corpus.build import BuildConfig, build
 from diffsheg_core.training.corpus.phones import Phone
 from diffsheg_core.training.phonetic import (
     corpus_utterances, evaluate_phonetic, frame_labels, labelled_mels, load_phonetic, main, save_phonetic,
-    state_arrays, torch_posteriors,
+    torch_posteriors,
 )
 
 SENTENCES = (

@@ -13,8 +13,10 @@ so a seed gives the same motion on either (within float32 rounding).
 
 from __future__ import annotations
 
+import importlib.metadata
 import importlib.util
 import os
+import sys
 from typing import Optional
 
 import numpy as np
@@ -146,8 +148,15 @@ class TorchNetwork:
 
 
 def _torch_sees_cuda() -> bool:
-    if importlib.util.find_spec("torch") is None:
+    """Whether an installed torch sees a CUDA GPU. A CPU build (version `+cpu`) or macOS
+    cannot, and is not imported to find out: that would add most of a second to every run."""
+    if importlib.util.find_spec("torch") is None or sys.platform == "darwin":
         return False
+    try:
+        if importlib.metadata.version("torch").endswith("+cpu"):
+            return False
+    except importlib.metadata.PackageNotFoundError:  # torch on sys.path without metadata
+        pass
     import torch
 
     return torch.cuda.is_available()

@@ -21,7 +21,7 @@ from tqdm import tqdm
 from ..audio import load_audio
 from ..checkpoints import read_safetensors, write_safetensors
 from ..errors import CheckpointError, DiffshegError
-from ..model import PhoneticEncoder, load_state_strict
+from ..model import PhoneticEncoder, load_state_strict, state_arrays
 from ..phonetic import BILABIALS, PHONES, PhoneticConfig, fingerprint, log_mel, phonetic_encoding
 from .corpus.phones import Phone
 
@@ -36,10 +36,6 @@ def frame_labels(phones: list[Phone], n_frames: int, rate: float) -> np.ndarray:
     for p in phones:
         labels[(t >= p.start) & (t < p.end)] = index.get(p.label, 0)
     return labels
-
-
-def state_arrays(encoder: PhoneticEncoder) -> dict[str, np.ndarray]:
-    return {k: v.detach().cpu().float().numpy() for k, v in encoder.state_dict().items()}
 
 
 def torch_posteriors(encoder: PhoneticEncoder):

@@ -41,7 +41,7 @@ from ..diffusion import Schedule
 from ..errors import DiffshegError
 from ..foppas import PRESETS, FoppasConfig, with_overrides
 from ..export import with_graphs
-from ..model import PhoneticEncoder, UniEG, load_state_strict
+from ..model import PhoneticEncoder, UniEG, load_state_strict, state_arrays
 from ..pipeline import check_skip_guidance, hubert_encoding
 from .phonetic import load_phonetic, speech_encoding as phonetic_speech
 from ..prior import GesturePrior
@@ -446,18 +446,15 @@ class Trainer:
     def bundle(self, dtype: torch.dtype = torch.float32) -> ModelBundle:
         """The EMA model as a generation checkpoint, with its ONNX graphs exported from the
         weights as stored (float16 weights run in float32 on both backends)."""
-        def arrays(module: torch.nn.Module) -> dict[str, np.ndarray]:
-            return {k: v.detach().cpu().to(dtype if v.is_floating_point() else v.dtype).numpy()
-                    for k, v in module.state_dict().items()}
-
         training = {k: v for k, v in asdict(self.cfg).items() if k not in ("data", "card")}
         if self._prior is None:
             self._prior = fit_prior(self.train_set.takes, self.stats, self.model_cfg)
         return with_graphs(ModelBundle(
-            config=self.model_cfg, weights=arrays(self.ema), mean=self.stats.mean, std=self.stats.std,
+            config=self.model_cfg, weights=state_arrays(self.ema, dtype), mean=self.stats.mean,
+            std=self.stats.std,
             sampling=self.sampling, guidance=self.guidance, skip_guidance=self.cfg.skip_guidance,
             model_id=self.cfg.model_id, phonetic=self.phonetic.cfg if self.phonetic else None,
-            phonetic_weights=arrays(self.phonetic) if self.phonetic else {}, prior=self._prior,
+            phonetic_weights=state_arrays(self.phonetic, dtype) if self.phonetic else {}, prior=self._prior,
             info={**self.cfg.card, "trained_steps": self.step, "data": asdict(self.cfg.data),
                   "training": training}, source=f"run {self.out}"))
 
