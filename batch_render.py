@@ -88,34 +88,27 @@ AUDIO_SUFFIXES = {".wav", ".flac", ".ogg", ".mp3", ".m4a", ".aiff", ".aif"}
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
+    from diffsheg_core.settings import add_arguments
+
     p = argparse.ArgumentParser(prog="batch_render.py", description=__doc__.split("\n\n")[0])
     p.set_defaults(stems={})  # stem -> how many inputs have it (filled in for a folder)
     p.add_argument("--audio", help="an audio file or a folder of audio files")
     p.add_argument("--blend", help="scene to open (python mode; with blender, pass it before -P)")
     p.add_argument("--armature", help="armature object name (default: the scene's only armature)")
     p.add_argument("--face", nargs="*", default=None, help="face mesh object name(s) (default: meshes with shape keys)")
-    p.add_argument("--preset", default="beat", help="rig preset name or .json path (default: beat)")
+    p.add_argument("--preset", default="auto",
+                   help="rig preset name or .json path (default: auto, the preset whose bone names the rig has)")
     p.add_argument("--output", help="video file (one audio) or folder (several); default out/<audio>.mp4")
     p.add_argument("--no-render", action="store_true", help="generate and key only")
     p.add_argument("--save", help=".blend to save (a folder when several audio files)")
-    p.add_argument("--model", default=None, help="checkpoint path (default: the bundled model)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--candidates", type=int, default=None,
-                   help="best-of-N: sample every window after the first N times, keep the best continuation")
-    p.add_argument("--face-seed", type=int, default=None,
-                   help="keep the face of this seed while --seed changes the gestures")
-    p.add_argument("--steps", type=int, default=None, help="diffusion steps (default: the model's)")
-    p.add_argument("--overlap", type=int, default=None, help="FOPPAS overlap frames (default: the model's)")
-    p.add_argument("--style", type=int, default=0, help="style / speaker index (default 0)")
-    p.add_argument("--guidance", type=float, default=None,
-                   help="classifier-free guidance scale (default: the model's; 1 = off)")
-    p.add_argument("--gesture-energy", type=float, default=None,
-                   help="gesture skip-guidance scale, 0-1 (default: the model's; 0 = off)")
-    p.add_argument("--smoothing", type=float, default=0.0, help="Gaussian smoothing in scene frames (0 = none)")
-    p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
-    p.add_argument("--start-frame", type=int, default=None,
+    add_arguments(p)  # every generation option, as the CLI has them
+    k = p.add_argument_group("keying")
+    k.add_argument("--start-frame", type=int, default=None,
                    help="frame of the first key and the sound strip (default: the scene's start frame)")
-    p.add_argument("--tolerance", type=float, default=0.0, help="key reduction tolerance; 0 keys every frame")
+    k.add_argument("--smoothing", type=float, default=0.0, help="Gaussian smoothing in scene frames (0 = none)")
+    k.add_argument("--tolerance", type=float, default=0.0, help="key reduction tolerance; 0 keys every frame")
+    k.add_argument("--no-sound", action="store_true", help="add no sound strip")
+    k.add_argument("--keep-frame-range", action="store_true", help="leave the scene's frame range as it is")
     return p.parse_args(argv)
 
 
@@ -191,15 +184,27 @@ def output_stem(audio: Path, stems: dict[str, int]) -> str:
     return f"{audio.stem}_{audio.suffix.lstrip('.').lower()}" if stems.get(audio.stem, 0) > 1 else audio.stem
 
 
+def bake_options(args, scene, armature, faces):
+    """The keying options of the command line (those of the panel's lower half)."""
+    preset = addon("preset")
+    return addon("bake").BakeOptions(
+        armature=armature, face_meshes=faces,
+        preset=None if args.preset == preset.AUTO else preset.load_preset(args.preset),
+        start_frame=scene.frame_start if args.start_frame is None else args.start_frame,
+        tolerance=args.tolerance, smoothing=args.smoothing,
+        add_sound=not args.no_sound, set_frame_range=not args.keep_frame_range)
+
+
 def run_one(args, audio: Path, label: str, several: bool) -> None:
     import diffsheg_core
     from diffsheg_core.errors import DiffshegError
+    from diffsheg_core.settings import from_arguments
 
-    BakeOptions, bake_motion = addon("bake").BakeOptions, addon("bake").bake_motion
+    bake_motion = addon("bake").bake_motion
     set_video_output = addon("demo").set_video_output
     model_label, summary = addon("operators").model_label, addon("operators").summary
-    load_preset = addon("preset").load_preset
 
+    settings = from_arguments(args)  # every generation option checked before anything else
     scene = bpy.context.scene
     if not args.no_render and scene.camera is None:
         raise DiffshegError("the scene has no camera to render with: add one, or pass --no-render")
@@ -209,13 +214,8 @@ def run_one(args, audio: Path, label: str, several: bool) -> None:
     check_outputs([output_for(args, audio, several, ".blend", args.save) if args.save else None,
                    None if args.no_render else output_for(args, audio, several, ".mp4", args.output)],
                   inputs=[audio, args.model, bpy.data.filepath or None])
-    options = BakeOptions(armature=armature, face_meshes=faces, preset=load_preset(args.preset),
-                          start_frame=scene.frame_start if args.start_frame is None else args.start_frame,
-                          tolerance=args.tolerance, smoothing=args.smoothing)
-    motion = diffsheg_core.generate(str(audio), model=args.model, seed=args.seed, face_seed=args.face_seed,
-                                    steps=args.steps, candidates=args.candidates, overlap=args.overlap,
-                                    style=args.style, guidance=args.guidance, skip_guidance=args.gesture_energy,
-                                    device=args.device, progress=printer(label))
+    options = bake_options(args, scene, armature, faces)
+    motion = diffsheg_core.generate(str(audio), settings=settings, progress=printer(label))
     result = bake_motion(scene, motion, str(audio), options)
     print(f"{label}: {summary(result)} [model {model_label(motion.meta)}]", flush=True)
     if args.save:

@@ -8,7 +8,7 @@ Call only from Blender's main thread.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +17,7 @@ from diffsheg_core.errors import DiffshegError
 from diffsheg_core.motion import Motion, resample_motion
 
 from .keying import Channel, Undo, new_action, rotation_channels, shape_key_channel, write_channels
+from .preset import choose_preset
 from .retarget import Preset, bone_quaternions, map_armature, map_shape_keys
 from .sound import NO_AUDIO_NOTE, add_sound_strip, audio_supported, remove_strips, strips_added_for
 
@@ -28,7 +29,7 @@ class BakeOptions:
 
     armature: object | None
     face_meshes: list = field(default_factory=list)
-    preset: Preset | None = None
+    preset: Preset | None = None   # None: Auto, the preset whose names the rig has
     start_frame: int = 1
     tolerance: float = 0.0
     smoothing: float = 0.0
@@ -89,19 +90,29 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
     """
     if options.armature is None and not options.face_meshes:
         raise DiffshegError("no target: choose an armature and/or a face mesh in the panel")
-    if options.preset is None:
-        raise DiffshegError("no rig preset chosen: pick one in the panel")
     check_local([options.armature, *options.face_meshes])
     fps = scene_fps(scene)
     motion = resample_motion(motion, fps)
+    preset_notes: list[str] = []
+    if options.preset is None:
+        preset, note = auto_preset(motion.rig, options.armature, options.face_meshes)
+        options, preset_notes = replace(options, preset=preset), [note]
     check_frames(options.start_frame, motion.n_frames)
     name = options.action_name or Path(audio_path or motion.meta.get("audio_file") or "speech").stem
 
     plans: list[tuple[object, str, list[Channel]]] = []
     unmatched_bones: list[str] = []
+    face_maps = [map_shape_keys(mesh, options.preset, motion) for mesh in options.face_meshes]
+    rig_notes: list[str] = []
     if options.armature is not None:
-        mapping = map_armature(options.armature, options.preset, motion)
+        jaw = options.preset.jaw
+        has_jaw = (jaw is not None and jaw.source in motion.face_names
+                   and options.preset.find_bone(jaw.bone, options.armature.data.bones.keys()) is not None)
+        jaw_keys = [m.mesh for m in face_maps if has_jaw and m.drives(motion.face_names.index(jaw.source))]
+        mapping = map_armature(options.armature, options.preset, motion, drive_jaw=not jaw_keys)
         unmatched_bones = mapping.unmatched
+        rig_notes = mapping.notes + ([f"jaw bone {jaw.bone} left at rest: the {jaw.source} shape key of "
+                                      f"{', '.join(jaw_keys)} opens the mouth"] if jaw_keys else [])
         channels = []
         for bone, quats in bone_quaternions(motion, mapping).items():
             if options.smoothing > 0:
@@ -112,8 +123,7 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
         plans.append((options.armature, name, channels))
     unmatched_keys: dict[str, list[str]] = {}
     face_notes: list[str] = []
-    for mesh in options.face_meshes:
-        keys = map_shape_keys(mesh, options.preset, motion)
+    for mesh, keys in zip(options.face_meshes, face_maps):
         unmatched_keys[mesh.name] = keys.unmatched
         face_notes += [f"{mesh.name}: shape key {k} moves no vertex, skipped" for k in keys.empty]
         if keys.derived:
@@ -154,7 +164,15 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
     return BakeResult(actions=actions, n_frames=motion.n_frames, n_keys=n_keys,
                       unmatched_bones=unmatched_bones, unmatched_shape_keys=unmatched_keys,
                       sound_strip=strip,
-                      notes=notes + face_notes + [f"warning: {w}" for w in motion.meta.get("warnings", [])])
+                      notes=preset_notes + notes + rig_notes + face_notes + [f"warning: {w}" for w in motion.meta.get("warnings", [])])
+
+
+def auto_preset(layout: str, armature, face_meshes) -> tuple[Preset, str]:
+    """The preset whose bone (and alias shape-key) names the targets have, and a note saying which."""
+    bones = armature.data.bones.keys() if armature is not None else []
+    keys = [kb.name for mesh in face_meshes if mesh.data.shape_keys is not None
+            for kb in mesh.data.shape_keys.key_blocks]
+    return choose_preset(layout, bones, keys)
 
 
 def smooth(values: np.ndarray, sigma: float) -> np.ndarray:

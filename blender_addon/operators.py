@@ -32,7 +32,10 @@ def audio_file(settings) -> Path:
     return check_audio_path(bpy.path.abspath(raw))
 
 
-def preset_of(settings) -> preset.Preset:
+def preset_of(settings) -> preset.Preset | None:
+    """The chosen rig preset; None for Auto (chosen from the rig's names when keying)."""
+    if settings.preset == preset.AUTO:
+        return None
     if settings.preset == CUSTOM_PRESET:
         if not settings.preset_file.strip():
             raise DiffshegError("'Custom file...' preset chosen but no preset file given")
@@ -40,20 +43,22 @@ def preset_of(settings) -> preset.Preset:
     return preset.load_preset(settings.preset)
 
 
-def generate_kwargs(settings) -> dict:
-    """Keyword arguments of `diffsheg_core.generate` from the panel's settings."""
-    return {
-        "model": bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None,
-        "seed": settings.seed,
-        "face_seed": settings.face_seed if settings.keep_face else None,
-        "steps": settings.steps,
-        "candidates": settings.candidates,
-        "overlap": settings.overlap or None,
-        "style": settings.style,
-        "guidance": settings.guidance or None,
-        "skip_guidance": settings.gesture_energy if settings.set_gesture_energy else None,
-        "device": settings.device_arg(),
-    }
+def generate_settings(settings):
+    """The panel's generation options as one `GenerateSettings` (checked there); a switched-off
+    "Set ..." toggle means the model's default."""
+    from diffsheg_core.settings import GenerateSettings
+
+    return GenerateSettings(
+        model=bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None,
+        seed=settings.seed,
+        face_seed=settings.face_seed if settings.keep_face else None,
+        steps=settings.steps,
+        candidates=settings.candidates,
+        overlap=settings.overlap if settings.set_overlap else None,
+        style=settings.style,
+        guidance=settings.guidance if settings.set_guidance else None,
+        skip_guidance=settings.gesture_energy if settings.set_gesture_energy else None,
+        device=settings.device_arg())
 
 
 def bake_options(settings):
@@ -125,7 +130,7 @@ def check_ready(settings) -> tuple:
     from diffsheg_core.checkpoints import stored_layout  # the runtime's packages: checked above
 
     layout = stored_layout(bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None)
-    if options.armature is not None and layout is not None:
+    if options.armature is not None and layout is not None and options.preset is not None:
         options.preset.joint_map(layout)  # names the missing section before generating
     return path, options
 
@@ -166,22 +171,23 @@ def apply_result(context, settings, motion, path: Path, options):
 class GenerationJob:
     """`diffsheg_core.generate` in a daemon thread; poll `done`, then read `motion`/`error`."""
 
-    def __init__(self, path: Path, kwargs: dict):
+    def __init__(self, path: Path, settings):
         self.cancel = threading.Event()
         self.fraction = 0.0
         self.motion = None
         self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, args=(path, kwargs), daemon=True)
+        self._thread = threading.Thread(target=self._run, args=(path, settings), daemon=True)
 
     def start(self) -> "GenerationJob":
         self._thread.start()
         return self
 
-    def _run(self, path: Path, kwargs: dict) -> None:
+    def _run(self, path: Path, settings) -> None:
         import diffsheg_core
 
         try:
-            self.motion = diffsheg_core.generate(str(path), progress=self._progress, cancel=self.cancel, **kwargs)
+            self.motion = diffsheg_core.generate(str(path), settings=settings, progress=self._progress,
+                                                 cancel=self.cancel)
         except BaseException as exc:  # handed to the main thread, which reports it
             self.error = exc
 
@@ -215,13 +221,13 @@ class DIFFSHEG_OT_generate(bpy.types.Operator):
     def _prepare(self, context):
         settings = context.scene.diffsheg
         path, options = check_ready(settings)
-        return settings, path, options
+        return settings, path, options, generate_settings(settings)
 
     def execute(self, context):
         """Blocking run (scripts, batch): generate, then key."""
         try:
-            settings, path, options = self._prepare(context)
-            job = GenerationJob(path, generate_kwargs(settings)).start()
+            settings, path, options, generation = self._prepare(context)
+            job = GenerationJob(path, generation).start()
             job.wait()
             if job.error is not None:
                 raise job.error
@@ -234,12 +240,12 @@ class DIFFSHEG_OT_generate(bpy.types.Operator):
 
     def invoke(self, context, event):
         try:
-            settings, path, options = self._prepare(context)
+            settings, path, options, generation = self._prepare(context)
         except Exception as exc:  # a message in the status bar, never a traceback
             self.report({"ERROR"}, error_message(exc))
             return {"CANCELLED"}
         self._path, self._options = path, options
-        self._job = GenerationJob(path, generate_kwargs(settings)).start()
+        self._job = GenerationJob(path, generation).start()
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.1, window=context.window)
         wm.progress_begin(0, 100)

@@ -72,14 +72,14 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
         sub.prop(s, "face_seed")
         col.prop(s, "steps")
         col.prop(s, "candidates")
-        col.prop(s, "overlap")
         col.prop(s, "style")
-        col.prop(s, "guidance")
-        row = col.row(align=True)
-        row.prop(s, "set_gesture_energy", text="")
-        energy = row.row(align=True)
-        energy.active = s.set_gesture_energy
-        energy.prop(s, "gesture_energy")
+        for toggle, value in (("set_overlap", "overlap"), ("set_guidance", "guidance"),
+                              ("set_gesture_energy", "gesture_energy")):
+            row = col.row(align=True)
+            row.prop(s, toggle, text="")
+            sub = row.row(align=True)
+            sub.active = getattr(s, toggle)
+            sub.prop(s, value)
         col.prop(s, "device")
         col.label(text=f"Runs on: {device_label(s.device)}")
 

@@ -6,6 +6,8 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        IntProperty, PointerProperty, StringProperty)
 
+from diffsheg_core.settings import CANDIDATES, GUIDANCE, OVERLAP, SKIP_GUIDANCE, STEPS
+
 from . import preset
 
 CUSTOM_PRESET = "__custom__"
@@ -24,7 +26,9 @@ _preset_items_cache: list = []
 
 def _preset_items(_self, _context):
     # Blender keeps only the strings of the last returned list alive: keep a reference.
-    _preset_items_cache[:] = [(n, n, f"rig preset presets/{n}.json") for n in preset.available_presets()]
+    _preset_items_cache[:] = [(preset.AUTO, "Auto", "the preset whose bone names the armature has "
+                                                    "(the report says which it chose)")]
+    _preset_items_cache.extend((n, n, f"rig preset presets/{n}.json") for n in preset.available_presets())
     _preset_items_cache.append((CUSTOM_PRESET, "Custom file...", "a preset .json file of your own"))
     return _preset_items_cache
 
@@ -54,20 +58,24 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
                                         "seed changes the gestures")
     face_seed: IntProperty(name="Face seed", default=0, min=0,
                            description="the seed the face is sampled with when Keep face is on")
-    candidates: IntProperty(name="Candidates", default=1, min=1, max=16,
+    candidates: IntProperty(name="Candidates", default=1, min=CANDIDATES[0], max=CANDIDATES[1],
                             description="sample every window after the first this many times and keep the one "
                                         "that best continues the motion (smoother seams; costs that many times "
                                         "the time)")
-    steps: IntProperty(name="Steps", default=25, min=1, max=1000,
+    steps: IntProperty(name="Steps", default=25, min=STEPS[0], max=STEPS[1],
                        description="diffusion steps: fewer are faster, 25 is the model's default")
-    overlap: IntProperty(name="Overlap", default=0, min=0, max=64,
-                         description="frames shared by consecutive windows; 0 = the model's default")
+    set_overlap: BoolProperty(name="Set overlap", default=False,
+                              description="use your own overlap instead of the model's default")
+    overlap: IntProperty(name="Overlap", default=4, min=OVERLAP[0], max=OVERLAP[1],
+                         description="frames shared by consecutive windows")
     style: IntProperty(name="Style", default=0, min=0, description="speaker style index of the model")
-    guidance: FloatProperty(name="Guidance", default=0.0, min=0.0, max=10.0,
-                            description="classifier-free guidance scale; 0 = the model's default")
+    set_guidance: BoolProperty(name="Set guidance", default=False,
+                               description="use your own guidance scale instead of the model's default")
+    guidance: FloatProperty(name="Guidance", default=1.0, min=GUIDANCE[0], max=GUIDANCE[1],
+                            description="classifier-free guidance scale; 1 = off")
     set_gesture_energy: BoolProperty(name="Set gesture energy", default=False,
                                      description="use your own gesture energy instead of the model's default")
-    gesture_energy: FloatProperty(name="Gesture energy", default=0.1, min=0.0, max=1.0,
+    gesture_energy: FloatProperty(name="Gesture energy", default=0.1, min=SKIP_GUIDANCE[0], max=SKIP_GUIDANCE[1],
                                   description="skip-guidance scale of the gestures: higher gives larger, "
                                               "livelier gestures; 0 = off")
     start_at_scene_start: BoolProperty(name="Scene start", default=True,

@@ -4,7 +4,10 @@ Rotations come out of the model in each joint's parent frame, with every joint's
 rest frame aligned with the model's canonical axes (x = character's left, y = up,
 z = forward). A target bone has its own rest frame (bone roll, import axes, object
 transform), so each rotation is conjugated into that frame; optionally a rest
-correction turns the model's T-pose arms into the rig's rest pose (A-pose rigs).
+correction turns the model's T-pose arms into the rig's rest pose (A-pose rigs),
+measured along each bone's chain. A joint may be spread over a chain of the rig's bones
+(several spine bones for the model's one), and a joint the rig lacks passes its rotation
+on to the joints below it, so the bones further down still point where the model's do.
 
 Only bpy data are read here (names, rest matrices); nothing is written. Presets
 themselves are in preset.py.
@@ -16,8 +19,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from diffsheg_core.bvh import beat_skeleton
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.motion import Motion
+from diffsheg_core.rigs import SMPLX_JOINTS, SMPLX_PARENTS
 from diffsheg_core.rotations import axis_angle_to_matrix, convert, quaternion_sequence_continuous
 
 from .preset import JawDrive, Preset, find_name
@@ -34,14 +39,29 @@ LANDMARKS: dict[str, dict[str, tuple[str, str, tuple[float, float, float]]]] = {
               "left": ("right_shoulder", "left_shoulder", (1.0, 0.0, 0.0))},
 }
 
-# Joints whose model rest direction is known (T-pose arms): used by presets with
-# "align_rest" to turn the model's T-pose into the rig's own rest pose.
-TPOSE_DIRECTIONS: dict[str, tuple[float, float, float]] = {
-    **{f"{side}{j}": ((-1.0 if side == "Right" else 1.0), 0.0, 0.0)
-       for side in ("Right", "Left") for j in ("Arm", "ForeArm", "Hand")},
-    **{f"{side}_{j}": ((-1.0 if side == "right" else 1.0), 0.0, 0.0)
-       for side in ("right", "left") for j in ("shoulder", "elbow", "wrist")},
+# Joints whose model rest direction is known (T-pose arms), with the child joint whose
+# head the direction points at: presets with "align_rest" turn the model's T-pose into
+# the rig's rest pose, measured on the rig from the bone's head to its child's.
+ALIGN: dict[str, tuple[tuple[float, float, float], str]] = {
+    **{f"{side}{j}": (((-1.0 if side == "Right" else 1.0), 0.0, 0.0), f"{side}{child}")
+       for side in ("Right", "Left")
+       for j, child in (("Arm", "ForeArm"), ("ForeArm", "Hand"), ("Hand", "HandMiddle1"))},
+    **{f"{side}_{j}": (((-1.0 if side == "right" else 1.0), 0.0, 0.0), f"{side}_{child}")
+       for side in ("right", "left")
+       for j, child in (("shoulder", "elbow"), ("elbow", "wrist"), ("wrist", "middle1"))},
 }
+
+
+def layout_parents(layout: str) -> dict[str, str | None]:
+    """Each joint of a layout's whole skeleton -> its parent joint (None for the root),
+    also the joints the model does not move (BEAT's Head, SMPL-X's pelvis)."""
+    if layout == "smplx":
+        return {n: (SMPLX_JOINTS[p] if p >= 0 else None) for n, p in zip(SMPLX_JOINTS, SMPLX_PARENTS)}
+    if layout == "beat":
+        skeleton = beat_skeleton()
+        return {n: (skeleton.joint_names[p] if p >= 0 else None)
+                for n, p in zip(skeleton.joint_names, skeleton.parents)}
+    raise DiffshegError(f"no skeleton known for the '{layout}' layout: use a model of the beat or smplx layout")
 
 
 # ---------------------------------------------------------------- rotation maths
@@ -71,10 +91,15 @@ def _frame(left: np.ndarray, up: np.ndarray) -> np.ndarray:
 
 @dataclass
 class BoneTarget:
-    """One keyed bone: where its rotations come from and how to convert them."""
+    """One keyed bone: where its rotation comes from and how to convert it.
+
+    The rotations of `joints` are composed in order (joints the rig lacks first, passed
+    on to this bone) and `share` of the result is taken (a joint spread over a chain of
+    bones); no joints: a jaw driven by a face weight."""
 
     bone: str
-    joint: str | None         # motion joint; None when driven by a face weight (jaw)
+    joints: tuple[str, ...]
+    share: float
     left: np.ndarray           # 3x3: L_t = left @ R_t @ right
     right: np.ndarray
     rotation_mode: str
@@ -87,57 +112,86 @@ class ArmatureMapping:
     unmatched: list[str]       # canonical joints of the preset with no bone on the rig
     jaw_source: int | None = None   # face channel driving the jaw target, if any
     jaw: JawDrive | None = None
+    notes: list[str] = field(default_factory=list)
 
 
-def map_armature(armature, preset: Preset, motion: Motion) -> ArmatureMapping:
+def map_armature(armature, preset: Preset, motion: Motion, drive_jaw: bool = True) -> ArmatureMapping:
     """Match the preset's bones on `armature` (a bpy Object) and prepare conversions.
 
+    A joint the rig lacks passes its rotation on to the nearest joints below it that the
+    rig has (the model's Neck1 into the head of a rig without a second neck bone). The
+    jaw bone is driven from its face weight only with `drive_jaw` (no jaw shape key).
     Raises DiffshegError when nothing matches, naming the preset and the rig.
     """
-    joint_map = preset.joint_map(motion.rig)
+    parents = layout_parents(motion.rig)
     bones = armature.data.bones
-    matched: dict[str, str] = {}
-    unmatched: list[str] = []
-    for joint, bone in joint_map.items():
-        if joint not in motion.joint_names:
-            continue
-        found = find_name([bone], bones.keys())
-        if found is None:
-            unmatched.append(f"{joint} -> {bone}")
-        else:
-            matched[joint] = found
+    chains, missing = _match_chains(preset, motion.rig, parents, bones)
+    moving = set(motion.joint_names)
+    passed_to: dict[str, list[str]] = {}
+    sources: dict[str, tuple[str, ...]] = {}
+    for joint in chains:
+        passed, above = [], parents[joint]
+        while above is not None and above not in chains:
+            if above in missing and above in moving:
+                passed.insert(0, above)
+                passed_to.setdefault(above, []).append(chains[joint][0])
+            above = parents[above]
+        own = [joint] if joint in moving else []
+        if passed + own:
+            sources[joint] = tuple(passed + own)
+    unmatched = [f"{j} -> {', '.join(missing[j])}" for j in missing if j in moving and j not in passed_to]
+    notes = [f"{j} ({', '.join(missing[j])} not on the rig) passed on to {', '.join(to)}"
+             for j, to in passed_to.items()]
     jaw_bone = None
-    if preset.jaw and preset.jaw.source in motion.face_names and "jaw" not in matched:
-        jaw_bone = find_name([preset.jaw.bone], bones.keys())
+    if drive_jaw and preset.jaw and preset.jaw.source in motion.face_names and "jaw" not in sources:
+        jaw_bone = preset.find_bone(preset.jaw.bone, bones.keys())
         if jaw_bone is None:
             unmatched.append(f"jaw (from {preset.jaw.source}) -> {preset.jaw.bone}")
-    if not matched and jaw_bone is None:
+    if not sources and jaw_bone is None:
+        wanted = [b for chain in preset.joint_map(motion.rig).values() for b in chain]
         raise DiffshegError(
             f"armature '{armature.name}' has none of the bones of preset '{preset.name}' "
-            f"(e.g. {', '.join(list(joint_map.values())[:3])}): pick the preset that fits the rig")
+            f"(e.g. {', '.join(wanted[:3])}): pick the preset that fits the rig, or Auto")
 
-    axes = _canonical_axes(armature, motion.rig, matched)
-    rest = {name: _rest(bones[name]) for name in set(matched.values()) | ({jaw_bone} - {None})}
-    tpose = {matched[j]: TPOSE_DIRECTIONS[j] for j in matched if preset.align_rest and j in TPOSE_DIRECTIONS}
-    correction = _rest_corrections(armature, rest, axes, tpose)
+    axes = _canonical_axes(armature, motion.rig, {j: c[0] for j, c in chains.items()})
+    keyed = [b for j in sources for b in chains[j]] + ([jaw_bone] if jaw_bone else [])
+    rest = {name: _rest(bones[name]) for name in keyed}
+    directions = _rest_directions(bones, chains, axes) if preset.align_rest else {}
+    correction = _rest_corrections(bones, rest, directions)
 
-    def target(bone: str, joint: str | None) -> BoneTarget:
+    def target(bone: str, joints: tuple[str, ...], share: float) -> BoneTarget:
         b = rest[bone]
         parent = _mapped_ancestor(bones[bone], correction)
         d_parent = correction[parent] if parent else np.eye(3)
         d_own = correction[bone]
         return BoneTarget(
-            bone=bone, joint=joint,
+            bone=bone, joints=joints, share=share,
             left=b.T @ d_parent @ axes, right=axes.T @ d_own.T @ b,
             rotation_mode=armature.pose.bones[bone].rotation_mode)
 
-    targets = [target(bone, joint) for joint, bone in matched.items()]
+    targets = [target(bone, joints, 1.0 / len(chains[joint]))
+               for joint, joints in sources.items() for bone in chains[joint]]
     if jaw_bone is not None:
-        targets.append(target(jaw_bone, None))
+        targets.append(target(jaw_bone, (), 1.0))
     return ArmatureMapping(
         armature=armature.name, targets=targets, unmatched=unmatched,
         jaw_source=motion.face_names.index(preset.jaw.source) if jaw_bone else None,
-        jaw=preset.jaw if jaw_bone else None)
+        jaw=preset.jaw if jaw_bone else None, notes=notes)
+
+
+def _match_chains(preset: Preset, layout: str, parents: dict, bones) -> tuple[dict, dict]:
+    """({joint: its bones on the rig, parent first}, {joint: its preset bones, none on the rig})
+    over the joints of the layout's skeleton that the preset maps."""
+    chains, missing = {}, {}
+    for joint, wanted in preset.joint_map(layout).items():
+        if joint not in parents:
+            continue
+        found = [b for b in dict.fromkeys(preset.find_bone(w, bones.keys()) for w in wanted) if b]
+        if found:
+            chains[joint] = sorted(found, key=lambda name: len(bones[name].parent_recursive))
+        else:
+            missing[joint] = wanted
+    return chains, missing
 
 
 def _rest(bone) -> np.ndarray:
@@ -171,15 +225,33 @@ def _blender_axes() -> np.ndarray:
     return np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
 
 
-def _rest_corrections(armature, rest: dict, axes: np.ndarray, tpose: dict) -> dict[str, np.ndarray]:
-    """Per mapped bone, the rotation turning the model's rest pose into the rig's: a
-    swing from the model's T-pose direction where one is known, else the correction of
-    the nearest mapped ancestor (so a whole hand follows its wrist), else identity."""
-    bones = armature.data.bones
+def _rest_directions(bones, chains: dict, axes: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per aligned bone: (the model's T-pose direction, the rig's rest direction), both
+    in armature space. The rig's is from the bone's head to its child's head, because a
+    bone's own axis need not point at its child (FBX imports without automatic bone
+    orientation); the bone's own Y axis only where the child is not on the rig."""
+    out = {}
+    for joint, (model_dir, child) in ALIGN.items():
+        if joint not in chains:
+            continue
+        bone = bones[chains[joint][0]]
+        child_bone = bones[chains[child][0]] if child in chains else None
+        rig_dir = (np.array(child_bone.head_local - bone.head_local)
+                   if child_bone is not None and bone in child_bone.parent_recursive else None)
+        if rig_dir is None or np.linalg.norm(rig_dir) < 1e-9:
+            rig_dir = _rest(bone)[:, 1]
+        out[bone.name] = (axes @ np.array(model_dir), rig_dir)
+    return out
+
+
+def _rest_corrections(bones, rest: dict, directions: dict) -> dict[str, np.ndarray]:
+    """Per keyed bone, the rotation turning the model's rest pose into the rig's: a swing
+    from the model's T-pose direction where one is known, else the correction of the
+    nearest keyed ancestor (so a whole hand follows its wrist), else identity."""
     out: dict[str, np.ndarray] = {}
     for bone in sorted(rest, key=lambda name: len(bones[name].parent_recursive)):
-        if bone in tpose:
-            out[bone] = swing(axes @ np.array(tpose[bone]), rest[bone][:, 1])
+        if bone in directions:
+            out[bone] = swing(*directions[bone])
         else:
             parent = _mapped_ancestor(bones[bone], out)
             out[bone] = out[parent] if parent else np.eye(3)
@@ -199,13 +271,18 @@ def bone_quaternions(motion: Motion, mapping: ArmatureMapping) -> dict[str, np.n
     """Per target bone, (T, 4) local rotations (w, x, y, z) with hemisphere continuity."""
     out = {}
     for t in mapping.targets:
-        if t.joint is not None:
-            rotvec = motion.rotations[:, motion.joint_names.index(t.joint)]
+        if t.joints:
+            rotation = np.eye(3)
+            for joint in t.joints:
+                rotation = rotation @ axis_angle_to_matrix(motion.rotations[:, motion.joint_names.index(joint)])
+            if t.share != 1.0:
+                rotation = axis_angle_to_matrix(t.share * convert(rotation, "matrix", "axis_angle"))
         else:
             weight = np.clip(motion.face[:, mapping.jaw_source], 0.0, 1.0)
             axis = np.asarray(mapping.jaw.axis, dtype=np.float64)
-            rotvec = weight[:, None] * np.radians(mapping.jaw.degrees) * axis / np.linalg.norm(axis)
-        local = t.left @ axis_angle_to_matrix(rotvec) @ t.right
+            rotation = axis_angle_to_matrix(weight[:, None] * np.radians(mapping.jaw.degrees) * axis
+                                            / np.linalg.norm(axis))
+        local = t.left @ rotation @ t.right
         out[t.bone] = quaternion_sequence_continuous(convert(local, "matrix", "quaternion"))
     return out
 
@@ -219,6 +296,10 @@ class ShapeKeyMapping:
     unmatched: list[str]
     derived: list[tuple[dict[int, float], str]] = field(default_factory=list)  # (weights, key): see visemes
     empty: list[str] = field(default_factory=list)  # keys named like a channel that move no vertex
+
+    def drives(self, channel: int) -> bool:
+        """Whether some key of this mapping follows face channel `channel`."""
+        return any(i == channel for i, _ in self.pairs) or any(channel in w for w, _ in self.derived)
 
     def curves(self, face: np.ndarray) -> list[tuple[str, np.ndarray]]:
         """(shape key, weights over time) for every key this mapping drives."""
@@ -254,6 +335,12 @@ def map_shape_keys(mesh, preset: Preset, motion: Motion) -> ShapeKeyMapping:
         else:
             pairs.append((i, found))
     used = {key for _, key in pairs}
+    for i, _ in list(pairs):
+        for extra in preset.also_drives.get(motion.face_names[i], []):
+            found = find_name([extra], [k for k in working if k not in used])
+            if found is not None:
+                pairs.append((i, found))
+                used.add(found)
     derived = []
     for names, weights in derived_keys({motion.face_names[i] for i, _ in pairs}, motion.face_names):
         found = find_name(list(names), [k for k in working if k not in used])

@@ -15,6 +15,7 @@ from .errors import DiffshegError
 
 def _generate_parser(sub: argparse._SubParsersAction) -> None:
     from .foppas import PRESETS
+    from .settings import add_arguments
 
     p = sub.add_parser("generate", help="generate motion from a speech recording",
                        description="Generate body, hand, head and face motion from speech.")
@@ -24,33 +25,13 @@ def _generate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--arkit-json", help="also write face weights as the official ARKit JSON")
     p.add_argument("--csv", help="also write face weights as a Live Link Face CSV")
     p.add_argument("--talkshow", help="also write SMPL-X motion as a TalkSHOW-layout .npz")
-    p.add_argument("--checkpoint", help="model checkpoint (ours or an official DiffSHEG .pth); default: bundled")
+    add_arguments(p)
     p.add_argument("--config", choices=["beat", "show"], help="force the official configuration")
     p.add_argument("--stats", help="folder of the official normalisation statistics (official checkpoints)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--face-seed", type=int,
-                   help="fix the face's noise apart from --seed: the same face (lip-sync, blinks) for "
-                        "every seed, new gestures")
-    p.add_argument("--steps", type=int, help="DDIM steps (default: the model's, 25)")
-    p.add_argument("--overlap", type=int, help="FOPPAS overlap frames (default: the model's)")
     p.add_argument("--preset", choices=sorted(PRESETS), help="FOPPAS settings preset")
-    p.add_argument("--candidates", type=int,
-                   help="sample every window after the first N times and keep the one that best continues "
-                        "the motion (best-of-N; N times the compute of those windows)")
     p.add_argument("--no-prior", action="store_true",
                    help="start later FOPPAS windows from pure noise, as in the paper, instead of from "
                         "the model's gesture prior (models that have one)")
-    p.add_argument("--style", type=int, default=0, help="style / speaker id (default %(default)s)")
-    p.add_argument("--guidance", type=float, help="classifier-free guidance scale (guided models only)")
-    p.add_argument("--skip-guidance", type=float,
-                   help="gesture skip-guidance scale, 0-1: larger, livelier gestures; 0 turns it off "
-                        "(default: the model's)")
-    p.add_argument("--backend", default="auto", choices=["auto", "onnx", "torch"],
-                   help="onnx: onnxruntime on the CPU, no torch needed; torch: CUDA and official "
-                        "checkpoints; auto (default): onnx where the model has its graphs and no GPU is used")
-    p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
-    p.add_argument("--threads", type=int, help="CPU threads (default: 2, or $DIFFSHEG_THREADS)")
-    p.add_argument("--precision", default="fp32", choices=["fp32", "bf16", "fp16"])
     p.add_argument("--hubert", help="local folder of facebook/hubert-large-ls960-ft (models that use HuBERT)")
     p.add_argument("--hubert-official-quirk", action="store_true",
                    help="feed HuBERT 22.05 kHz audio as the official code does (default: correct 16 kHz)")
@@ -66,16 +47,18 @@ def run_generate(args: argparse.Namespace) -> int:
     from .foppas import PRESETS
     from .pipeline import generate, open_speech
     from .runtime.backends import open_network
+    from .settings import from_arguments
 
     audio_path = args.audio or str(SAMPLE_SPEECH)
     if args.audio is None:
         print(f"no audio given: using the bundled sample speech {SAMPLE_SPEECH}")
     check_outputs([args.output, args.bvh, args.arkit_json, args.csv, args.talkshow],
-                  inputs=[audio_path, args.checkpoint])
+                  inputs=[audio_path, args.model])
     started = time.perf_counter()
+    settings = from_arguments(args)  # every option checked before the model loads
     speech = open_speech(audio_path)  # checked now, read piece by piece while generating
-    bundle = load_model(args.checkpoint, dataset=args.config, stats_dir=args.stats)
-    network = open_network(bundle, args.backend, args.device, args.precision, args.threads)
+    bundle = load_model(settings.model, dataset=args.config, stats_dir=args.stats)
+    network = open_network(bundle, settings.backend, settings.device, settings.precision, settings.threads)
     if not bundle.trained:
         print(f"warning: model '{bundle.model_id}' is UNTRAINED (random weights): "
               "the motion is not learned from data", file=sys.stderr)
@@ -91,12 +74,7 @@ def run_generate(args: argparse.Namespace) -> int:
         sampling = replace(sampling, prior_start=False)
     cancel = threading.Event()
     try:
-        result = generate(speech, model=bundle, seed=args.seed, face_seed=args.face_seed,
-                          steps=args.steps, overlap=args.overlap, candidates=args.candidates,
-                          style=args.style, guidance=args.guidance, skip_guidance=args.skip_guidance,
-                          sampling=sampling,
-                          device=args.device, backend=args.backend, precision=args.precision,
-                          threads=args.threads, hubert_path=args.hubert,
+        result = generate(speech, settings=settings, model=bundle, sampling=sampling, hubert_path=args.hubert,
                           hubert_quirk=args.hubert_official_quirk, progress=on_progress, cancel=cancel)
     except KeyboardInterrupt:
         cancel.set()

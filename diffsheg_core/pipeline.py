@@ -9,6 +9,7 @@ are the same for both.
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 from functools import lru_cache
 from pathlib import Path
 from typing import Callable, Iterator, Optional, Union
@@ -22,12 +23,13 @@ from .audio import (MEL_RATE, PIECE_SECONDS, Audio, AudioFile, SpeechEncoding, r
 from .checkpoints import ModelBundle, load_model
 from .diffusion import Schedule
 from .errors import DiffshegError
-from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, check_seed, with_overrides
+from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, with_overrides
 from .guidance import Guidance, step_eps
 from .motion import Motion
 from .phonetic import PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel, stack_posteriors
 from .progress import ProgressCallback
 from .runtime.backends import open_network
+from .settings import GUIDANCE, SKIP_GUIDANCE, GenerateSettings, check_number
 
 AudioInput = Union[str, Path, np.ndarray, Audio]
 
@@ -50,15 +52,11 @@ def resolve_guidance(bundle: ModelBundle, guidance: Optional[float]) -> Optional
                                 "leave the guidance scale at 1")
         return None
     scale = bundle.guidance if guidance is None else float(guidance)
-    if scale is not None and not 0.0 <= scale <= 10.0:
-        raise DiffshegError(f"guidance scale must be between 0 and 10, got {scale}")
-    return scale
+    return None if scale is None else check_number("guidance", scale, GUIDANCE)
 
 
 def check_skip_guidance(scale: float) -> float:
-    if not 0.0 <= scale <= 1.0:
-        raise DiffshegError(f"skip guidance scale must be between 0 and 1, got {scale}")
-    return float(scale)
+    return float(check_number("skip_guidance (gesture energy)", scale, SKIP_GUIDANCE))
 
 
 def resolve_skip_guidance(bundle: ModelBundle, skip_guidance: Optional[float]) -> Optional[float]:
@@ -212,19 +210,15 @@ def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas, style: np
 
 
 def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
-             model: Union[None, str, Path, ModelBundle] = None, seed: int = 0,
-             overlap: Optional[int] = None, steps: Optional[int] = None, candidates: Optional[int] = None,
-             style: int = 0,
-             guidance: Optional[float] = None, skip_guidance: Optional[float] = None,
-             sampling: Optional[FoppasConfig] = None, face_seed: Optional[int] = None,
-             device: str = "auto", backend: str = "auto",
-             precision: str = "fp32", threads: Optional[int] = None,
+             settings: Optional[GenerateSettings] = None, sampling: Optional[FoppasConfig] = None,
              hubert_path: Optional[str] = None, hubert_quirk: bool = False,
              progress: Optional[ProgressCallback] = None,
-             cancel: Optional[threading.Event] = None) -> Motion:
+             cancel: Optional[threading.Event] = None, **options) -> Motion:
     """Generate body, hand, head and face motion for a speech recording.
 
     audio: a file path, an array (with `sample_rate`) or a loaded `Audio`.
+    settings: a `GenerateSettings` (see diffsheg_core.settings for every option); keyword
+    `options` are its fields and replace those of `settings` (`generate(path, seed=3)`):
     model: None for the bundled default, a checkpoint path, or a loaded `ModelBundle`.
     seed: any whole number >= 0; the noise comes from numpy's PCG64 seeded with it, the
     same on every backend and device.
@@ -232,8 +226,8 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     stochastic body): the same face for every seed, other gestures. None: `seed` drives both.
     guidance / skip_guidance: classifier-free and gesture skip-guidance scales (None: the
     model's defaults; 1 and 0 turn them off).
-    sampling: FOPPAS settings (default: the model's); `steps` / `overlap` / `candidates`
-    override them. candidates: every window after the first is sampled this many times in
+    steps / overlap / candidates override the FOPPAS settings `sampling` (default: the
+    model's). candidates: every window after the first is sampled this many times in
     one batch and the one that best continues the motion is kept (`foppas.seam_scores`).
     backend: 'auto' (onnx where the model has its graphs and no GPU is asked for or found),
     'onnx' (onnxruntime, CPU) or 'torch'; device: 'auto', 'cpu' or 'cuda' (torch).
@@ -242,26 +236,25 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     progress: called after every diffusion step; cancel: checked before every step.
     The result has one frame per 1/fps s of audio (fps of the model, 15 for BEAT).
     """
-    seed = check_seed(seed)
-    face_seed = None if face_seed is None else check_seed(face_seed)
-    bundle = model if isinstance(model, ModelBundle) else load_model(model)
-    network = open_network(bundle, backend, device, precision, threads)
+    s = replace(settings or GenerateSettings(), **options)
+    bundle = s.model if isinstance(s.model, ModelBundle) else load_model(s.model)
+    network = open_network(bundle, s.backend, s.device, s.precision, s.threads)
     speech = open_speech(audio, sample_rate)
-    config = with_overrides(sampling or bundle.sampling, steps=steps, overlap=overlap, candidates=candidates)
-    sampler, make_eps_fn = build_sampling(bundle, network, config, style, guidance, skip_guidance)
+    config = with_overrides(sampling or bundle.sampling, steps=s.steps, overlap=s.overlap, candidates=s.candidates)
+    sampler, make_eps_fn = build_sampling(bundle, network, config, s.style, s.guidance, s.skip_guidance)
 
-    stream = FoppasStream(sampler, make_eps_fn, seed, progress, cancel,
+    stream = FoppasStream(sampler, make_eps_fn, s.seed, progress, cancel,
                           expected_frames=n_motion_frames(speech, bundle.config.fps),
-                          face_seed=face_seed)
+                          face_seed=s.face_seed)
     parts = [stream.push(chunk) for chunk in speech_chunks(bundle, network, speech, hubert_path, hubert_quirk)]
     normalised = np.concatenate(parts + [stream.finish()])
     del parts  # a long take's motion is held once, not twice
     check_finite(bundle, normalised)
     return to_motion(bundle, normalised, meta={
-        "model_id": bundle.model_id, "trained": bundle.trained, "seed": seed, "face_seed": face_seed,
-        "audio_file": speech.path, "sample_rate": speech.sample_rate, "style": int(style),
-        "guidance": resolve_guidance(bundle, guidance),
-        "skip_guidance": resolve_skip_guidance(bundle, skip_guidance),
+        "model_id": bundle.model_id, "trained": bundle.trained, "seed": s.seed, "face_seed": s.face_seed,
+        "audio_file": speech.path, "sample_rate": speech.sample_rate, "style": int(s.style),
+        "guidance": resolve_guidance(bundle, s.guidance),
+        "skip_guidance": resolve_skip_guidance(bundle, s.skip_guidance),
         "steps": config.steps, "overlap": config.overlap, "candidates": config.candidates,
         "prior_start": uses_prior(bundle, config),
         "clip_len": bundle.config.clip_len, "backend": network.name,
@@ -311,4 +304,4 @@ def open_stream(bundle: ModelBundle, *, seed: int = 0, style: int = 0,
     network = open_network(bundle, backend, device, threads=threads)
     sampler, make = build_sampling(bundle, network, sampling or bundle.sampling, style, guidance,
                                    skip_guidance)
-    return FoppasStream(sampler, make, check_seed(seed), face_seed=face_seed)
+    return FoppasStream(sampler, make, seed, face_seed=face_seed)

@@ -64,6 +64,12 @@ SMPLX_JOINTS: tuple[str, ...] = (
 )
 """All 55 SMPL-X joints in SMPL-X order, named as the SMPL-X Blender add-on names bones."""
 
+SMPLX_PARENTS: tuple[int, ...] = (
+    -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 15, 15, 15,
+) + tuple(wrist if i % 3 == 0 else 25 + 15 * side + i - 1
+          for side, wrist in ((0, 20), (1, 21)) for i in range(15))
+"""Parent index of each of SMPLX_JOINTS (the SMPL-X kinematic tree; -1 for the pelvis)."""
+
 _SMPLX_GESTURE_IDS = (3, 6, 9) + tuple(range(12, 22)) + tuple(range(25, 55))
 SMPLX_GESTURE_JOINTS: tuple[str, ...] = tuple(SMPLX_JOINTS[i] for i in _SMPLX_GESTURE_IDS)
 SMPLX_EXPRESSION: tuple[str, ...] = tuple(f"Exp{i:03d}" for i in range(100))

@@ -36,6 +36,7 @@ BEAT_WAV = DATA / "beat2" / "2_scott_0_1_1.wav"
 BEAT2_NPZ = DATA / "beat2" / "2_scott_0_1_1.npz"
 FACE_BLEND = DATA / "rigs" / "beat_face_arkit51.blend"
 SPEECH = DATA / "audio" / "2_scott_0_3_3.wav"
+READYPLAYERME = DATA / "rigs" / "readyplayerme_brunette.glb"
 SPEECH_2 = DATA / "audio" / "12_zhao_2_3_3.wav"
 MISNAMED_MP3 = DATA / "audio" / "2_scott_0_103_103_28s.wav"
 
@@ -310,3 +311,115 @@ def scene_state(scene) -> dict:
         "strips": [s.name for s in sound_strips(scene)],
         "range": (scene.frame_start, scene.frame_end),
     }
+
+
+def _unreal_name(beat: str) -> str | None:
+    """The UE mannequin's name for a BEAT joint (None: no such bone on a UE rig)."""
+    import re
+
+    fixed = {"Hips": "pelvis", "Neck": "neck_01", "Neck1": "neck_02", "Head": "head"}
+    if beat in fixed:
+        return fixed[beat]
+    m = re.fullmatch(r"(Left|Right)(Shoulder|Arm|ForeArm|Hand)", beat)
+    if m:
+        part = {"Shoulder": "clavicle", "Arm": "upperarm", "ForeArm": "lowerarm", "Hand": "hand"}[m[2]]
+        return f"{part}_{m[1][0].lower()}"
+    m = re.fullmatch(r"(Left|Right)Hand(Index|Middle|Ring|Pinky|Thumb)(\d?)", beat)
+    if m:
+        return f"{m[2].lower()}_{('0' + m[3]) if m[3] else 'metacarpal'}_{m[1][0].lower()}"
+    return None
+
+
+def build_unreal_armature(beat_rig, spine_bones: int = 5, neck_02: bool = True, arms_down: float = 0.0,
+                          axis_seed: int = 1, name: str = "UE_Mannequin"):
+    """An Unreal-style armature (UE5: spine_01-05, neck_01/02; UE4-like without neck_02)
+    with the joints of the BEAT rig `beat_rig` (at rest). As an FBX import without
+    automatic bone orientation makes them, each bone's own axis points anywhere (a
+    pseudo-random direction and roll from `axis_seed`), not at its child. `arms_down`
+    degrees lowers the arms about the shoulders (an A-pose rest)."""
+    src = {b.name: np.array(b.head_local) for b in beat_rig.data.bones}
+    parent_of = {b.name: (b.parent.name if b.parent else None) for b in beat_rig.data.bones}
+    joints: dict[str, tuple[str | None, np.ndarray]] = {"pelvis": (None, src["Hips"])}
+    spine = [src["Spine"] + (src["Neck"] - src["Spine"]) * k / spine_bones for k in range(spine_bones)]
+    for k, pos in enumerate(spine):
+        joints[f"spine_{k + 1:02d}"] = ("pelvis" if k == 0 else f"spine_{k:02d}", pos)
+    top = f"spine_{spine_bones:02d}"
+    up = (src["Neck"] - src["Spine"]) / np.linalg.norm(src["Neck"] - src["Spine"])
+    for beat, pos in src.items():
+        ue = _unreal_name(beat)
+        if ue is None or ue == "pelvis" or (ue == "neck_02" and not neck_02):
+            continue
+        parent = parent_of[beat]
+        while parent not in ("Spine3", None) and (_unreal_name(parent) is None
+                                                 or (_unreal_name(parent) == "neck_02" and not neck_02)):
+            parent = parent_of[parent]
+        joints[ue] = (top if parent == "Spine3" else _unreal_name(parent), pos)
+    if arms_down:
+        for side in ("l", "r"):
+            pivot = joints[f"upperarm_{side}"][1]
+            arm = joints[f"hand_{side}"][1] - pivot
+            axis = np.cross(arm, -up)
+            rot = axis_angle_matrix(np.radians(arms_down) * axis / np.linalg.norm(axis))
+            below = {n for n in joints if _descends(joints, n, f"upperarm_{side}")}
+            for n in below:
+                joints[n] = (joints[n][0], pivot + rot @ (joints[n][1] - pivot))
+    rng = np.random.default_rng(axis_seed)
+    arm_data = bpy.data.armatures.new(name)
+    ob = bpy.data.objects.new(name, arm_data)
+    bpy.context.scene.collection.objects.link(ob)
+    bpy.context.view_layer.objects.active = ob
+    bpy.ops.object.mode_set(mode="EDIT")
+    for n, (_, pos) in joints.items():
+        eb = arm_data.edit_bones.new(n)
+        direction = rng.normal(size=3)
+        eb.head, eb.tail = pos, pos + 3.0 * direction / np.linalg.norm(direction)
+        eb.roll = float(rng.uniform(-np.pi, np.pi))
+    for n, (parent, _) in joints.items():
+        if parent:
+            arm_data.edit_bones[n].parent = arm_data.edit_bones[parent]
+    bpy.ops.object.mode_set(mode="OBJECT")
+    return ob
+
+
+def _descends(joints: dict, name: str, ancestor: str) -> bool:
+    while name is not None:
+        if name == ancestor:
+            return True
+        name = joints[name][0]
+    return False
+
+
+def axis_angle_matrix(v) -> np.ndarray:
+    from diffsheg_core.rotations import axis_angle_to_matrix
+
+    return axis_angle_to_matrix(np.asarray(v, dtype=np.float64))
+
+
+def head_direction(ob, bone: str, child: str) -> np.ndarray:
+    """World-space unit direction from a posed bone's head to its child's head (what a
+    bone points at, whichever way its own axis points)."""
+    a, b = ob.pose.bones[bone].head, ob.pose.bones[child].head
+    v = np.array(ob.matrix_world @ b) - np.array(ob.matrix_world @ a)
+    return v / np.linalg.norm(v)
+
+
+def world_delta(ob, bone: str) -> np.ndarray:
+    """World rotation of a posed bone relative to its rest (independent of bone roll)."""
+    m = np.array(ob.matrix_world.to_3x3()) @ np.array(ob.pose.bones[bone].matrix.to_3x3())
+    r = np.array(ob.matrix_world.to_3x3()) @ np.array(ob.data.bones[bone].matrix_local.to_3x3())
+    m, r = m / np.linalg.norm(m, axis=0), r / np.linalg.norm(r, axis=0)
+    return m @ r.T
+
+
+def angle_between(a: np.ndarray, b: np.ndarray) -> float:
+    """Degrees between two directions, or of the rotation between two rotation matrices."""
+    if a.shape == (3, 3):
+        return float(np.degrees(np.arccos(np.clip((np.trace(a @ b.T) - 1) / 2, -1, 1))))
+    return float(np.degrees(np.arccos(np.clip(a @ b, -1, 1))))
+
+
+def import_readyplayerme():
+    """The real Ready Player Me avatar (glTF): (armature, [Wolf3D_Head, Wolf3D_Teeth])."""
+    bpy.ops.import_scene.gltf(filepath=str(READYPLAYERME))
+    objects = bpy.context.scene.objects
+    return objects["Armature"], [objects["Wolf3D_Head"], objects["Wolf3D_Teeth"]]

@@ -113,5 +113,5 @@ def test_every_generation_option_of_the_panel_is_a_batch_option(scene_blend, tmp
     assert (tmp_path / "all.blend").is_file()
     bad = _batch("--blend", str(scene_blend), "--audio", str(speech), "--gesture-energy", "3", "--no-render",
                  cwd=tmp_path)
-    assert bad.returncode == 1 and "skip guidance scale must be between 0 and 1" in bad.stderr
+    assert bad.returncode == 1 and "gesture energy) must be a number from 0 to 1" in bad.stderr
     assert "Traceback" not in bad.stderr

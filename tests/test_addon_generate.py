@@ -20,6 +20,7 @@ from blender_addon.preset import load_preset
 from blender_addon.sound import sound_strips
 from diffsheg_core.checkpoints import load_model
 from diffsheg_core.errors import Cancelled
+from diffsheg_core.settings import GenerateSettings
 
 STEPS = 5
 
@@ -104,21 +105,36 @@ def test_generate_onto_beat_armature_and_arkit_face(speech):
     face = append_face()
     settings = _configure(scene, speech, ob, "beat", face, start=10)
     n_frames = _run_operator(scene, settings)
-    bones = list(load_preset("beat").joint_map("beat").values())
+    bones = _bones(load_preset("beat"))
     _check_keys(ob, face, bones, 10, n_frames)
     assert ob.animation_data.action.name.startswith(speech.stem)
     _check_sound(scene, settings, 10)
     assert (scene.frame_start, scene.frame_end) == (10, 10 + n_frames - 1)
 
 
-def test_generate_onto_smplx_armature_drives_jaw_from_face(speech):
+def _bones(preset, layout: str = "beat") -> list[str]:
+    return [bone for chain in preset.joint_map(layout).values() for bone in chain]
+
+
+def _keyed_bones(ob) -> set[str]:
+    return {fc.data_path.split('"')[1] for fc in fcurves_of(ob)}
+
+
+def test_generate_onto_smplx_armature_drives_the_jaw_bone_unless_a_jaw_shape_key_does(speech):
+    """The jaw bone opens the mouth from jawOpen; with a face whose jawOpen shape key opens it,
+    the bone stays at rest (else the mouth would open twice) and the report says so."""
     scene = reset_scene(fps=30)
     ob = build_smplx_armature(roll_seed=3)
+    settings = _configure(scene, speech, ob, "smplx")
+    _run_operator(scene, settings)
+    assert "jaw" in _keyed_bones(ob)
+    ob.animation_data_clear()
     face = append_face()
-    settings = _configure(scene, speech, ob, "smplx", face)
+    settings.face_meshes.add().object = face
     n_frames = _run_operator(scene, settings)
-    bones = [b for b in load_preset("smplx").joint_map("beat").values()] + ["jaw"]
-    _check_keys(ob, face, bones, 1, n_frames)
+    _check_keys(ob, face, _bones(load_preset("smplx")), 1, n_frames)
+    assert "jaw" not in _keyed_bones(ob)
+    assert "jaw bone jaw left at rest: the jawOpen shape key of Neutral opens the mouth" in settings.last_report
 
 
 def test_generate_onto_rigify_fk_controls_moves_the_deform_bones(speech, rigify_blend):
@@ -132,8 +148,8 @@ def test_generate_onto_rigify_fk_controls_moves_the_deform_bones(speech, rigify_
     rest_dir = world_direction(rig, "DEF-forearm.L")
     n_frames = _run_operator(scene, settings)
     preset = load_preset("rigify")
-    bones = list(preset.joint_map("beat").values()) + [preset.jaw.bone]
-    _check_keys(rig, face, bones, 1, n_frames)
+    _check_keys(rig, face, _bones(preset), 1, n_frames)
+    assert preset.jaw.bone not in _keyed_bones(rig)  # the face's jawOpen key opens the mouth
     assert rig.pose.bones["upper_arm_parent.L"]["IK_FK"] == 1.0  # arms in FK
     moved = []
     for f in range(5, n_frames, 10):
@@ -205,7 +221,7 @@ def test_cancel_midway_leaves_the_scene_unchanged(tmp_path):
     speech = cut_speech(tmp_path, seconds=20.0)
     _configure(scene, speech, ob, "beat", face)
     before = scene_state(scene)
-    job = GenerationJob(speech, {"steps": 25, "device": "cpu"}).start()
+    job = GenerationJob(speech, GenerateSettings(steps=25, device="cpu")).start()
     while job.fraction == 0.0 and not job.done:
         threading.Event().wait(0.01)
     job.cancel.set()
@@ -265,19 +281,23 @@ def test_save_and_reopen_keeps_keys_and_sound(speech, tmp_path):
     assert scene.diffsheg.seed == 1234 and scene.diffsheg.preset == "beat"
 
 
-def test_gesture_energy_is_the_models_default_until_set(speech):
-    from blender_addon.operators import generate_kwargs
+def test_panel_options_are_the_models_defaults_until_set(speech):
+    """Overlap, guidance and gesture energy: a switched-off "Set ..." toggle is the model's
+    default (None), switched on the value means what it means everywhere (guidance 1 and
+    gesture energy 0 are off)."""
+    from blender_addon.operators import generate_settings
 
     settings = reset_scene().diffsheg
-    assert generate_kwargs(settings)["skip_guidance"] is None  # the model's own scale
-    settings.set_gesture_energy = True
-    settings.gesture_energy = 0.0
-    assert generate_kwargs(settings)["skip_guidance"] == 0.0  # off
+    plain = generate_settings(settings)
+    assert (plain.overlap, plain.guidance, plain.skip_guidance) == (None, None, None)
+    settings.set_gesture_energy, settings.set_overlap, settings.set_guidance = True, True, True
+    settings.gesture_energy, settings.overlap, settings.guidance = 0.0, 6, 1.0
+    assert (generate_settings(settings).skip_guidance, generate_settings(settings).overlap) == (0.0, 6)
     settings.gesture_energy = 0.25
-    assert generate_kwargs(settings)["skip_guidance"] == 0.25
     settings.steps, settings.device = STEPS, "CPU"
-    motion = diffsheg_core.generate(str(speech), **generate_kwargs(settings))
-    assert motion.meta["skip_guidance"] == 0.25
+    settings.set_guidance = False
+    motion = diffsheg_core.generate(str(speech), settings=generate_settings(settings))
+    assert motion.meta["skip_guidance"] == 0.25 and motion.meta["overlap"] == 6
 
 
 def test_keep_face_keys_the_same_face_for_a_new_seed(speech):
@@ -342,3 +362,74 @@ def test_linked_objects_are_refused_by_name(speech, tmp_path):
     with pytest.raises(RuntimeError, match="'LinkedRig' is linked from .*library.blend.*Make Local"):
         bpy.ops.diffsheg.generate()
     assert scene_state(scene) == before
+
+
+def _moved_by(ob, key: str) -> float:
+    """Largest vertex displacement (m) the shape key `key` makes in the evaluated mesh now."""
+    def coords():
+        mesh = ob.evaluated_get(bpy.context.evaluated_depsgraph_get()).to_mesh()
+        co = np.empty(3 * len(mesh.vertices))
+        mesh.vertices.foreach_get("co", co)
+        return co
+    block = ob.data.shape_keys.key_blocks[key]
+    with_key = coords()
+    block.mute = True
+    without = coords()
+    block.mute = False
+    return float(np.abs(with_key - without).max())
+
+
+def _peak_frame(ob, key: str) -> int:
+    fc = next(fc for fc in fcurves_of(ob.data.shape_keys) if fc.data_path == f'key_blocks["{key}"].value')
+    co = _keys(fc)
+    return int(co[int(co[:, 1].argmax()), 0])
+
+
+def test_ready_player_me_avatar_through_the_panel(speech):
+    """The real Ready Player Me avatar, Auto preset, a 29.97 fps scene starting at 1001:
+    Auto picks readyplayerme, keys start at 1001, the arms follow the BEAT skeleton keyed
+    with the same motion, and jawOpen opens the mouth at its peak."""
+    from addon_fixtures import angle_between, head_direction, import_readyplayerme
+
+    from blender_addon.operators import generate_settings
+
+    scene = reset_scene(fps=29.97)
+    scene.frame_start = 1001
+    rig, faces = import_readyplayerme()
+    settings = _configure(scene, speech, rig, "auto", faces[0])
+    settings.face_meshes.add().object = faces[1]
+    settings.start_at_scene_start = True
+    _run_operator(scene, settings)
+    assert "preset Auto chose 'readyplayerme'" in settings.last_report
+    assert min(fc.keyframe_points[0].co[0] for fc in fcurves_of(rig)) == 1001
+
+    beat = import_beat_armature()
+    motion = diffsheg_core.generate(str(speech), settings=generate_settings(settings))
+    bake_motion(scene, motion, None, BakeOptions(armature=beat, preset=load_preset("beat"), start_frame=1001,
+                                                 add_sound=False, set_frame_range=False))
+    worst = 0.0
+    for f in range(1001, 1001 + 85, 7):
+        scene.frame_set(f)
+        for side in ("Left", "Right"):
+            for a, b in (("Arm", "ForeArm"), ("ForeArm", "Hand")):
+                worst = max(worst, angle_between(head_direction(rig, side + a, side + b),
+                                                 head_direction(beat, side + a, side + b)))
+    assert worst < 10.0, worst
+    scene.frame_set(_peak_frame(faces[0], "jawOpen"))
+    assert _moved_by(faces[0], "jawOpen") > 0.003  # metres: the mouth opens
+
+
+def test_ready_player_me_face_without_arkit_keys_talks_through_its_visemes(speech_motion):
+    from addon_fixtures import import_readyplayerme
+    from diffsheg_core.rigs import ARKIT52
+
+    scene = reset_scene(fps=30)
+    _, faces = import_readyplayerme()
+    head = faces[0]
+    for name in ARKIT52:
+        head.shape_key_remove(head.data.shape_keys.key_blocks[name])
+    result = bake_motion(scene, speech_motion, None, BakeOptions(armature=None, face_meshes=[head], add_sound=False))
+    assert any("viseme_aa" in n and "driven from the ARKit weights" in n for n in result.notes)
+    for key in ("viseme_aa", "viseme_O"):
+        scene.frame_set(_peak_frame(head, key))
+        assert _moved_by(head, key) > 0.002, key

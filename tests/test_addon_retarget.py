@@ -7,26 +7,33 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from addon_fixtures import (append_face, armature_pose_matrices, bpy, build_smplx_armature, cut_speech,
-                            import_beat_armature, mocap_motion, reset_scene, set_fps,
-                            smplx_mocap_motion, world_direction)
+from addon_fixtures import (angle_between, append_face, armature_pose_matrices, bpy, build_smplx_armature,
+                            build_unreal_armature, cut_speech, head_direction, import_beat_armature, import_readyplayerme,
+                            mocap_motion, reset_scene, set_fps, smplx_mocap_motion, world_delta,
+                            world_direction)
 from addon_fixtures import exit_before_blender_teardown, rigify_blend  # noqa: F401 (fixtures)
 
 from blender_addon.bake import BakeOptions, bake_motion
 from blender_addon.keying import fcurves_of
 from blender_addon.preset import available_presets, find_name, load_preset, normalise_name
-from blender_addon.retarget import map_armature, map_shape_keys
+from blender_addon.retarget import layout_parents, map_armature, map_shape_keys
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.rigs import BEAT_JOINTS
 
 
+PRESETS = ("beat", "smplx", "rigify", "metahuman", "mixamo", "unreal", "readyplayerme", "vrm")
+
+
 def test_presets_load_and_cover_the_beat_layout():
-    assert {"beat", "smplx", "rigify", "metahuman", "mixamo"} <= set(available_presets())
-    for name in ("beat", "smplx", "rigify", "metahuman", "mixamo"):
+    assert set(PRESETS) <= set(available_presets())
+    skeleton = set(layout_parents("beat"))
+    for name in PRESETS:
         preset = load_preset(name)
         joints = preset.joint_map("beat")
         assert {"Spine", "Neck", "RightArm", "LeftArm", "RightForeArm", "LeftHand"} <= set(joints)
-        assert set(joints) <= set(BEAT_JOINTS)
+        assert set(joints) <= skeleton
+        assert set(preset.joint_map("smplx")) <= set(layout_parents("smplx"))
+    assert load_preset("metahuman").joint_map("beat") == load_preset("unreal").joint_map("beat")  # extends
     with pytest.raises(DiffshegError, match="no rig preset 'nope'"):
         load_preset("nope")
 
@@ -221,3 +228,136 @@ def test_a_face_with_arkit_keys_ignores_its_visemes(speech_motion):
         armature=None, face_meshes=[face], preset=load_preset("beat"), start_frame=1, add_sound=False))
     paths = {fc.data_path for fc in fcurves_of(face.data.shape_keys)}
     assert 'key_blocks["jawOpen"].value' in paths and 'key_blocks["viseme_aa"].value' not in paths
+
+
+# (Unreal bone, its child, the BEAT joints they stand for): what an arm points at
+ARM_SEGMENTS = [(f"{a}_{side}", f"{b}_{side}", f"{beat}{A}", f"{beat}{B}")
+                for side, beat in (("l", "Left"), ("r", "Right"))
+                for a, b, A, B in (("upperarm", "lowerarm", "Arm", "ForeArm"), ("lowerarm", "hand", "ForeArm", "Hand"),
+                                   ("hand", "middle_01", "Hand", "HandMiddle1"))]
+
+
+def _compare_with_beat(scene, rig, beat, frames, head="head", chest=None):
+    """Largest arm-direction and head-rotation differences (degrees) to the BEAT skeleton."""
+    arms, heads, chests = [], [], []
+    for f in frames:
+        scene.frame_set(f)
+        arms += [angle_between(head_direction(rig, a, b), head_direction(beat, A, B)) for a, b, A, B in ARM_SEGMENTS]
+        heads.append(angle_between(world_delta(rig, head), world_delta(beat, "Head")))
+        if chest:
+            chests.append(angle_between(world_delta(rig, chest), world_delta(beat, "Spine3")))
+    return max(arms), max(heads), max(chests, default=0.0)
+
+
+@pytest.mark.parametrize("spine_bones, neck_02, arms_down", [(5, True, 0.0), (3, False, 40.0)])
+def test_unreal_rig_whose_bone_axes_miss_their_children_keys_like_the_beat_skeleton(spine_bones, neck_02, arms_down):
+    """An Unreal-style rig as an FBX import without automatic bone orientation makes it:
+    every bone's own axis points anywhere. Rest alignment by the chain puts the arms where
+    the BEAT skeleton's are; spine_01-05 share the model's spine (the chest ends up exact);
+    a UE4-like rig without neck_02 gets its turn in the head, so the head does not roll."""
+    scene = reset_scene(fps=15)
+    beat = import_beat_armature()
+    rig = build_unreal_armature(beat, spine_bones=spine_bones, neck_02=neck_02, arms_down=arms_down)
+    motion = mocap_motion(frames=300)
+    bake_motion(scene, motion, None, BakeOptions(armature=beat, preset=load_preset("beat"), add_sound=False))
+    result = bake_motion(scene, motion, None, BakeOptions(armature=rig, preset=load_preset("unreal"), add_sound=False))
+    assert result.unmatched_bones == []
+    assert (("Neck1 (neck_02 not on the rig) passed on to head" in result.notes) == (not neck_02))
+    arm, head, chest = _compare_with_beat(scene, rig, beat, range(1, 300, 23), chest=f"spine_{spine_bones:02d}")
+    assert arm < 10.0 and head < 3.0 and chest < 1.0, (arm, head, chest)
+    scene.frame_set(120)
+    turns = [angle_between(world_delta(rig, f"spine_{k:02d}"), world_delta(rig, f"spine_{k - 1:02d}")
+                           if k > 1 else np.eye(3)) for k in range(1, spine_bones + 1)]
+    assert min(turns) > 0.2 * max(turns)  # the bend is spread, not all in spine_01
+
+
+def test_the_old_bone_axis_alignment_would_have_crossed_the_arms():
+    """The same rig keyed with the bone's own axis as its rest direction (what the rest
+    alignment did before): the arms are far off, so the test above measures the fix."""
+    from blender_addon import retarget
+
+    scene = reset_scene(fps=15)
+    beat = import_beat_armature()
+    rig = build_unreal_armature(beat)
+    motion = mocap_motion(frames=60)
+    bake_motion(scene, motion, None, BakeOptions(armature=beat, preset=load_preset("beat"), add_sound=False))
+    chained = retarget._rest_directions
+    try:
+        retarget._rest_directions = lambda bones, chains, axes: {
+            k: (v[0], retarget._rest(bones[k])[:, 1]) for k, v in chained(bones, chains, axes).items()}
+        bake_motion(scene, motion, None, BakeOptions(armature=rig, preset=load_preset("unreal"), add_sound=False))
+    finally:
+        retarget._rest_directions = chained
+    arm, _, _ = _compare_with_beat(scene, rig, beat, [1, 30, 59])
+    assert arm > 30.0
+
+
+def test_a_joint_missing_from_a_chain_passes_its_rotation_on():
+    """SMPL-X-named rig without its elbows: each forearm rotation goes into the wrist, so the
+    hands keep the orientation they have on the full rig."""
+    scene = reset_scene(fps=30)
+    full = build_smplx_armature(name="full")
+    gap = build_smplx_armature(name="gap")
+    with bpy.context.temp_override(active_object=gap):
+        bpy.ops.object.mode_set(mode="EDIT")
+        for side in ("left", "right"):
+            bones = gap.data.edit_bones
+            bones[f"{side}_wrist"].parent = bones[f"{side}_shoulder"]
+            bones.remove(bones[f"{side}_elbow"])
+        bpy.ops.object.mode_set(mode="OBJECT")
+    motion = smplx_mocap_motion(frames=90)
+    preset = load_preset("smplx")
+    bake_motion(scene, motion, None, BakeOptions(armature=full, preset=preset, add_sound=False))
+    result = bake_motion(scene, motion, None, BakeOptions(armature=gap, preset=preset, add_sound=False))
+    assert "left_elbow (left_elbow not on the rig) passed on to left_wrist" in result.notes
+    assert result.unmatched_bones == []
+    for f in (1, 45, 90):
+        scene.frame_set(f)
+        for bone in ("left_wrist", "right_index2", "head"):
+            assert angle_between(world_delta(gap, bone), world_delta(full, bone)) < 0.01
+
+
+def test_auto_picks_the_preset_whose_names_the_rig_has(rigify_blend):
+    from blender_addon.preset import choose_preset
+
+    def rig_names(names):
+        return choose_preset("beat", names, [])[0].name
+
+    reset_scene()
+    beat = import_beat_armature()
+    assert rig_names(beat.data.bones.keys()) == "beat"
+    assert rig_names(build_unreal_armature(beat).data.bones.keys()) == "unreal"
+    assert rig_names(build_smplx_armature().data.bones.keys()) == "smplx"
+    rpm = import_readyplayerme()[0].data.bones.keys()  # Mixamo's skeleton, without the prefix
+    assert rig_names(rpm) == "readyplayerme"
+    assert rig_names([f"mixamorig:{n}" for n in rpm]) == "mixamo"
+    vroid = ["J_Bip_C_Hips", "J_Bip_C_Spine", "J_Bip_C_Chest", "J_Bip_C_UpperChest", "J_Bip_C_Neck",
+             "J_Bip_C_Head", "J_Bip_L_UpperArm", "J_Bip_L_LowerArm", "J_Bip_L_Hand"]
+    assert rig_names(vroid) == "vrm"
+    assert rig_names(["hips", "spine", "chest", "neck", "head", "leftUpperArm", "leftLowerArm", "leftHand"]) == "vrm"
+    bpy.ops.wm.open_mainfile(filepath=str(rigify_blend))
+    assert rig_names(bpy.data.objects["rig"].data.bones.keys()) == "rigify"
+    preset, note = choose_preset("beat", [], ["Basis", "jawOpen"])
+    assert preset.name == "beat" and "for the face" in note
+    with pytest.raises(DiffshegError, match="no rig preset fits this rig"):
+        choose_preset("beat", ["Bone", "Bone.001"], [])
+
+
+def test_a_preset_may_drive_several_keys_from_one_channel(tmp_path, speech_motion):
+    """also_drives: one channel keys its own shape key and the others listed (eyelashes)."""
+    import json
+
+    path = tmp_path / "lashes.json"
+    path.write_text(json.dumps({"extends": "beat", "name": "lashes"}))
+    with pytest.raises(DiffshegError, match="is not a preset beside this file"):
+        load_preset(str(path))
+    mine = tmp_path / "mine.json"
+    mine.write_text(json.dumps({"name": "mine", "bones": {"beat": {"Neck": "neck"}},
+                                "also_drives": {"eyeBlinkLeft": ["Lashes_Blink_L"]}}))
+    scene = reset_scene()
+    face = _viseme_face("CCFace", {"eyeBlinkLeft": True, "Lashes_Blink_L": True, "jawOpen": True})
+    bake_motion(scene, speech_motion, None, BakeOptions(
+        armature=None, face_meshes=[face], preset=load_preset(str(mine)), start_frame=1, add_sound=False))
+    curves = {fc.data_path: fc for fc in fcurves_of(face.data.shape_keys)}
+    blink, lashes = curves['key_blocks["eyeBlinkLeft"].value'], curves['key_blocks["Lashes_Blink_L"].value']
+    assert [k.co[1] for k in blink.keyframe_points] == [k.co[1] for k in lashes.keyframe_points]

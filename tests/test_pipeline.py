@@ -85,7 +85,7 @@ def test_cancel_between_steps(speech, model):
 @pytest.mark.parametrize("kwargs,match", [
     (dict(style=30), "style"), (dict(style=-1), "style"), (dict(guidance=2.0), "guidance"),
     (dict(overlap=34), "overlap"), (dict(steps=0), "steps"), (dict(precision="bf16"), "precision"),
-    (dict(device="tpu"), "device"), (dict(skip_guidance=1.5), "skip guidance scale must be between 0 and 1"),
+    (dict(device="tpu"), "device"), (dict(skip_guidance=1.5), r"gesture energy\) must be a number from 0 to 1"),
     (dict(backend="tensorrt"), "backend"), (dict(backend="onnx", device="cuda"), "CPU"),
     (dict(seed=-1), "seed"), (dict(threads=0), "threads"),
 ])

@@ -304,7 +304,7 @@ def test_fine_tuning_an_unguided_run_into_a_guided_model_with_torchrun(small_roo
         Trainer(TrainConfig.from_dict({**settings, "model": dict(TINY), "init_from": ""}), Dist())
     with pytest.raises(DiffshegError, match="needs cond_drop above 0"):
         Trainer(TrainConfig.from_dict({**settings, "cond_drop": 0.0}), Dist())
-    with pytest.raises(DiffshegError, match="skip guidance scale must be between 0 and 1"):
+    with pytest.raises(DiffshegError, match=r"gesture energy\) must be a number from 0 to 1"):
         Trainer(TrainConfig.from_dict({**settings, "skip_guidance": 2.0}), Dist())
 
     (base / MODEL_FILE).rename(base / "moved.safetensors")  # a finished run no longer needs its start
