@@ -245,7 +245,7 @@ def run_demo(args) -> None:
     scene.render.fps, scene.render.fps_base = 24, 1.0
     armature = build_beat_armature()
     build_face(armature)
-    setup_preview(scene)
+    setup_preview(scene, armature)
     args.audio, args.armature, args.preset = str(SAMPLE_SPEECH), armature.name, "beat"
     args.output = args.output or str(OUT / "demo.mp4")
     args.save = args.save or str(OUT / "demo.blend")

@@ -1,6 +1,7 @@
 """A demo character made from nothing but the package: the BEAT skeleton (embedded in
-diffsheg_core) as an armature with simple limb shapes, a head mesh with a few ARKit
-shape keys, a camera, and Workbench preview render settings."""
+diffsheg_core) as an armature with simple limb shapes, a stylised head with all 51 ARKit
+shape keys (demo_face.py), a wide and a close-up camera that the preview cuts between,
+and Workbench preview render settings."""
 
 from __future__ import annotations
 
@@ -10,21 +11,10 @@ import numpy as np
 from mathutils import Matrix, Vector
 
 from diffsheg_core.bvh import beat_skeleton
-from diffsheg_core.rigs import ARKIT51
+
+from .demo_face import build_face_mesh
 
 SCALE = 0.01  # BEAT offsets are centimetres
-
-# ARKit shapes the demo face has: vertex selector (x, y, z in head-local units, Z up,
-# face towards -Y) -> displacement.
-_FACE_SHAPES = {
-    "jawOpen": (lambda v: v.z < -0.1 and v.y < 0.0, Vector((0.0, 0.0, -0.06))),
-    "mouthSmileLeft": (lambda v: -0.45 < v.z < -0.1 and v.y < -0.5 and v.x > 0.15, Vector((0.03, 0.0, 0.03))),
-    "mouthSmileRight": (lambda v: -0.45 < v.z < -0.1 and v.y < -0.5 and v.x < -0.15, Vector((-0.03, 0.0, 0.03))),
-    "browInnerUp": (lambda v: v.z > 0.3 and v.y < -0.5 and abs(v.x) < 0.35, Vector((0.0, 0.0, 0.05))),
-    "eyeBlinkLeft": (lambda v: 0.05 < v.z < 0.35 and v.y < -0.7 and 0.15 < v.x < 0.5, Vector((0.0, 0.04, -0.02))),
-    "eyeBlinkRight": (lambda v: 0.05 < v.z < 0.35 and v.y < -0.7 and -0.5 < v.x < -0.15, Vector((0.0, 0.04, -0.02))),
-}
-assert set(_FACE_SHAPES) <= set(ARKIT51)
 
 
 def _to_blender(offset) -> Vector:
@@ -63,6 +53,7 @@ def build_beat_armature(name: str = "DemoSpeaker"):
             arm.edit_bones[skel.joint_names[j]].parent = arm.edit_bones[skel.joint_names[parent]]
     bpy.ops.object.mode_set(mode="OBJECT")
     _add_limb_shapes(ob)
+    _add_torso(ob)
     return ob
 
 
@@ -84,6 +75,21 @@ def _add_limb_shapes(armature) -> None:
         _parent_to_bone(shape, armature, bone.name, at_head=True)
 
 
+def _add_torso(armature) -> None:
+    """A rounded chest and belly around the spine, so the body reads as a body."""
+    for bone, size, lift in (("Spine2", (0.17, 0.11, 0.2), 0.0), ("Spine", (0.15, 0.1, 0.14), 0.0)):
+        mesh = bpy.data.meshes.new(f"shape_{bone}_body")
+        bm = bmesh.new()
+        bmesh.ops.create_uvsphere(bm, u_segments=24, v_segments=12, radius=1.0)
+        bmesh.ops.transform(bm, verts=bm.verts, matrix=Matrix.Diagonal((size[0], size[2], size[1], 1.0)))
+        bm.to_mesh(mesh)
+        bm.free()
+        shape = bpy.data.objects.new(mesh.name, mesh)
+        bpy.context.scene.collection.objects.link(shape)
+        _parent_to_bone(shape, armature, bone, at_head=True)
+        shape.location.y += lift
+
+
 def _parent_to_bone(ob, armature, bone_name: str, at_head: bool) -> None:
     bone = armature.data.bones[bone_name]
     ob.parent, ob.parent_type, ob.parent_bone = armature, "BONE", bone_name
@@ -92,20 +98,9 @@ def _parent_to_bone(ob, armature, bone_name: str, at_head: bool) -> None:
 
 
 def build_face(armature, name: str = "DemoFace"):
-    """A head (UV sphere) with a few ARKit shape keys, parented to the Head bone."""
-    mesh = bpy.data.meshes.new(name)
-    bm = bmesh.new()
-    bmesh.ops.create_uvsphere(bm, u_segments=32, v_segments=16, radius=1.0)
-    bm.to_mesh(mesh)
-    bm.free()
-    ob = bpy.data.objects.new(name, mesh)
-    bpy.context.scene.collection.objects.link(ob)
-    ob.shape_key_add(name="Basis")
-    for shape, (select, offset) in _FACE_SHAPES.items():
-        key = ob.shape_key_add(name=shape, from_mix=False)
-        for v, base in zip(key.data, mesh.vertices):
-            if select(base.co):
-                v.co = base.co + offset / 0.11
+    """The demo head (demo_face.py: eyes, brows, mouth, all 51 ARKit shape keys), parented
+    to the Head bone."""
+    ob = build_face_mesh(name)
     ob.scale = (0.09, 0.1, 0.11)
     head = armature.data.bones["Head"]
     ob.parent, ob.parent_type, ob.parent_bone = armature, "BONE", "Head"
@@ -114,19 +109,42 @@ def build_face(armature, name: str = "DemoFace"):
     return ob
 
 
-def setup_preview(scene, resolution: tuple[int, int] = (320, 240)) -> None:
-    """Camera on the speaker and a small Workbench render to MP4 with the audio."""
-    cam_data = bpy.data.cameras.new("DemoCamera")
-    cam = bpy.data.objects.new("DemoCamera", cam_data)
-    scene.collection.objects.link(cam)
-    cam.location = (0.0, -3.0, 1.3)
-    cam.rotation_euler = (np.radians(90.0), 0.0, 0.0)
-    cam_data.lens = 40
-    scene.camera = cam
+CUT_SECONDS = 4.0  # the preview cuts between the wide shot and the face's close-up
+
+
+def setup_preview(scene, armature, resolution: tuple[int, int] = (640, 360)) -> None:
+    """A wide (upper body) and a close-up (face) camera, cut between every CUT_SECONDS
+    through timeline markers, and a Workbench render to MP4 with the audio."""
+    head = armature.matrix_world @ armature.data.bones["Head"].head_local
+    wide = _camera(scene, "DemoCamera", (0.0, -2.6, head.z - 0.3), lens=40)
+    close = _camera(scene, "DemoCloseUp", (0.0, -1.1, head.z + 0.05), lens=55)
+    follow = close.constraints.new("DAMPED_TRACK")  # keeps the moving head in frame
+    follow.target, follow.subtarget, follow.track_axis = armature, "Head", "TRACK_NEGATIVE_Z"
+    follow.head_tail = 1.0
+    world = bpy.data.worlds.new("DemoWorld")
+    world.color = (0.18, 0.2, 0.24)
+    scene.world = world
+    scene.camera = wide
+    fps = scene.render.fps / scene.render.fps_base
+    for i in range(64):  # the timeline of a take of up to about four minutes; later frames stay on the last
+        marker = scene.timeline_markers.new(f"shot {i + 1}", frame=scene.frame_start + round(i * CUT_SECONDS * fps))
+        marker.camera = close if i % 2 else wide
     scene.render.engine = "BLENDER_WORKBENCH"
+    scene.display.shading.light = "STUDIO"
+    scene.display.shading.color_type = "MATERIAL"
     scene.render.resolution_x, scene.render.resolution_y = resolution
     scene.render.resolution_percentage = 100
     set_video_output(scene)
+
+
+def _camera(scene, name: str, location, lens: float):
+    data = bpy.data.cameras.new(name)
+    data.lens = lens
+    cam = bpy.data.objects.new(name, data)
+    scene.collection.objects.link(cam)
+    cam.location = location
+    cam.rotation_euler = (np.radians(90.0), 0.0, 0.0)
+    return cam
 
 
 def set_video_output(scene) -> None:

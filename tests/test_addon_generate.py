@@ -433,3 +433,37 @@ def test_ready_player_me_face_without_arkit_keys_talks_through_its_visemes(speec
     for key in ("viseme_aa", "viseme_O"):
         scene.frame_set(_peak_frame(head, key))
         assert _moved_by(head, key) > 0.002, key
+
+
+def test_the_demo_character_shows_its_face(speech_motion, tmp_path):
+    """The main job's character: every ARKit key of its face moves vertices, the preview is
+    640x360 and cuts to a close-up in which the face fills much of the picture."""
+    from blender_addon import demo
+    from blender_addon.retarget import moves_vertices
+    from diffsheg_core.rigs import ARKIT51
+
+    scene = reset_scene(fps=24)
+    armature = demo.build_beat_armature()
+    face = demo.build_face(armature)
+    demo.setup_preview(scene, armature)
+    blocks = face.data.shape_keys.key_blocks
+    assert [b.name for b in blocks[1:]] == list(ARKIT51) and all(moves_vertices(b) for b in blocks[1:])
+    assert (scene.render.resolution_x, scene.render.resolution_y) == (640, 360)
+    result = bake_motion(scene, speech_motion, None, BakeOptions(armature=armature, face_meshes=[face],
+                                                                 add_sound=False))
+    assert "preset Auto chose 'beat'" in result.notes[0] and not result.unmatched_shape_keys["DemoFace"]
+    cut = round(demo.CUT_SECONDS * 24)
+    assert {m.frame: m.camera.name for m in scene.timeline_markers if m.frame <= cut + 1} == {
+        1: "DemoCamera", 1 + cut: "DemoCloseUp"}
+    skin = []
+    if "media_type" in scene.render.image_settings.bl_rna.properties:  # Blender 5.0
+        scene.render.image_settings.media_type = "IMAGE"
+    scene.render.image_settings.file_format = "PNG"
+    for frame in (10, cut + 10):
+        scene.frame_set(frame)
+        scene.render.filepath = str(tmp_path / f"shot{frame}.png")
+        bpy.ops.render.render(write_still=True)
+        image = bpy.data.images.load(scene.render.filepath)
+        rgba = np.array(image.pixels[:]).reshape(-1, 4)
+        skin.append(float(np.mean((rgba[:, 0] > rgba[:, 2] + 0.08) & (rgba[:, 0] > 0.3))))  # warm skin tones
+    assert skin[1] > 0.08 and skin[1] > 5 * skin[0], skin  # measured 0.10 and 0.007
