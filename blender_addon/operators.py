@@ -20,7 +20,7 @@ from diffsheg_core.errors import DiffshegError
 from . import preset
 from .bake import check_frames
 from .preferences import INSTALL_GPU_HINT, RUNTIME, missing_runtime, runtime_fix, torch_installed
-from .properties import CUSTOM_PRESET
+from .properties import CUSTOM_PRESET, DEFAULT_STYLE, NO_MIX
 
 
 def audio_file(settings) -> Path:
@@ -55,10 +55,24 @@ def generate_settings(settings):
         steps=settings.steps,
         candidates=settings.candidates,
         overlap=settings.overlap if settings.set_overlap else None,
-        style=settings.style,
+        style=panel_style(settings),
+        style_guidance=settings.style_strength if settings.style_strength != 1.0 else None,
         guidance=settings.guidance if settings.set_guidance else None,
         skip_guidance=settings.gesture_energy if settings.set_gesture_energy else None,
         device=settings.device_arg())
+
+
+def panel_style(settings):
+    """The style, or the mix of two styles, the panel asks for."""
+    first = None if settings.style in ("", DEFAULT_STYLE) else settings.style
+    second = settings.mix_style
+    if second in ("", NO_MIX) or second == first or settings.style_mix <= 0.0:
+        return first
+    if settings.style_mix >= 1.0:
+        return second
+    if first is None:  # mixing needs a named first style
+        raise DiffshegError("to mix styles, choose the first style by name instead of Default")
+    return {first: 1.0 - settings.style_mix, second: settings.style_mix}
 
 
 def bake_options(settings):

@@ -7,7 +7,7 @@ import sys
 import bpy
 
 from .preferences import missing_runtime, runtime_fix, torch_installed
-from .properties import CUSTOM_PRESET
+from .properties import CUSTOM_PRESET, NO_MIX
 
 
 def device_label(choice: str) -> str:
@@ -73,6 +73,12 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
         col.prop(s, "steps")
         col.prop(s, "candidates")
         col.prop(s, "style")
+        row = col.row(align=True)
+        row.prop(s, "mix_style")
+        sub = row.row(align=True)
+        sub.active = s.mix_style != NO_MIX
+        sub.prop(s, "style_mix")
+        col.prop(s, "style_strength")
         for toggle, value in (("set_overlap", "overlap"), ("set_guidance", "guidance"),
                               ("set_gesture_energy", "gesture_energy")):
             row = col.row(align=True)

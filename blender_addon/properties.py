@@ -6,7 +6,7 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        IntProperty, PointerProperty, StringProperty)
 
-from diffsheg_core.settings import CANDIDATES, GUIDANCE, OVERLAP, SKIP_GUIDANCE, STEPS
+from diffsheg_core.settings import CANDIDATES, GUIDANCE, OVERLAP, SKIP_GUIDANCE, STEPS, STYLE_GUIDANCE
 
 from . import preset
 
@@ -31,6 +31,38 @@ def _preset_items(_self, _context):
     _preset_items_cache.extend((n, n, f"rig preset presets/{n}.json") for n in preset.available_presets())
     _preset_items_cache.append((CUSTOM_PRESET, "Custom file...", "a preset .json file of your own"))
     return _preset_items_cache
+
+
+_style_items_cache: dict = {}
+OFFICIAL_STYLES = 30  # the official BEAT checkpoint's speakers (SHOW has 4)
+NO_MIX = "__none__"
+DEFAULT_STYLE = "__default__"
+
+
+def style_names(settings) -> list[str]:
+    """The style choices of the panel's model: its style names, else indices (official
+    checkpoints: one per speaker)."""
+    raw = settings.model_path.strip()
+    path = bpy.path.abspath(raw) if raw else None
+    from diffsheg_core.checkpoints import stored_style_names
+
+    return stored_style_names(path) or [str(i) for i in range(OFFICIAL_STYLES if raw else 1)]
+
+
+def _style_items(self, _context):
+    # Blender keeps only the strings of the last returned list alive: keep a reference.
+    try:
+        names = style_names(self)
+    except ImportError:  # the runtime packages are missing: the panel says so
+        names = ["0"]
+    _style_items_cache["style"] = [(DEFAULT_STYLE, "Default", "the model's default style")] + [
+        (n, n if not n.isdigit() else f"Style {n}", "") for n in names]
+    return _style_items_cache["style"]
+
+
+def _mix_items(self, context):
+    _style_items_cache["mix"] = [(NO_MIX, "None", "no second style")] + list(_style_items(self, context))[1:]
+    return _style_items_cache["mix"]
 
 
 class DIFFSHEG_PG_face_mesh(bpy.types.PropertyGroup):
@@ -68,7 +100,17 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
                               description="use your own overlap instead of the model's default")
     overlap: IntProperty(name="Overlap", default=4, min=OVERLAP[0], max=OVERLAP[1],
                          description="frames shared by consecutive windows")
-    style: IntProperty(name="Style", default=0, min=0, description="speaker style index of the model")
+    style: EnumProperty(name="Style", items=_style_items,
+                        description="the gesture style of the model (its named styles, or speaker indices)")
+    mix_style: EnumProperty(name="Mix with", items=_mix_items,
+                            description="a second style to blend with the first")
+    style_mix: FloatProperty(name="Mix", default=0.5, min=0.0, max=1.0, subtype="FACTOR",
+                             description="share of the second style: 0 is the first style, 1 the second")
+    style_strength: FloatProperty(name="Style strength", default=1.0, min=STYLE_GUIDANCE[0], max=5.0,
+                                  soft_max=3.0,
+                                  description="style guidance: 1 is the style as trained, above 1 goes beyond "
+                                              "it (livelier than animated, calmer than calm); models trained "
+                                              "with a null style")
     set_guidance: BoolProperty(name="Set guidance", default=False,
                                description="use your own guidance scale instead of the model's default")
     guidance: FloatProperty(name="Guidance", default=1.0, min=GUIDANCE[0], max=GUIDANCE[1],

@@ -66,6 +66,21 @@ class ModelBundle:
         return get_layout(self.config.layout)
 
     @property
+    def style_names(self) -> list[str]:
+        """Names of the style classes (models trained with named styles; else none)."""
+        return list(self.info.get("style_names", []))
+
+    @property
+    def default_style(self) -> "int | str":
+        """The style generation uses when none is asked for (`default_style` of the training)."""
+        return self.info.get("default_style", 0)
+
+    @property
+    def null_style(self) -> bool:
+        """The model learned the null style (all zeros), which style guidance needs."""
+        return bool(self.info.get("null_style", False))
+
+    @property
     def has_graphs(self) -> bool:
         """The file carries every ONNX graph sampling needs (the onnxruntime backend can run it)."""
         needed = {"expression", "gesture"} | ({"phonetic"} if self.config.phonetic_input else set())
@@ -357,10 +372,9 @@ def is_ours(path: Path) -> bool:
         return fh.read(16)[8:9] == b"{"
 
 
-def stored_layout(source: str | Path | None = None) -> Optional[str]:
-    """The channel layout of one of our model files (None: the bundled default) from its
-    metadata alone, without reading the weights; None for official checkpoints (their
-    layout shows in their tensors) and files that cannot tell."""
+def _stored_metadata(source: str | Path | None) -> Optional[dict]:
+    """The metadata of one of our model files (None: the bundled default) without reading
+    the weights; None for official checkpoints and files that cannot tell."""
     path = DEFAULT_WEIGHTS if source is None else Path(source).expanduser()
     if not path.is_file() or not is_ours(path):
         return None
@@ -368,9 +382,28 @@ def stored_layout(source: str | Path | None = None) -> Optional[str]:
 
     try:
         with safe_open(str(path), framework="numpy") as fh:
-            return ModelConfig.from_dict(json.loads((fh.metadata() or {})["config"])).layout
+            return dict(fh.metadata() or {})
     except Exception:  # damaged files are reported when they load
         return None
+
+
+def stored_layout(source: str | Path | None = None) -> Optional[str]:
+    """The channel layout of one of our model files from its metadata alone (None: official
+    checkpoints, whose layout shows in their tensors, and files that cannot tell)."""
+    meta = _stored_metadata(source)
+    try:
+        return ModelConfig.from_dict(json.loads(meta["config"])).layout if meta else None
+    except Exception:
+        return None
+
+
+def stored_style_names(source: str | Path | None = None) -> list[str]:
+    """The style names of one of our model files from its metadata alone ([] when it has none)."""
+    meta = _stored_metadata(source)
+    try:
+        return list(json.loads(meta.get("info", "{}")).get("style_names", [])) if meta else []
+    except Exception:
+        return []
 
 
 def load_model(source: str | Path | None = None, *, dataset: Optional[str] = None,

@@ -10,7 +10,11 @@ Each call runs a small batch of passes over the same window:
   the gesture branch with and without its self-attention blocks, mixed as c + s (c - k).
   The network without its temporal context predicts small, blurred gestures; steering away
   from it restores the amplitude small networks lose. It replaces the gesture branch's
-  classifier-free pass, so a guided step costs two passes per branch either way.
+  classifier-free pass, so a guided step costs two passes per branch either way;
+- style guidance (scale g, models trained with a null style; DiffuseStyleGesture): one
+  more gesture pass with the null style (all zeros), mixed in as + (g - 1) (c - n), so the
+  result is n + g (c - n) besides the other guidance: 1 is the style as given, above 1
+  goes beyond it. It steers the gestures only; the face keeps its style as given.
 
 All numpy: the mixing is the same whichever backend runs the passes.
 """
@@ -43,6 +47,7 @@ class Guidance:
 
     scale: Optional[float] = None   # classifier-free, both branches (the gesture branch only without skip)
     skip: Optional[float] = None    # gesture skip guidance
+    style: Optional[float] = None   # style guidance of the gestures
 
     def __post_init__(self):
         # uncond + 1 * (cond - uncond) is the conditioned pass alone: skip the null pass
@@ -50,6 +55,8 @@ class Guidance:
             object.__setattr__(self, "scale", None)
         if self.skip == 0.0:
             object.__setattr__(self, "skip", None)
+        if self.style == 1.0:
+            object.__setattr__(self, "style", None)
 
 
 def _rows(values: Optional[np.ndarray], n: int) -> Optional[np.ndarray]:
@@ -96,8 +103,18 @@ def step_eps(net: Network, gesture_dim: int, x: np.ndarray, timesteps: np.ndarra
     else:
         null, attend, mix = None, None, None
     n = 1 if mix is None else 2
-    eps_ges = net.gesture(_rows(gesture, n), _rows(timesteps, n), _rows(audio, n), _rows(speech, n),
-                          _rows(expression_x0, n), _rows(style, n), null, attend)
+    styles = _rows(style, n)
+    if guidance.style is not None:  # one more group of rows: conditioned, null style
+        n += 1
+        styles = np.concatenate([styles, np.zeros_like(style)])
+        null = None if null is None else np.concatenate([null, np.zeros(b, bool)])
+        attend = None if attend is None else np.concatenate([attend, np.ones(b, bool)])
+    eps_all = net.gesture(_rows(gesture, n), _rows(timesteps, n), _rows(audio, n), _rows(speech, n),
+                          _rows(expression_x0, n), styles, null, attend)
+    eps_ges = eps_all[: len(eps_all) - (b if guidance.style is not None else 0)]
     if mix is not None:
         eps_ges = mix(eps_ges, guidance.skip if mix is skip_guided else guidance.scale)
+    if guidance.style is not None:
+        conditioned = eps_all[b:2 * b] if mix is classifier_free else eps_all[:b]
+        eps_ges = eps_ges + np.float32(guidance.style - 1.0) * (conditioned - eps_all[-b:])
     return np.concatenate([eps_ges, eps_exp], axis=-1)

@@ -29,20 +29,76 @@ from .motion import Motion
 from .phonetic import PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel, stack_posteriors
 from .progress import ProgressCallback
 from .runtime.backends import open_network
-from .settings import GUIDANCE, SKIP_GUIDANCE, GenerateSettings, check_number
+from .settings import GUIDANCE, SKIP_GUIDANCE, STYLE_GUIDANCE, GenerateSettings, StyleSpec, check_number
 
 AudioInput = Union[str, Path, np.ndarray, Audio]
 
 _hubert_encoder = lru_cache(maxsize=1)(load_hubert)  # the 1.2 GB model is loaded once per process
 
 
-def style_onehot(bundle: ModelBundle, style: int) -> np.ndarray:
-    n = bundle.config.style_dim
-    if isinstance(style, bool) or not isinstance(style, (int, np.integer)) or not 0 <= style < n:
-        raise DiffshegError(f"style must be a whole number from 0 to {n - 1} for this model, got {style!r}")
-    onehot = np.zeros((1, n), np.float32)
-    onehot[0, int(style)] = 1.0
-    return onehot
+def style_weights(bundle: ModelBundle, style: Optional[StyleSpec]) -> dict[int, float]:
+    """{style class: weight}, weights summing to 1, for a style given as a class index, a
+    name, or weights over indices or names ({"calm": 0.7, "animated": 0.3}), None for the
+    model's default style; official
+    checkpoints' speaker one-hots take indices. Bad styles raise DiffshegError."""
+    n, names = bundle.config.style_dim, bundle.style_names
+    named = f" ({', '.join(names)})" if names else ""
+    if style is None:
+        style = bundle.default_style
+
+    def index(key) -> int:
+        if isinstance(key, str):
+            if key in names:
+                return names.index(key)
+            if key.strip().isdigit():
+                return index(int(key))
+            raise DiffshegError(f"model {bundle.model_id} has no style '{key}': choose one of "
+                                f"{', '.join(names) or f'the style indices 0 to {n - 1}'}")
+        if isinstance(key, bool) or not isinstance(key, (int, np.integer)) or not 0 <= key < n:
+            raise DiffshegError(f"style must be a whole number from 0 to {n - 1}{named} for this model, "
+                                f"got {key!r}")
+        return int(key)
+
+    items = style.items() if isinstance(style, dict) else [(style, 1.0)]
+    weights: dict[int, float] = {}
+    for key, weight in items:
+        if isinstance(weight, bool) or not isinstance(weight, (int, float, np.floating)) \
+                or not np.isfinite(weight) or weight < 0:
+            raise DiffshegError(f"style weight of {key!r} must be a number >= 0, got {weight!r}")
+        weights[index(key)] = weights.get(index(key), 0.0) + float(weight)
+    total = sum(weights.values())
+    if total <= 0:
+        raise DiffshegError(f"style weights {style!r} do not sum to a positive number: give at least "
+                            "one style a weight above 0")
+    return {k: w / total for k, w in sorted(weights.items())}
+
+
+def style_vector(bundle: ModelBundle, weights: dict[int, float]) -> np.ndarray:
+    """(1, style_dim) mix of style one-hots, the model's style input."""
+    vector = np.zeros((1, bundle.config.style_dim), np.float32)
+    for k, w in weights.items():
+        vector[0, k] = w
+    return vector
+
+
+def style_meta(bundle: ModelBundle, style: Optional[StyleSpec], style_guidance: Optional[float]) -> dict:
+    """What a Motion records of its style: the class (single styles), the weights by name
+    (or index), the names of the model's styles and the style-guidance scale used."""
+    weights = style_weights(bundle, style)
+    names = bundle.style_names
+    return {"style": next(iter(weights)) if len(weights) == 1 else None,
+            "style_weights": {(names[k] if names else str(k)): w for k, w in weights.items()},
+            "style_names": names, "style_guidance": resolve_style_guidance(bundle, style_guidance) or 1.0}
+
+
+def resolve_style_guidance(bundle: ModelBundle, scale: Optional[float]) -> Optional[float]:
+    """The style-guidance scale (None or 1: off); it needs a model trained with a null style."""
+    if scale is None or float(scale) == 1.0:
+        return None
+    if not bundle.null_style:
+        raise DiffshegError(f"model {bundle.model_id} was trained without a null style, so style guidance "
+                            "cannot work with it: leave the style strength at 1")
+    return float(check_number("style_guidance", scale, STYLE_GUIDANCE))
 
 
 def resolve_guidance(bundle: ModelBundle, guidance: Optional[float]) -> Optional[float]:
@@ -170,9 +226,9 @@ def uses_prior(bundle: ModelBundle, config: FoppasConfig) -> bool:
     return bundle.prior is not None and config.prior_start
 
 
-def build_sampling(bundle: ModelBundle, network, config: FoppasConfig, style: int = 0,
-                   guidance: Optional[float] = None, skip_guidance: Optional[float] = None
-                   ) -> tuple[Foppas, Callable[[np.ndarray], EpsFn]]:
+def build_sampling(bundle: ModelBundle, network, config: FoppasConfig, style: Optional[StyleSpec] = None,
+                   guidance: Optional[float] = None, skip_guidance: Optional[float] = None,
+                   style_guidance: Optional[float] = None) -> tuple[Foppas, Callable[[np.ndarray], EpsFn]]:
     """The FOPPAS sampler for `bundle` with `config`, and the factory that binds the network,
     style and guidance scales to one window's speech features. Bad settings raise DiffshegError."""
     try:
@@ -181,8 +237,10 @@ def build_sampling(bundle: ModelBundle, network, config: FoppasConfig, style: in
                          gestures=bundle.config.gesture_dim)
     except ValueError as exc:
         raise DiffshegError(str(exc)) from None
-    scales = Guidance(resolve_guidance(bundle, guidance), resolve_skip_guidance(bundle, skip_guidance))
-    return sampler, make_eps_fn_factory(bundle, network, sampler, style_onehot(bundle, style), scales)
+    scales = Guidance(resolve_guidance(bundle, guidance), resolve_skip_guidance(bundle, skip_guidance),
+                      resolve_style_guidance(bundle, style_guidance))
+    vector = style_vector(bundle, style_weights(bundle, style))
+    return sampler, make_eps_fn_factory(bundle, network, sampler, vector, scales)
 
 
 def _repeat(values: Optional[np.ndarray], rows: int) -> Optional[np.ndarray]:
@@ -241,7 +299,8 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     network = open_network(bundle, s.backend, s.device, s.precision, s.threads)
     speech = open_speech(audio, sample_rate)
     config = with_overrides(sampling or bundle.sampling, steps=s.steps, overlap=s.overlap, candidates=s.candidates)
-    sampler, make_eps_fn = build_sampling(bundle, network, config, s.style, s.guidance, s.skip_guidance)
+    sampler, make_eps_fn = build_sampling(bundle, network, config, s.style, s.guidance, s.skip_guidance,
+                                          s.style_guidance)
 
     stream = FoppasStream(sampler, make_eps_fn, s.seed, progress, cancel,
                           expected_frames=n_motion_frames(speech, bundle.config.fps),
@@ -252,7 +311,8 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     check_finite(bundle, normalised)
     return to_motion(bundle, normalised, meta={
         "model_id": bundle.model_id, "trained": bundle.trained, "seed": s.seed, "face_seed": s.face_seed,
-        "audio_file": speech.path, "sample_rate": speech.sample_rate, "style": int(s.style),
+        "audio_file": speech.path, "sample_rate": speech.sample_rate,
+        **style_meta(bundle, s.style, s.style_guidance),
         "guidance": resolve_guidance(bundle, s.guidance),
         "skip_guidance": resolve_skip_guidance(bundle, s.skip_guidance),
         "steps": config.steps, "overlap": config.overlap, "candidates": config.candidates,
@@ -292,8 +352,9 @@ def to_motion(bundle: ModelBundle, normalised: np.ndarray, meta: dict) -> Motion
                   rotations=rotations, face_names=list(layout.face_names), face=face, meta=meta)
 
 
-def open_stream(bundle: ModelBundle, *, seed: int = 0, style: int = 0,
+def open_stream(bundle: ModelBundle, *, seed: int = 0, style: Optional[StyleSpec] = None,
                 guidance: Optional[float] = None, skip_guidance: Optional[float] = None,
+                style_guidance: Optional[float] = None,
                 sampling: Optional[FoppasConfig] = None, face_seed: Optional[int] = None,
                 device: str = "auto", backend: str = "auto", threads: Optional[int] = None) -> FoppasStream:
     """A `FoppasStream` for live use: push (n, F) speech features from `speech_features`
@@ -303,5 +364,5 @@ def open_stream(bundle: ModelBundle, *, seed: int = 0, style: int = 0,
     frames: the encoder looks 0.53 s either side and takes off the level of what it is given."""
     network = open_network(bundle, backend, device, threads=threads)
     sampler, make = build_sampling(bundle, network, sampling or bundle.sampling, style, guidance,
-                                   skip_guidance)
+                                   skip_guidance, style_guidance)
     return FoppasStream(sampler, make, seed, face_seed=face_seed)

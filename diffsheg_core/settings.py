@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import math
 from dataclasses import dataclass, fields
+from typing import Union
 
 from .errors import DiffshegError
 
@@ -18,11 +19,16 @@ STEPS = (1, 1000)
 OVERLAP = (0, 64)
 CANDIDATES = (1, 16)
 GUIDANCE = (0.0, 10.0)
+STYLE_GUIDANCE = (0.0, 10.0)
 SKIP_GUIDANCE = (0.0, 1.0)
 THREADS = (1, 256)
 DEVICES = ("auto", "cpu", "cuda")
 BACKENDS = ("auto", "onnx", "torch")
 PRECISIONS = ("fp32", "bf16", "fp16")
+
+
+StyleSpec = Union[int, str, dict]
+"""A style: a class index, a style name, or weights over indices or names."""
 
 
 def check_number(name: str, value, bounds: tuple, whole: bool = False):
@@ -51,7 +57,8 @@ class GenerateSettings:
     steps: int | None = None            # DDIM steps
     overlap: int | None = None          # frames shared by consecutive windows
     candidates: int | None = None       # best-of-N windows; 1: off
-    style: int = 0                      # style / speaker index of the model
+    style: StyleSpec | None = None      # a style index or name, or weights {name or index: weight}; None: the model's default
+    style_guidance: float | None = None  # style strength: eps_null + s (eps_style - eps_null); 1: off
     guidance: float | None = None       # classifier-free guidance scale; 1: off
     skip_guidance: float | None = None  # gesture energy (skip guidance); 0: off
     device: str = "auto"
@@ -69,8 +76,11 @@ class GenerateSettings:
                              ("threads", THREADS)):
             if getattr(self, name) is not None:
                 check_number(name, getattr(self, name), bounds, whole=True)
-        check_number("style", self.style, (0, 1 << 31), whole=True)
-        for name, bounds in (("guidance", GUIDANCE), ("skip_guidance (gesture energy)", SKIP_GUIDANCE)):
+        if self.style is not None and (not isinstance(self.style, (int, str, dict)) or isinstance(self.style, bool)):
+            raise DiffshegError(f"style must be a style index, a style name or weights over styles "
+                                f"(e.g. {{'calm': 0.7, 'animated': 0.3}}), got {self.style!r}")
+        for name, bounds in (("guidance", GUIDANCE), ("skip_guidance (gesture energy)", SKIP_GUIDANCE),
+                             ("style_guidance", STYLE_GUIDANCE)):
             value = getattr(self, name.split()[0])
             if value is not None:
                 check_number(name, value, bounds)
@@ -97,7 +107,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--candidates", type=int,
                    help=f"best-of-N windows, {CANDIDATES[0]}-{CANDIDATES[1]}: each later window is sampled N "
                         "times and the one that best continues the motion is kept (default 1: off)")
-    g.add_argument("--style", type=int, default=0, help="style / speaker index (default 0)")
+    g.add_argument("--style", type=parse_style,
+                   help="style: a name or index (--style calm), or weights over styles "
+                        "(--style calm=0.7,animated=0.3); default: the model's default style")
+    g.add_argument("--style-guidance", type=float,
+                   help="style strength: 1 is the style as trained (default), above 1 goes beyond it "
+                        "(models trained with a null style)")
     g.add_argument("--guidance", type=float,
                    help="classifier-free guidance scale, 0-10 (default: the model's; 1 = off)")
     g.add_argument("--gesture-energy", "--skip-guidance", dest="skip_guidance", type=float,
@@ -112,3 +127,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def from_arguments(args: argparse.Namespace) -> GenerateSettings:
     """The settings of parsed `add_arguments` options."""
     return GenerateSettings(**{f.name: getattr(args, f.name) for f in fields(GenerateSettings)})
+
+
+def parse_style(text: str) -> StyleSpec:
+    """'2' -> 2, 'calm' -> 'calm', 'calm=0.7,animated=0.3' -> {'calm': 0.7, 'animated': 0.3}."""
+    text = text.strip()
+    if "=" not in text:
+        return int(text) if text.isdigit() else text
+    weights: dict = {}
+    for part in text.split(","):
+        name, _, value = part.partition("=")
+        try:
+            weights[name.strip()] = float(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"style weight {part!r} is not name=number (e.g. calm=0.7)") from None
+    return weights

@@ -4,6 +4,7 @@ rigs (BEAT BVH import, SMPL-X-named, Rigify-generated) and the real ARKit face m
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -467,3 +468,26 @@ def test_the_demo_character_shows_its_face(speech_motion, tmp_path):
         rgba = np.array(image.pixels[:]).reshape(-1, 4)
         skin.append(float(np.mean((rgba[:, 0] > rgba[:, 2] + 0.08) & (rgba[:, 0] > 0.3))))  # warm skin tones
     assert skin[1] > 0.08 and skin[1] > 5 * skin[0], skin  # measured 0.10 and 0.007
+
+
+def test_panel_styles_come_from_the_model_and_mix(tmp_path):
+    """The style menu lists the model's style names (indices for a model without any);
+    a second style with the mix slider gives weights, the strength the style guidance."""
+    from blender_addon.operators import generate_settings
+    from blender_addon.properties import style_names
+    from diffsheg_core.checkpoints import load_model, save_checkpoint
+
+    settings = reset_scene().diffsheg
+    bundle = load_model()
+    assert style_names(settings) == (bundle.style_names or ["0"])
+    assert generate_settings(settings).style is None  # "Default": the model's own default style
+    named = tmp_path / "named.safetensors"
+    save_checkpoint(replace(bundle, info={**bundle.info, "style_names": ["calm", "lively"]}), named)
+    settings.model_path = str(named)
+    assert style_names(settings) == ["calm", "lively"]
+    settings.style, settings.mix_style, settings.style_mix = "calm", "lively", 0.25
+    settings.style_strength = 1.5
+    chosen = generate_settings(settings)
+    assert chosen.style == {"calm": 0.75, "lively": 0.25} and chosen.style_guidance == 1.5
+    settings.mix_style, settings.style_strength = "__none__", 1.0
+    assert generate_settings(settings).style == "calm" and generate_settings(settings).style_guidance is None

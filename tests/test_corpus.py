@@ -241,7 +241,8 @@ def test_teacher_gestures_move_during_speech_without_jitter(corpus):
         assert (step > 1e-4).all(), "the arms must never freeze"
         assert step.mean() * motion.fps > 0.2
         jerk = np.abs(np.diff(motion.rotations.reshape(motion.n_frames, -1), n=3, axis=0)).mean()
-        assert jerk < 1.5 * real_jerk
+        style = motion.meta["style"]["gesture"]  # calm / animated: the capture scaled and re-timed
+        assert jerk < 1.5 * real_jerk * style["energy"] * style["tempo"] ** 3
 
 
 @pytest.fixture(scope="module")
@@ -292,3 +293,29 @@ def test_cli_teaches_a_recording_with_its_textgrid(tmp_path):
 def test_cli_rejects_bad_arguments(tmp_path, capsys):
     assert main(["build", "--out", str(tmp_path / "c"), "--hours", "0"]) == 2
     assert "--hours must be positive" in capsys.readouterr().err
+
+
+def test_teacher_moves_like_the_capture():
+    """Teacher v2 on the real take's audio and phones, 3 seeds of the conversational style:
+    wrist jitter, speed and spread within 10 % of the capture's (v1's short cross-fades made
+    it 1.37x as jerky) and the head held within 3 degrees of the capture's pitch (v1's nods
+    pitched it 2-3 degrees further down). The gesture library never sees the take's last
+    20 s, so the figures there are out of sample (the speaker calms down there: measured
+    1.15x its speed, for the record in the model card)."""
+    from diffsheg_core.training.corpus.gestures import HELD_OUT_SECONDS, load_library
+    from diffsheg_core.training.corpus.teacher import TeacherStyle
+    from diffsheg_core.training.evaluate import load_reference
+    from diffsheg_core.training.metrics.posture import naturalness
+
+    capture = load_reference(DATA / "beat" / "2_scott_0_1_1.bvh", fps=15)
+    assert load_library().n_frames == capture.n_frames - int(HELD_OUT_SECONDS * 15)
+    audio = load_audio(DATA / "beat2" / "2_scott_0_1_1.wav")
+    phones = phones_from_textgrid(DATA / "beat2" / "2_scott_0_1_1.TextGrid")
+    runs = [naturalness(teach(audio, phones, seed=s,
+                              style=TeacherStyle.random(np.random.default_rng(s), "conversational")))
+            for s in range(3)]
+    real = naturalness(capture)
+    ratio = {k.split(" (")[0]: np.mean([r[k] for r in runs]) / real[k] for k in real if "pitch" not in k}
+    assert ratio["wrist jitter"] < 1.1 and 0.9 < ratio["wrist speed"] < 1.1 and 0.9 < ratio["wrist spread"] < 1.1, ratio
+    pitch = np.mean([r["head pitch (deg, down)"] for r in runs]) - real["head pitch (deg, down)"]
+    assert abs(pitch) < 3, pitch

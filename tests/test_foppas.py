@@ -14,7 +14,7 @@ from diffsheg_core.errors import DiffshegError
 from diffsheg_core.foppas import (PROPOSAL_STREAM, Foppas, FoppasConfig, FoppasStream, PRESETS,
                                   check_seed, jump_schedule, model_calls, plan_windows, sample_long)
 from diffsheg_core.guidance import Guidance
-from diffsheg_core.pipeline import generate, make_eps_fn_factory, open_stream, style_onehot
+from diffsheg_core.pipeline import generate, make_eps_fn_factory, open_stream, style_vector
 from diffsheg_core.prior import GesturePrior
 from diffsheg_core.runtime.backends import open_network
 
@@ -96,7 +96,7 @@ def test_overlap_equals_previous_tail_exactly_without_blending(model, backend):
     sampler = Foppas(Schedule.linear(), FoppasConfig(steps=10, overlap=4, later_start=6, blend=False),
                      cfg.clip_len, cfg.dim)
     network = open_network(model, backend=backend, device="cpu")
-    make = make_eps_fn_factory(model, network, sampler, style_onehot(model, 0), Guidance())
+    make = make_eps_fn_factory(model, network, sampler, style_vector(model, {0: 1.0}), Guidance())
     cond = np.random.default_rng(0).random((100, cfg.mel_dim), dtype=np.float32)
     windows = []
     original = sampler.sample_window
@@ -158,7 +158,7 @@ def test_stream_equals_offline_and_emits_early(model, backend):
 
     s = sampler()
     network = open_network(model, backend=backend, device="cpu")
-    make = make_eps_fn_factory(model, network, s, style_onehot(model, 0), Guidance())
+    make = make_eps_fn_factory(model, network, s, style_vector(model, {0: 1.0}), Guidance())
     offline = sample_long(s, make, cond, 3)
     stream = FoppasStream(sampler(), make, 3)
     parts, emitted_after = [], []

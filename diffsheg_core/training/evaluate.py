@@ -28,6 +28,7 @@ from .metrics import (
     read_textgrid, reference_correlation, seam_smoothness, semantic_weights, speed, srgr,
 )
 from .metrics.channels import face_channel, gesture_array, has_face_channels, has_mouth
+from .metrics.posture import naturalness
 from ..motion import Motion, resample_motion
 from ..rigs import Layout, get_layout
 
@@ -104,6 +105,7 @@ def motion_metrics(motion: Motion, inputs: EvalInputs, onsets: np.ndarray) -> di
         "BA": beat_alignment(onsets, motion_beats(gesture, fps)),
         "jitter (mean jerk, rad/s^3)": mean_jerk(gesture, fps),
         "mean gesture speed (rad/s)": float(speed(gesture, fps).mean()),
+        **naturalness(motion),
     }
     if inputs.clip_len and inputs.overlap is not None and motion.n_frames > inputs.clip_len:
         seams = foppas_seams(motion.n_frames, inputs.clip_len, inputs.overlap)
@@ -158,6 +160,13 @@ def comparison_metrics(inputs: EvalInputs, layout: Layout) -> dict[str, float]:
             for part, name in parts:
                 out[name] = frechet_distance(generated[part], real[part])
     if inputs.reference is not None:
+        real = naturalness(inputs.reference)
+        for key, value in real.items():
+            mean = float(np.mean([naturalness(s)[key] for s in inputs.samples]))
+            if key.startswith("head pitch"):
+                out["head pitch - reference (deg)"] = mean - value
+            else:
+                out[f"{key.split(' (')[0]} / reference"] = mean / max(value, 1e-12)
         ref = gesture_array(inputs.reference, layout)
         m = min(n, len(ref))
         out["PCM gesture (delta 1.0)"] = float(np.mean([pcm(a[:m, : layout.gesture_dim], ref[:m])

@@ -77,6 +77,9 @@ class TrainConfig:
     huber_delta: float = 1.0
     x0_weighting: str = "abar"      # abar (x0 terms weighted by abar_t per sample) or none (unweighted)
     cond_drop: float = 0.0          # classifier-free dropout probability (official SHOW: 0.2)
+    style_drop: float = 0.0         # share of clips trained on the null style (all zeros): style guidance
+    style_names: list = field(default_factory=list)  # names of the style classes, stored in the model file
+    default_style: str | int = 0    # the style generation uses when none is asked for
     guidance: float | None = None   # default guidance scale stored in the checkpoints (guided models)
     skip_guidance: float | None = None  # default gesture skip-guidance scale stored in the checkpoints
     init_from: str = ""             # start from this checkpoint's weights (fine-tuning; see init_weights)
@@ -246,6 +249,8 @@ def diffsheg_loss(model: torch.nn.Module, schedule: Schedule, batch: dict[str, t
     drop = (torch.rand(b, generator=gen) < cfg.cond_drop).to(device)
     if not null_condition:  # without a null speech condition, the dropout drops the style
         style = style * (~drop).float().unsqueeze(1)
+    if cfg.style_drop > 0:  # the null style, which style guidance steers away from
+        style = style * (torch.rand(b, generator=gen) >= cfg.style_drop).float().to(device).unsqueeze(1)
     order = torch.argsort(~drop, stable=True)  # dropped rows first: the model nulls the first rows
     index, noise, style = index[order], noise[order], style[order]
     batch = {k: v[order] for k, v in batch.items()}
@@ -313,6 +318,22 @@ def default_guidance(cfg: TrainConfig, model_cfg: ModelConfig) -> float | None:
     return float(cfg.guidance)
 
 
+def check_styles(cfg: TrainConfig, model_cfg: ModelConfig) -> None:
+    """Style names, when given, name every style class; the null-style share is a fraction."""
+    if cfg.style_names and (len(cfg.style_names) != model_cfg.style_dim
+                            or not all(isinstance(n, str) and n for n in cfg.style_names)
+                            or len(set(cfg.style_names)) != len(cfg.style_names)):
+        raise DiffshegError(f"style_names must be {model_cfg.style_dim} different names (style_dim of the "
+                            f"model), got {cfg.style_names!r}")
+    known = cfg.style_names or list(range(model_cfg.style_dim))
+    if cfg.default_style not in known and not (isinstance(cfg.default_style, int)
+                                               and 0 <= cfg.default_style < model_cfg.style_dim):
+        raise DiffshegError(f"default_style {cfg.default_style!r} is not one of the styles "
+                            f"({', '.join(map(str, known))})")
+    if not 0.0 <= cfg.style_drop < 1.0:
+        raise DiffshegError(f"style_drop must be a share from 0 to below 1, got {cfg.style_drop}")
+
+
 def phonetic_encoder(cfg: TrainConfig, model_cfg: ModelConfig) -> PhoneticEncoder | None:
     """The frozen phonetic encoder of a run whose model takes phonetic features."""
     if not model_cfg.phonetic_input:
@@ -343,6 +364,7 @@ class Trainer:
         self.out = Path(cfg.out_dir)
         self.model_cfg = build_model_config(cfg)
         self.guidance = default_guidance(cfg, self.model_cfg)
+        check_styles(cfg, self.model_cfg)
         self.phonetic = phonetic_encoder(cfg, self.model_cfg)
         if self.phonetic is not None:
             self.model_cfg = replace(self.model_cfg, speech_dim=self.phonetic.cfg.dim)
@@ -456,7 +478,9 @@ class Trainer:
             model_id=self.cfg.model_id, phonetic=self.phonetic.cfg if self.phonetic else None,
             phonetic_weights=state_arrays(self.phonetic, dtype) if self.phonetic else {}, prior=self._prior,
             info={**self.cfg.card, "trained_steps": self.step, "data": asdict(self.cfg.data),
-                  "training": training}, source=f"run {self.out}"))
+                  "training": training, "style_names": list(self.cfg.style_names),
+                  "default_style": self.cfg.default_style,
+                  "null_style": self.cfg.style_drop > 0}, source=f"run {self.out}"))
 
     # -- steps
 
@@ -499,7 +523,7 @@ class Trainer:
         if self.val_set is None:
             return None
         gen = torch.Generator().manual_seed(self.cfg.seed + 12345)
-        cfg = replace(self.cfg, cond_drop=0.0)
+        cfg = replace(self.cfg, cond_drop=0.0, style_drop=0.0)
         n = min(len(self.val_set), self.cfg.val_clips)
         total, count = 0.0, 0
         for start in range(0, n, self.cfg.batch_size):

@@ -87,7 +87,7 @@ def make_utterance(spec: UtteranceSpec, out: Path, mocap: Path | None = None) ->
                    library=load_library(str(mocap) if mocap else None))
     info = {"index": spec.index, "text": spec.text, "voice": asdict(spec.voice),
             "augment": spec.augment.to_dict(), "teacher_seed": spec.teacher_seed,
-            "teacher_version": TEACHER_VERSION}
+            "teacher_version": TEACHER_VERSION, "style": motion.meta["style"]["name"]}
     npz = save_utterance(folder / f"{spec.name}.npz", motion, phones, info)
     part = wav.with_name(wav.name + ".part")
     sf.write(part, samples, SAMPLE_RATE, subtype="PCM_16", format="WAV")

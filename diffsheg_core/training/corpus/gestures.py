@@ -29,9 +29,16 @@ DEFAULT_MOCAP = Path(__file__).resolve().parents[3].parent / "shared" / "data" /
 
 MOCAP_FPS = 15.0
 _ARM_JOINTS = tuple(f"{s}{j}" for s in ("Right", "Left") for j in ("Shoulder", "Arm", "ForeArm", "Hand"))
-_FADE = 3
-"""Half-length (frames) of the cross-fade between two clips."""
+_FADE = 6
+"""Half-length (frames) of the cross-fade between two clips. A short fade is the teacher's
+main source of jitter: blending two poses over 2 * 3 frames made the wrists 1.37x as jerky
+as the capture on 2_scott_0_1_1, 2 * 6 frames with pose-matched clips 1.00x."""
+_POSE_MATCH = 6.0
+"""How strongly the next clip is chosen to start near the current pose (2.0 before v2)."""
 _MIN_PHRASE, _MAX_PHRASE = 6, 45
+HELD_OUT_SECONDS = 20.0
+"""The last seconds of the capture never go into the library, so that evaluation there is
+on motion the teacher (and a model trained on it) never saw."""
 
 
 @dataclass(frozen=True)
@@ -47,18 +54,37 @@ class Phrase:
 @dataclass(frozen=True)
 class GestureStyle:
     """One speaker's gesturing, drawn per utterance: `energy` scales the gestures'
-    amplitude about the capture's mean pose, `min_gap` (s) spaces strokes, `rate_jitter`
+    amplitude about the capture's mean pose, `min_gap` (s) spaces strokes (longer gaps are
+    longer rest holds), `tempo` is the mean playback rate of the capture, `rate_jitter`
     bounds the re-timing of phrases, `nod` is the head nod (degrees) on strong accents."""
 
     energy: float = 1.0
     min_gap: float = 0.9
     rate_jitter: float = 0.15
     nod: float = 4.0
+    tempo: float = 1.0
 
     @classmethod
-    def random(cls, rng: np.random.Generator) -> "GestureStyle":
-        return cls(energy=float(rng.uniform(0.8, 1.2)), min_gap=float(rng.uniform(0.7, 1.4)),
-                   rate_jitter=float(rng.uniform(0.08, 0.2)), nod=float(rng.uniform(2.0, 6.0)))
+    def random(cls, rng: np.random.Generator, name: str = "conversational") -> "GestureStyle":
+        """A style drawn from the ranges of the named style (GESTURE_STYLES)."""
+        ranges = GESTURE_STYLES[name]
+        return cls(**{k: float(rng.uniform(*v)) for k, v in ranges.items()})
+
+
+GESTURE_STYLES: dict[str, dict[str, tuple[float, float]]] = {
+    # few, small, slow strokes with long rest holds between them
+    "calm": {"energy": (0.55, 0.7), "min_gap": (1.8, 2.6), "rate_jitter": (0.05, 0.1),
+             "nod": (1.0, 3.0), "tempo": (0.75, 0.85)},
+    # the capture's own manner (its figures are what the evaluation compares with): the
+    # library's first 44 s move 1.1x as fast as the whole take, hence energy below 1
+    "conversational": {"energy": (0.82, 1.02), "min_gap": (0.8, 1.3), "rate_jitter": (0.08, 0.2),
+                       "nod": (2.0, 6.0), "tempo": (0.95, 1.05)},
+    # large, frequent, quick strokes and short holds
+    "animated": {"energy": (1.3, 1.5), "min_gap": (0.5, 0.75), "rate_jitter": (0.1, 0.2),
+                 "nod": (4.0, 8.0), "tempo": (1.1, 1.2)},
+}
+"""Named gesture styles of the corpus: each utterance draws one, and its index in this
+table is the style class a model is trained with."""
 
 
 def _slerp(q0: np.ndarray, q1: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -139,7 +165,8 @@ def load_library(path: str | None = None) -> GestureLibrary:
     if not bvh.is_file():
         raise DiffshegError(f"gesture capture {bvh} not found: pass the BEAT take "
                             "2_scott_0_1_1.bvh (shared/data/beat) with --mocap")
-    return GestureLibrary(bvh_to_motion(read_bvh(bvh, fps=MOCAP_FPS)).rotations)
+    rotations = bvh_to_motion(read_bvh(bvh, fps=MOCAP_FPS)).rotations
+    return GestureLibrary(rotations[: len(rotations) - int(HELD_OUT_SECONDS * MOCAP_FPS)])
 
 
 @dataclass(frozen=True)
@@ -163,7 +190,7 @@ def _pick(rng: np.random.Generator, lib: GestureLibrary, pool: list[Phrase], pos
         return cand[int(rng.integers(len(cand)))]
     starts = lib.quats[[p.start for p in cand]]
     dist = (1 - np.abs(np.sum(starts * pose, axis=-1))).sum(axis=1)
-    weights = np.exp(-dist / (np.median(dist) + 1e-9) * 2.0)
+    weights = np.exp(-dist / (np.median(dist) + 1e-9) * _POSE_MATCH)
     return cand[int(rng.choice(len(cand), p=weights / weights.sum()))]
 
 
@@ -174,7 +201,7 @@ def _timeline(lib: GestureLibrary, strokes: list[float], n_frames: int, fps: flo
     in the capture); a phrase still running at the next one's preparation is cut short."""
     clips: list[_Clip] = []
     cursor, pose = 0.0, None
-    speed = MOCAP_FPS / fps
+    speed = MOCAP_FPS / fps * style.tempo
     jitter = style.rate_jitter
 
     def fill_idle(until: float) -> None:
@@ -223,12 +250,15 @@ def _render(lib: GestureLibrary, clips: list[_Clip], n_frames: int) -> np.ndarra
 
 
 def _nod(quats: np.ndarray, accents: list[Accent], fps: float, degrees: float) -> np.ndarray:
-    """Nod the head (Neck1, and Neck by half) forward about its X axis on accents."""
+    """Nod the head (Neck1, and Neck by half) forward about its X axis on accents, keeping
+    the mean head pitch of the capture (nods only forward would pitch the head down 2-3
+    degrees on average)."""
     times = np.arange(len(quats)) / fps
     angle = np.zeros(len(quats))
     for a in accents:
         angle += a.strength * np.exp(-0.5 * ((times - a.time - 0.08) / 0.12) ** 2)
     angle = np.radians(degrees) * np.minimum(angle, 1.5)
+    angle -= angle.mean()  # nods about the capture's own head posture, which they must not shift
     out = quats.copy()
     for name, share in (("Neck1", 1.0), ("Neck", 0.5)):
         j = BEAT_JOINTS.index(name)

@@ -19,24 +19,38 @@ from ...errors import DiffshegError
 from ...motion import Motion
 from ...rigs import ARKIT51, BEAT, BEAT_JOINTS
 from .face import FaceStyle, face_curves
-from .gestures import GestureLibrary, GestureStyle, gesture_rotations
+from .gestures import GESTURE_STYLES, GestureLibrary, GestureStyle, gesture_rotations
 from .phones import Phone, check_phones, phones_from_arrays, phones_to_arrays
 from .prosody import find_accents
 
-TEACHER_VERSION = 1
-"""Bump when the teacher's output changes; it is stored with every utterance."""
+TEACHER_VERSION = 2
+"""Bump when the teacher's output changes; it is stored with every utterance. v2: longer,
+pose-matched cross-fades, nods that keep the mean head pitch, named gesture styles, the
+last 20 s of the capture held out."""
+
+STYLE_NAMES: tuple[str, ...] = tuple(GESTURE_STYLES)
 
 
 @dataclass(frozen=True)
 class TeacherStyle:
-    """A speaker's manner: face and gesture parameters, drawn per utterance for variety."""
+    """A speaker's manner: face and gesture parameters, drawn per utterance for variety;
+    `name` is the named gesture style (GESTURE_STYLES) the gesture parameters come from."""
 
     face: FaceStyle = field(default_factory=FaceStyle)
     gesture: GestureStyle = field(default_factory=GestureStyle)
+    name: str = "conversational"
 
     @classmethod
-    def random(cls, rng: np.random.Generator) -> "TeacherStyle":
-        return cls(FaceStyle.random(rng), GestureStyle.random(rng))
+    def random(cls, rng: np.random.Generator, name: str | None = None) -> "TeacherStyle":
+        """Face parameters at random; the gesture style `name`, or one of STYLE_NAMES at random."""
+        face = FaceStyle.random(rng)
+        name = name or STYLE_NAMES[int(rng.integers(len(STYLE_NAMES)))]
+        return cls(face, GestureStyle.random(rng, name), name)
+
+    @property
+    def index(self) -> int:
+        """The style class a model learns this manner as."""
+        return STYLE_NAMES.index(self.name)
 
 
 def teach(audio: Audio, phones: list[Phone], *, seed: int = 0, style: TeacherStyle | None = None,

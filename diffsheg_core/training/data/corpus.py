@@ -1,8 +1,9 @@
 """The project's synthetic speech corpus (`python -m diffsheg_core.training.corpus build`):
 `manifest.jsonl` at the root lists every utterance, its `.wav` and the teacher motion
 `.npz` in the `beat` layout. Utterances the builder failed on are reported and skipped.
-The corpus has no split file: utterances are split by name (`val_fraction`), and all
-get the style class of the data configuration."""
+The corpus has no split file: utterances are split by name (`val_fraction`). Each gets
+the style class of its teacher's named gesture style (teacher.STYLE_NAMES); utterances of a
+corpus made before named styles get the style class of the data configuration."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import numpy as np
 
 from ...audio import load_audio
 from ..corpus.build import read_manifest
-from ..corpus.teacher import load_utterance
+from ..corpus.teacher import STYLE_NAMES, load_utterance
 from ...errors import DiffshegError
 from ...rigs import BEAT
 from .sources import TakeSource
@@ -42,10 +43,11 @@ def find_takes(root: Path) -> list[TakeSource]:
 
 def read_take(source: TakeSource, config: DataConfig) -> Take:
     try:
-        motion, _, _ = load_utterance(source.files["motion"])
+        motion, _, info = load_utterance(source.files["motion"])
     except DiffshegError as exc:
         raise TakeError(str(exc)) from exc
     values = decimate(BEAT.join(motion.rotations, motion.face), motion.fps, config.fps,
                       str(source.files["motion"]))
+    style = STYLE_NAMES.index(info["style"]) if "style" in info else config.style
     return make_take(source.name, values, load_audio(source.files["audio"]), config.fps,
-                     config.style, np.ones(LAYOUT.dim, bool), config.max_length_mismatch)
+                     style, np.ones(LAYOUT.dim, bool), config.max_length_mismatch)

@@ -1,0 +1,146 @@
+"""Style control (issue 16, after DiffuseStyleGesture): a style by index, name or weights,
+style guidance eps_null + s (eps_style - eps_null), what a Motion records of it, and the
+official networks' speaker one-hots taking weights too."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from conftest import random_bundle
+from diffsheg_core.errors import DiffshegError
+from diffsheg_core.foppas import PRESETS
+from diffsheg_core.guidance import Guidance, step_eps
+from diffsheg_core.pipeline import generate, style_vector, style_weights
+from diffsheg_core.runtime.backends import open_network
+from diffsheg_core.settings import GenerateSettings, parse_style
+from test_pipeline import speech  # noqa: F401 (fixture: four seconds of real speech)
+
+NAMES = ["calm", "conversational", "animated"]
+
+
+@pytest.fixture(scope="module")
+def styled():
+    """A small random three-style model that learned a null style (names in its info)."""
+    bundle = random_bundle(style_dim=3, seed=4)
+    return replace(bundle, sampling=PRESETS["no-resample"], std=np.ones(bundle.config.dim, np.float32),
+                   info={"style_names": NAMES, "null_style": True})
+
+
+def test_a_style_is_an_index_a_name_or_weights(styled):
+    assert style_weights(styled, 2) == style_weights(styled, "animated") == {2: 1.0}
+    assert style_weights(styled, {"calm": 0.7, "animated": 0.3}) == pytest.approx({0: 0.7, 2: 0.3})
+    assert style_weights(styled, {"calm": 2, 1: 2}) == {0: 0.5, 1: 0.5}  # normalised, names and indices
+    np.testing.assert_allclose(style_vector(styled, {0: 0.7, 2: 0.3}), [[0.7, 0.0, 0.3]])
+    assert parse_style("calm=0.7,animated=0.3") == {"calm": 0.7, "animated": 0.3}
+    assert parse_style("2") == 2 and parse_style("calm") == "calm"
+
+
+@pytest.mark.parametrize("style,match", [
+    ("lively", "has no style 'lively': choose one of calm, conversational, animated"),
+    ({"calm": 0.0}, "do not sum to a positive number"), ({"calm": -1.0, "animated": 2.0}, "must be a number >= 0"),
+    (3, "from 0 to 2"), ({"calm": float("nan")}, "must be a number >= 0"),
+])
+def test_bad_styles_are_refused_by_name(styled, style, match):
+    with pytest.raises(DiffshegError, match=match):
+        style_weights(styled, style)
+
+
+class Recording:
+    """A network that records the style rows of its gesture calls."""
+
+    def __init__(self, net):
+        self.net, self.styles = net, []
+
+    def expression(self, *args):
+        return self.net.expression(*args)
+
+    def gesture(self, *args):
+        self.styles.append(args[5])
+        return self.net.gesture(*args)
+
+
+def _eps(bundle, style, guidance: Guidance, net=None):
+    cfg, rng = bundle.config, np.random.default_rng(0)
+    x = rng.standard_normal((1, cfg.clip_len, cfg.dim), dtype=np.float32)
+    mel = rng.random((1, cfg.clip_len, cfg.mel_dim), dtype=np.float32)
+    coefs = (np.full((1, 1, 1), 2.0, np.float32), np.full((1, 1, 1), 1.5, np.float32))
+    return step_eps(net or open_network(bundle), cfg.gesture_dim, x, np.array([500]), mel, None, style, coefs,
+                    guidance)
+
+
+def test_style_guidance_is_null_plus_scale_times_the_difference(styled):
+    """n + s (c - n) on the gestures, n from one more gesture pass with the null style, beside
+    gesture skip guidance; the face is untouched; 1 is the plain conditioned prediction."""
+    g = styled.config.gesture_dim
+    style = style_vector(styled, {2: 1.0})
+    for base in (Guidance(), Guidance(skip=0.3)):
+        plain = _eps(styled, style, base)
+        net = Recording(open_network(styled))
+        twice = _eps(styled, style, replace(base, style=3.0), net)
+        once = _eps(styled, style, replace(base, style=2.0))
+        np.testing.assert_allclose(twice[..., :g] - plain[..., :g], 2 * (once[..., :g] - plain[..., :g]), atol=1e-5)
+        assert np.abs(once[..., :g] - plain[..., :g]).max() > 1e-3
+        np.testing.assert_array_equal(twice[..., g:], plain[..., g:])
+        rows = net.styles[0]
+        assert not rows[-1:].any() and (rows[:-1] == style).all()  # the last pass sees the null style
+    np.testing.assert_array_equal(_eps(styled, style, Guidance(style=1.0)), _eps(styled, style, Guidance()))
+
+
+def test_a_mix_of_two_styles_lies_between_them_and_guidance_goes_beyond(styled, speech):
+    """Gesture mean pose along the line from calm to animated: the mix lies between the two,
+    guidance above 1 beyond the style it steers."""
+    def gestures(**kw):
+        return generate(speech, model=styled, steps=3, device="cpu", seed=1, **kw).rotations.reshape(-1)
+
+    calm, animated = gestures(style="calm"), gestures(style="animated")
+    mixed = gestures(style={"calm": 0.5, "animated": 0.5})
+    beyond = gestures(style="animated", style_guidance=2.0)
+    axis = animated - calm
+
+    def position(x):
+        return float((x - calm) @ axis / (axis @ axis))
+
+    assert 0.1 < position(mixed) < 0.9
+    assert position(beyond) > 1.1
+
+
+def test_a_motion_records_its_style(styled, speech):
+    motion = generate(speech, model=styled, steps=3, device="cpu", style={"calm": 1, "animated": 3},
+                      style_guidance=1.5)
+    assert motion.meta["style_names"] == NAMES
+    assert motion.meta["style_weights"] == {"calm": 0.25, "animated": 0.75}
+    assert motion.meta["style"] is None and motion.meta["style_guidance"] == 1.5
+    single = generate(speech, model=styled, steps=3, device="cpu", style="conversational")
+    assert single.meta["style"] == 1 and single.meta["style_guidance"] == 1.0
+
+
+def test_style_guidance_needs_a_null_style_and_a_scale_in_range(styled, speech):
+    plain = replace(styled, info={"style_names": NAMES})
+    with pytest.raises(DiffshegError, match="trained without a null style"):
+        generate(speech, model=plain, steps=3, device="cpu", style_guidance=2.0)
+    with pytest.raises(DiffshegError, match="style_guidance must be a number from 0 to 10"):
+        GenerateSettings(style_guidance=11.0)
+    with pytest.raises(DiffshegError, match="style must be a style index, a style name or weights"):
+        GenerateSettings(style=1.5)
+
+
+def test_official_layout_networks_take_weights_over_their_speaker_one_hots(golden_dir):
+    """The official BEAT network (golden weights, 30 speaker one-hots): a weighted style
+    input is the weights' mix of one-hots, and the network runs on it."""
+    from test_model import golden_args, golden_bundle
+
+    bundle = golden_bundle(golden_dir, "beat_small", {})
+    io = dict(np.load(golden_dir / "beat_small_io.npz"))
+    n = bundle.config.style_dim
+    weights = style_weights(bundle, {3: 0.25, 7: 0.75})
+    vector = style_vector(bundle, weights)
+    assert vector.shape == (1, n) and vector[0, 3] == 0.25 and vector[0, 7] == 0.75
+    x, t, mel, hubert, _, coefs = golden_args(io, slice(0, 1))
+    net = open_network(bundle, backend="torch", device="cpu")
+    mixed = step_eps(net, bundle.config.gesture_dim, x, t, mel, hubert, vector, coefs, Guidance())
+    one = step_eps(net, bundle.config.gesture_dim, x, t, mel, hubert, np.eye(n, dtype=np.float32)[7:8],
+                   coefs, Guidance())
+    assert np.isfinite(mixed).all() and not np.allclose(mixed, one)
