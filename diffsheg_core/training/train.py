@@ -74,6 +74,7 @@ class TrainConfig:
     lambda_t: float = 10.0          # noise prediction
     lambda_v: float = 1.0           # velocity of x0
     lambda_delta: float = 1.0       # Huber on x0
+    lambda_a: float = 0.0           # acceleration of x0 (this project's addition against jitter; 0: the paper's loss)
     huber_delta: float = 1.0
     x0_weighting: str = "abar"      # abar (x0 terms weighted by abar_t per sample) or none (unweighted)
     cond_drop: float = 0.0          # classifier-free dropout probability (official SHOW: 0.2)
@@ -267,7 +268,11 @@ def diffsheg_loss(model: torch.nn.Module, schedule: Schedule, batch: dict[str, t
     loss_v = masked_mean(w * (x0_hat.diff(dim=1) - x0.diff(dim=1)) ** 2, mask)
     loss_d = masked_mean(w * F.huber_loss(x0_hat, x0, reduction="none", delta=cfg.huber_delta), mask)
     total = cfg.lambda_t * loss_t + cfg.lambda_v * loss_v + cfg.lambda_delta * loss_d
-    return {"loss": total, "loss_t": loss_t, "loss_v": loss_v, "loss_delta": loss_d}
+    losses = {"loss_t": loss_t, "loss_v": loss_v, "loss_delta": loss_d}
+    if cfg.lambda_a > 0:
+        losses["loss_a"] = masked_mean(w * (x0_hat.diff(n=2, dim=1) - x0.diff(n=2, dim=1)) ** 2, mask)
+        total = total + cfg.lambda_a * losses["loss_a"]
+    return {"loss": total, **losses}
 
 
 # ---------------------------------------------------------------- the trainer
