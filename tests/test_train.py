@@ -347,3 +347,30 @@ def test_a_configuration_extends_its_base_table_by_table(tmp_path):
     (tmp_path / "odd.toml").write_text("extends = 3\n")
     with pytest.raises(DiffshegError, match="extends must be a file name"):
         read_config_file(tmp_path / "odd.toml")
+
+
+def test_named_styles_a_null_style_and_the_acceleration_term(small_root, tmp_path):
+    """style_drop trains that share of clips on the all-zero style; lambda_a adds the x0
+    acceleration loss; the style names, the default style and the null style reach the
+    model file; a default style that is not one of the names is refused."""
+    seen = {}
+
+    class Recording(UniEG):
+        def forward(self, *args, **kwargs):
+            seen["style"] = args[4].clone()
+            return super().forward(*args, **kwargs)
+
+    settings = config(small_root, tmp_path / "x", style_drop=0.999, style_names=["plain", "lively"],
+                      default_style="lively", lambda_a=1.0)
+    cfg = TrainConfig.from_dict(settings)
+    trainer = Trainer(cfg, Dist())
+    batch = trainer.batch(trainer.train_set, torch.arange(4))
+    losses = diffsheg_loss(Recording(trainer.model_cfg), trainer.schedule, batch, cfg,
+                           torch.Generator().manual_seed(0), trainer.model_cfg.style_dim, False)
+    assert float(seen["style"].abs().sum()) == 0.0 and float(losses["loss_a"]) > 0
+    bundle = trainer.bundle()
+    assert bundle.style_names == ["plain", "lively"] and bundle.default_style == "lively" and bundle.null_style
+    with pytest.raises(DiffshegError, match="default_style 'calm' is not one of the styles"):
+        Trainer(TrainConfig.from_dict({**settings, "default_style": "calm", "out_dir": str(tmp_path / "y")}), Dist())
+    with pytest.raises(DiffshegError, match="style_names must be 2 different names"):
+        Trainer(TrainConfig.from_dict({**settings, "style_names": ["a"], "out_dir": str(tmp_path / "z")}), Dist())

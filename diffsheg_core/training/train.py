@@ -324,7 +324,11 @@ def default_guidance(cfg: TrainConfig, model_cfg: ModelConfig) -> float | None:
 
 
 def check_styles(cfg: TrainConfig, model_cfg: ModelConfig) -> None:
-    """Style names, when given, name every style class; the null-style share is a fraction."""
+    """Style names, when given, name every style class; the default style is one of them;
+    the null-style share is a fraction. (A model without style classes is refused when the
+    data is read.)"""
+    if model_cfg.style_dim < 1:
+        return
     if cfg.style_names and (len(cfg.style_names) != model_cfg.style_dim
                             or not all(isinstance(n, str) and n for n in cfg.style_names)
                             or len(set(cfg.style_names)) != len(cfg.style_names)):
