@@ -105,14 +105,8 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
     face_maps = [map_shape_keys(mesh, options.preset, motion) for mesh in options.face_meshes]
     rig_notes: list[str] = []
     if options.armature is not None:
-        jaw = options.preset.jaw
-        has_jaw = (jaw is not None and jaw.source in motion.face_names
-                   and options.preset.find_bone(jaw.bone, options.armature.data.bones.keys()) is not None)
-        jaw_keys = [m.mesh for m in face_maps if has_jaw and m.drives(motion.face_names.index(jaw.source))]
-        mapping = map_armature(options.armature, options.preset, motion, drive_jaw=not jaw_keys)
-        unmatched_bones = mapping.unmatched
-        rig_notes = mapping.notes + ([f"jaw bone {jaw.bone} left at rest: the {jaw.source} shape key of "
-                                      f"{', '.join(jaw_keys)} opens the mouth"] if jaw_keys else [])
+        mapping = map_armature(options.armature, options.preset, motion, jaw_shape_keys=face_maps)
+        unmatched_bones, rig_notes = mapping.unmatched, mapping.notes
         channels = []
         for bone, quats in bone_quaternions(motion, mapping).items():
             if options.smoothing > 0:

@@ -115,12 +115,14 @@ class ArmatureMapping:
     notes: list[str] = field(default_factory=list)
 
 
-def map_armature(armature, preset: Preset, motion: Motion, drive_jaw: bool = True) -> ArmatureMapping:
+def map_armature(armature, preset: Preset, motion: Motion,
+                 jaw_shape_keys: list["ShapeKeyMapping"] = ()) -> ArmatureMapping:
     """Match the preset's bones on `armature` (a bpy Object) and prepare conversions.
 
     A joint the rig lacks passes its rotation on to the nearest joints below it that the
     rig has (the model's Neck1 into the head of a rig without a second neck bone). The
-    jaw bone is driven from its face weight only with `drive_jaw` (no jaw shape key).
+    jaw bone is driven from its face weight only where none of the face meshes'
+    `jaw_shape_keys` mappings has a key following that weight (else the mouth opens twice).
     Raises DiffshegError when nothing matches, naming the preset and the rig.
     """
     parents = layout_parents(motion.rig)
@@ -143,10 +145,16 @@ def map_armature(armature, preset: Preset, motion: Motion, drive_jaw: bool = Tru
     notes = [f"{j} ({', '.join(missing[j])} not on the rig) passed on to {', '.join(to)}"
              for j, to in passed_to.items()]
     jaw_bone = None
-    if drive_jaw and preset.jaw and preset.jaw.source in motion.face_names and "jaw" not in sources:
+    if preset.jaw and preset.jaw.source in motion.face_names and "jaw" not in sources:
         jaw_bone = preset.find_bone(preset.jaw.bone, bones.keys())
+        channel = motion.face_names.index(preset.jaw.source)
+        by_keys = [m.mesh for m in jaw_shape_keys if m.drives(channel)]
         if jaw_bone is None:
             unmatched.append(f"jaw (from {preset.jaw.source}) -> {preset.jaw.bone}")
+        elif by_keys:
+            notes.append(f"jaw bone {preset.jaw.bone} left at rest: the {preset.jaw.source} shape key of "
+                         f"{', '.join(by_keys)} opens the mouth")
+            jaw_bone = None
     if not sources and jaw_bone is None:
         wanted = [b for chain in preset.joint_map(motion.rig).values() for b in chain]
         raise DiffshegError(

@@ -103,6 +103,7 @@ def step_eps(net: Network, gesture_dim: int, x: np.ndarray, timesteps: np.ndarra
     else:
         null, attend, mix = None, None, None
     n = 1 if mix is None else 2
+    guided = n * b  # the rows `mix` combines; the null-style rows of style guidance follow them
     styles = _rows(style, n)
     if guidance.style is not None:  # one more group of rows: conditioned, null style
         n += 1
@@ -111,7 +112,7 @@ def step_eps(net: Network, gesture_dim: int, x: np.ndarray, timesteps: np.ndarra
         attend = None if attend is None else np.concatenate([attend, np.ones(b, bool)])
     eps_all = net.gesture(_rows(gesture, n), _rows(timesteps, n), _rows(audio, n), _rows(speech, n),
                           _rows(expression_x0, n), styles, null, attend)
-    eps_ges = eps_all[: len(eps_all) - (b if guidance.style is not None else 0)]
+    eps_ges = eps_all[:guided]
     if mix is not None:
         eps_ges = mix(eps_ges, guidance.skip if mix is skip_guided else guidance.scale)
     if guidance.style is not None:

@@ -39,8 +39,8 @@ _hubert_encoder = lru_cache(maxsize=1)(load_hubert)  # the 1.2 GB model is loade
 def style_weights(bundle: ModelBundle, style: Optional[StyleSpec]) -> dict[int, float]:
     """{style class: weight}, weights summing to 1, for a style given as a class index, a
     name, or weights over indices or names ({"calm": 0.7, "animated": 0.3}), None for the
-    model's default style; official
-    checkpoints' speaker one-hots take indices. Bad styles raise DiffshegError."""
+    model's default style; official checkpoints' speaker one-hots take indices. Bad styles
+    raise DiffshegError."""
     n, names = bundle.config.style_dim, bundle.style_names
     named = f" ({', '.join(names)})" if names else ""
     if style is None:

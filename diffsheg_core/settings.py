@@ -79,17 +79,14 @@ class GenerateSettings:
         if self.style is not None and (not isinstance(self.style, (int, str, dict)) or isinstance(self.style, bool)):
             raise DiffshegError(f"style must be a style index, a style name or weights over styles "
                                 f"(e.g. {{'calm': 0.7, 'animated': 0.3}}), got {self.style!r}")
-        for name, bounds in (("guidance", GUIDANCE), ("skip_guidance (gesture energy)", SKIP_GUIDANCE),
-                             ("style_guidance", STYLE_GUIDANCE)):
-            value = getattr(self, name.split()[0])
-            if value is not None:
-                check_number(name, value, bounds)
+        for name, label, bounds in (("guidance", "guidance", GUIDANCE),
+                                    ("skip_guidance", "skip_guidance (gesture energy)", SKIP_GUIDANCE),
+                                    ("style_guidance", "style_guidance", STYLE_GUIDANCE)):
+            if getattr(self, name) is not None:
+                check_number(label, getattr(self, name), bounds)
         _check_choice("device", self.device, DEVICES)
         _check_choice("backend", self.backend, BACKENDS)
         _check_choice("precision", self.precision, PRECISIONS)
-
-    def generate_kwargs(self) -> dict:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
 # ---------------------------------------------------------------- command lines

@@ -28,7 +28,7 @@ from .metrics import (
     read_textgrid, reference_correlation, seam_smoothness, semantic_weights, speed, srgr,
 )
 from .metrics.channels import face_channel, gesture_array, has_face_channels, has_mouth
-from .metrics.posture import naturalness
+from .metrics.posture import NATURALNESS, naturalness
 from ..motion import Motion, resample_motion
 from ..rigs import Layout, get_layout
 
@@ -160,13 +160,6 @@ def comparison_metrics(inputs: EvalInputs, layout: Layout) -> dict[str, float]:
             for part, name in parts:
                 out[name] = frechet_distance(generated[part], real[part])
     if inputs.reference is not None:
-        real = naturalness(inputs.reference)
-        for key, value in real.items():
-            mean = float(np.mean([naturalness(s)[key] for s in inputs.samples]))
-            if key.startswith("head pitch"):
-                out["head pitch - reference (deg)"] = mean - value
-            else:
-                out[f"{key.split(' (')[0]} / reference"] = mean / max(value, 1e-12)
         ref = gesture_array(inputs.reference, layout)
         m = min(n, len(ref))
         out["PCM gesture (delta 1.0)"] = float(np.mean([pcm(a[:m, : layout.gesture_dim], ref[:m])
@@ -219,6 +212,12 @@ def evaluate(inputs: EvalInputs, out_dir: str | Path | None = None, plots: bool 
     if "jitter (mean jerk, rad/s^3)" in reference:
         compared["jitter / reference jitter"] = (generated["jitter (mean jerk, rad/s^3)"]
                                                  / reference["jitter (mean jerk, rad/s^3)"])
+    for key in NATURALNESS:
+        if key in reference:
+            if key.startswith("head pitch"):
+                compared["head pitch - reference (deg)"] = generated[key] - reference[key]
+            else:
+                compared[f"{key.split(' (')[0]} / reference"] = generated[key] / max(reference[key], 1e-12)
     result = {"layout": layout.name, "fps": fps, "samples": len(inputs.samples),
               "audio": inputs.audio.path, "audio_beats": len(onsets),
               "generated": generated, "reference": reference, "comparison": compared}

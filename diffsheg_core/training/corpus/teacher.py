@@ -47,11 +47,6 @@ class TeacherStyle:
         name = name or STYLE_NAMES[int(rng.integers(len(STYLE_NAMES)))]
         return cls(face, GestureStyle.random(rng, name), name)
 
-    @property
-    def index(self) -> int:
-        """The style class a model learns this manner as."""
-        return STYLE_NAMES.index(self.name)
-
 
 def teach(audio: Audio, phones: list[Phone], *, seed: int = 0, style: TeacherStyle | None = None,
           library: GestureLibrary | None = None) -> Motion:

@@ -79,6 +79,11 @@ def head_pitch(motion: Motion) -> np.ndarray:
     return np.degrees(np.arcsin(np.clip(-forward[:, 1], -1.0, 1.0)))
 
 
+NATURALNESS = ("wrist speed (arm lengths/s)", "wrist jitter (arm lengths/s^2)", "wrist spread (arm lengths)",
+               "head pitch (deg, down)")
+"""The names of `naturalness`'s figures."""
+
+
 def naturalness(motion: Motion) -> dict[str, float]:
     """Wrist speed, jitter and spread, and mean head pitch, of one motion."""
     wrists = wrist_positions(motion)
@@ -87,9 +92,8 @@ def naturalness(motion: Motion) -> dict[str, float]:
     fps = motion.fps
     velocity = np.diff(wrists, axis=0) * fps
     acceleration = np.diff(wrists, n=2, axis=0) * fps ** 2
-    return {
-        "wrist speed (arm lengths/s)": float(np.linalg.norm(velocity, axis=-1).mean()),
-        "wrist jitter (arm lengths/s^2)": float(np.linalg.norm(acceleration, axis=-1).mean()),
-        "wrist spread (arm lengths)": float(np.sqrt(wrists.var(axis=0).sum(axis=-1)).mean()),
-        "head pitch (deg, down)": float(head_pitch(motion).mean()),
-    }
+    return dict(zip(NATURALNESS, (
+        float(np.linalg.norm(velocity, axis=-1).mean()),
+        float(np.linalg.norm(acceleration, axis=-1).mean()),
+        float(np.sqrt(wrists.var(axis=0).sum(axis=-1)).mean()),
+        float(head_pitch(motion).mean()))))
