@@ -7,6 +7,14 @@ frames re-noised to the level of the step), with RePaint's resampling jumps, and
 during the last steps the known overlap is cross-faded linearly into the generated
 one. A shorter last window runs at its own length.
 
+Replacement alone leaves a seam: early in a window the network's picture of the heavily
+noised overlap is far from the known frames, the new frames are drawn to continue that
+picture, and at low noise they can no longer move. With `carry` > 0, at every step the
+gap between the known last overlap frame and the network's x0 for it is added to the
+gestures' x0 of the new frames, fading out over `carry` frames (a raised cosine), before
+the step is taken; see `carry_overlap`. The face keeps plain replacement: carried there
+it made blinks rarer and the mouth follow the speech envelope less.
+
 A later window starts at `later_start` from pure noise, as in the paper, or, given a
 `Proposal`, from a draw that continues the overlap, noised to that level (see prior.py).
 
@@ -59,6 +67,7 @@ class FoppasConfig:
     eta: float = 0.0                   # 0: deterministic DDIM
     prior_start: bool = True           # later windows start from the model's gesture prior, if it has one
     candidates: int = 1                # later windows sampled this many times in one batch; the best continues
+    carry: int = 0                     # frames the overlap's x0 gap is carried into (0: off, as the official code)
 
     def check(self, clip_len: int) -> None:
         """Raise ValueError naming any setting that cannot work with `clip_len`-frame windows."""
@@ -76,6 +85,8 @@ class FoppasConfig:
         if isinstance(self.candidates, bool) or not isinstance(self.candidates, int) \
                 or not 1 <= self.candidates <= MAX_CANDIDATES:
             raise ValueError(f"candidates must be a whole number from 1 to {MAX_CANDIDATES}, got {self.candidates!r}")
+        if isinstance(self.carry, bool) or not isinstance(self.carry, int) or self.carry < 0:
+            raise ValueError(f"carry must be a whole number of frames >= 0, got {self.carry!r}")
 
     def with_steps(self, steps: int) -> "FoppasConfig":
         """The same settings with `steps` DDIM steps; later windows keep starting at the
@@ -180,6 +191,8 @@ class Foppas:
                 x = sched.renoise(x, beta_index, randn(*x.shape))
                 continue
             eps = eps_fn(x, t_now)
+            if known is not None and cfg.carry > 0:
+                eps = carry_overlap(sched, x, t_now, eps, known, cfg.carry, self.gestures)
             x, _ = sched.ddim_step(x, t_now, eps, cfg.eta, randn(*x.shape) if cfg.eta > 0 else None)
             if known is not None:
                 level = sched.noise_level_prev(t_now)
@@ -193,6 +206,26 @@ class Foppas:
             best = int(np.argmin(seam_scores(x[..., : self.gestures], known[..., : self.gestures])))
             x = x[best: best + 1]
         return x
+
+
+def carry_overlap(sched: Schedule, x: np.ndarray, index: int, eps: np.ndarray, known: np.ndarray,
+                  width: int, channels: int) -> np.ndarray:
+    """The noise prediction `eps` for (B, L, D) `x` at `index` with the x0 of its first
+    `channels` channels made to continue `known` (1, n, D): the overlap's x0 set to the
+    known frames and the gap at the last of them added to the new frames' x0, weighted
+    0.5 (1 + cos(pi k / width)) at the k-th new frame (k = 1 .. width - 1). Only the frames
+    next to the seam move; the gap shrinks with the noise, so the last steps barely change."""
+    n, c = known.shape[1], channels
+    a, b = sched.x0_coefs(np.full(x.shape[0], index), x)
+    x0 = a * x[..., :c] - b * eps[..., :c]
+    gap = known[:, -1:, :c] - x0[:, n - 1: n]
+    k = np.arange(1, x.shape[1] - n + 1, dtype=np.float32)
+    fade = np.where(k < width, 0.5 * (1.0 + np.cos(np.pi * k / width)), 0.0).astype(np.float32)
+    x0[:, :n] = known[..., :c]
+    x0[:, n:] += gap * fade.reshape(1, -1, 1)
+    out = eps.copy()
+    out[..., :c] = (a * x[..., :c] - x0) / b
+    return out
 
 
 def seam_scores(candidates: np.ndarray, known: np.ndarray, frames: int = SEAM_FRAMES) -> np.ndarray:

@@ -245,16 +245,45 @@ def test_every_style_keeps_the_face(by_style, take_30s):
         assert 4 <= blinks["per_minute"] <= 40, name
 
 
-def test_gestures_move_about_as_the_capture_does(bundle):
+@pytest.fixture(scope="module")
+def whole_take(bundle):
+    """Two seeds of the default style on the whole real take 2_scott_0_1_1 (64 s)."""
+    take = load_audio(TAKE_WAV)
+    return [generate(take, model=bundle, seed=s) for s in (0, 1)]
+
+
+def test_gestures_move_about_as_the_capture_does(whole_take):
     """Issue 17's measures on the real take 2_scott_0_1_1, 2 seeds of the default style
-    (model card, 3 seeds: wrist speed 0.86x the capture's, jitter 1.12x, spread 0.93x, head
-    pitch 1.1 degrees above the capture's; v6: 1.09x, 1.46x, 0.86x and 4.1 degrees down)."""
+    (model card, 3 seeds: wrist speed 0.83x the capture's, jitter 1.06x, spread 0.92x, head
+    pitch 1.0 degree above the capture's; v6: 1.09x, 1.46x, 0.86x and 4.1 degrees down)."""
     from diffsheg_core.training.evaluate import load_reference
     from diffsheg_core.training.metrics.posture import naturalness
 
     real = naturalness(load_reference(REAL_BVH, fps=15.0))
-    take = load_audio(TAKE_WAV)
-    ours = _wrists([generate(take, model=bundle, seed=s) for s in (0, 1)])
+    ours = _wrists(whole_take)
     ratio = {k.split(" (")[0]: ours[k.split(" (")[0]] / v for k, v in real.items() if "pitch" not in k}
-    assert ratio["wrist jitter"] < 1.25 and 0.8 < ratio["wrist speed"] < 1.1 and 0.85 < ratio["wrist spread"] < 1.15, ratio
+    assert ratio["wrist jitter"] < 1.2 and 0.78 < ratio["wrist speed"] < 1.1 and 0.85 < ratio["wrist spread"] < 1.15, ratio
     assert abs(ours["head pitch"] - real["head pitch (deg, down)"]) < 3
+
+
+def _seam_acceleration(motion, clip_len: int) -> float:
+    """Mean wrist acceleration at the frames where each later window takes over from its
+    known overlap (the last overlap frame and the two around it), over the mean of all frames."""
+    from diffsheg_core.foppas import plan_windows
+    from diffsheg_core.training.metrics.posture import wrist_positions
+
+    acc = np.linalg.norm(np.diff(wrist_positions(motion), n=2, axis=0), axis=-1).mean(-1)
+    overlap = motion.meta["overlap"]
+    starts = [s for s, _ in plan_windows(motion.n_frames, clip_len, overlap)[1:] if s + overlap < len(acc)]
+    return float(np.mean([acc[s + overlap - 3: s + overlap].mean() for s in starts]) / acc.mean())
+
+
+def test_later_windows_continue_the_overlap_without_a_jump(bundle, whole_take):
+    """The bundled sampling carries the overlap's gap into the new frames (FoppasConfig.carry):
+    the wrists accelerate no harder where a window takes over than elsewhere. Without it they
+    did, 1.33x the mean (seed 0), and the seams held most of the jitter above the capture's."""
+    assert bundle.sampling.carry > 0 and all(m.meta["carry"] == bundle.sampling.carry for m in whole_take)
+    seams = [_seam_acceleration(m, bundle.config.clip_len) for m in whole_take]
+    assert max(seams) < 1.1, seams
+    uncarried = generate(load_audio(TAKE_WAV), model=bundle, seed=0, sampling=replace(bundle.sampling, carry=0))
+    assert _seam_acceleration(uncarried, bundle.config.clip_len) > 1.2

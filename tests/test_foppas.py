@@ -12,7 +12,7 @@ from diffsheg_core.audio import load_audio, n_motion_frames
 from diffsheg_core.diffusion import Schedule
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.foppas import (PROPOSAL_STREAM, Foppas, FoppasConfig, FoppasStream, PRESETS,
-                                  check_seed, jump_schedule, model_calls, plan_windows, sample_long)
+                                  carry_overlap, check_seed, jump_schedule, model_calls, plan_windows, sample_long)
 from diffsheg_core.guidance import Guidance
 from diffsheg_core.pipeline import generate, make_eps_fn_factory, open_stream, style_vector
 from diffsheg_core.prior import GesturePrior
@@ -130,12 +130,14 @@ def smooth_model():
     return make
 
 
-def seam_and_inside_steps(blend):
-    sampler = Foppas(Schedule.linear(), FoppasConfig(overlap=4, blend=blend), 34, 2)
+def seam_and_inside_steps(blend, carry=0, order=1):
+    """|order-th differences| of motion sampled with the exact denoiser, at the window seams
+    (from a frame before a window to two past its overlap) and everywhere else."""
+    sampler = Foppas(Schedule.linear(), FoppasConfig(overlap=4, blend=blend, carry=carry), 34, 2)
     frames = np.arange(300, dtype=np.float32).reshape(-1, 1)
     motion = sample_long(sampler, smooth_model(), frames, 0)
-    steps = np.abs(motion[1:, 0] - motion[:-1, 0])
-    seams = {s for start, _ in plan_windows(300, 34, 4)[1:] for s in range(start - 1, start + 4)}
+    steps = np.abs(np.diff(motion[:, 0], n=order))
+    seams = {s for start, _ in plan_windows(300, 34, 4)[1:] for s in range(start - 1, start + 4 + order)}
     inside = [i for i in range(len(steps)) if i not in seams]
     return steps[sorted(seams)], steps[inside]
 
@@ -145,6 +147,38 @@ def test_blending_keeps_clip_boundaries_as_smooth_as_the_clips():
     assert seams.max() <= inside.max()
     unblended, _ = seam_and_inside_steps(blend=False)
     assert unblended.max() > seams.max()
+
+
+def test_carrying_the_overlap_gap_leaves_no_seam_in_the_acceleration():
+    """Even with the exact denoiser, replacing the overlap leaves a kink where a window
+    takes over (the cross-fade only shortens it); carrying the gap removes it."""
+    seams, inside = seam_and_inside_steps(blend=False, carry=12, order=2)
+    assert seams.max() <= inside.max() and seams.mean() <= 1.1 * inside.mean()
+    faded, _ = seam_and_inside_steps(blend=True, order=2)
+    assert faded.max() > 1.5 * inside.max()
+
+
+def test_carry_overlap_moves_only_the_frames_next_to_the_seam():
+    sched = Schedule.linear().respaced(25)
+    rng = np.random.default_rng(0)
+    x, eps = rng.standard_normal((2, 2, 34, 5)).astype(np.float32)
+    known = rng.standard_normal((1, 4, 5)).astype(np.float32)
+    index, width = 7, 12
+    carried = carry_overlap(sched, x, index, eps, known, width, channels=3)
+    assert np.array_equal(carried[..., 3:], eps[..., 3:])  # the face keeps its prediction
+    before, after = (sched.predict_x0(x, np.full(2, index), e)[..., :3] for e in (eps, carried))
+    gap = known[:, -1, :3] - before[:, 3]
+    assert np.allclose(after[:, :4], known[..., :3], atol=1e-4)
+    shift = after[:, 4:] - before[:, 4:]
+    fade = 0.5 * (1 + np.cos(np.pi * np.arange(1, width) / width))
+    assert np.allclose(shift[:, : width - 1], gap[:, None] * fade[None, :, None], atol=1e-4)
+    assert np.allclose(shift[:, width - 1:], 0.0, atol=1e-4)
+
+
+@pytest.mark.parametrize("carry", [-1, 2.5, True])
+def test_a_bad_carry_is_refused(carry):
+    with pytest.raises(ValueError, match="carry"):
+        Foppas(Schedule.linear(), FoppasConfig(carry=carry), 34, 4)
 
 
 @pytest.mark.parametrize("backend", ["onnx", "torch"])
