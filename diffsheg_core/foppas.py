@@ -213,8 +213,8 @@ def carry_overlap(sched: Schedule, x: np.ndarray, index: int, eps: np.ndarray, k
     """The noise prediction `eps` for (B, L, D) `x` at `index` with the x0 of its first
     `channels` channels made to continue `known` (1, n, D): the overlap's x0 set to the
     known frames and the gap at the last of them added to the new frames' x0, weighted
-    0.5 (1 + cos(pi k / width)) at the k-th new frame (k = 1 .. width - 1). Only the frames
-    next to the seam move; the gap shrinks with the noise, so the last steps barely change."""
+    0.5 (1 + cos(pi k / width)) at the k-th new frame (k = 1 .. width - 1). Frames further
+    from the seam, and the face's channels, keep the network's prediction."""
     n, c = known.shape[1], channels
     a, b = sched.x0_coefs(np.full(x.shape[0], index), x)
     x0 = a * x[..., :c] - b * eps[..., :c]
