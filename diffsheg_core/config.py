@@ -36,6 +36,10 @@ class ModelConfig:
     pe_period: int = 600          # sinusoidal PE, restarting in every window
     pe_length: int = 1200
     classifier_free: bool = False  # learned null condition for guidance
+    # frames of a depthwise convolution over time in every layer of the gesture branch, beside
+    # the linear attention (which sees only a window-wide summary, not a frame's neighbours);
+    # 0: none (official)
+    temporal_kernel: int = 0
     log_mel: bool = False         # feed log10(mel + 1e-5) instead of the raw power mel (official: raw)
     clip_len: int = 34            # frames per diffusion window (n_poses)
     fps: float = 15.0
@@ -45,6 +49,9 @@ class ModelConfig:
         if self.speech_encoder is not None and self.speech_encoder not in SPEECH_ENCODERS:
             raise ValueError(f"speech_encoder must be one of {', '.join(SPEECH_ENCODERS)} or none, "
                              f"got {self.speech_encoder!r}")
+        if self.temporal_kernel < 0 or self.temporal_kernel % 2 == 0 and self.temporal_kernel:
+            raise ValueError(f"temporal_kernel must be 0 (none) or an odd number of frames, "
+                             f"got {self.temporal_kernel}")
 
     @property
     def dim(self) -> int:

@@ -98,6 +98,23 @@ class LinearSelfAttention(nn.Module):
         return x + self.proj_out(y, emb)
 
 
+class TemporalConv(nn.Module):
+    """Local temporal mixing: a depthwise convolution over `kernel` frames of the normalised
+    features, GELU, and a linear layer (zero-initialised: a new block starts as the identity)."""
+
+    def __init__(self, dim: int, kernel: int):
+        super().__init__()
+        self.norm = nn.LayerNorm(dim)
+        self.conv = nn.Conv1d(dim, dim, kernel, padding=kernel // 2, groups=dim)
+        self.proj_out = nn.Linear(dim, dim)
+        nn.init.zeros_(self.proj_out.weight)
+        nn.init.zeros_(self.proj_out.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.conv(self.norm(x).transpose(1, 2)).transpose(1, 2)
+        return x + self.proj_out(F.gelu(y))
+
+
 class FeedForward(nn.Module):
     def __init__(self, dim: int, ff: int, emb_dim: int, dropout: float):
         super().__init__()
@@ -114,9 +131,10 @@ class FeedForward(nn.Module):
 
 
 class Layer(nn.Module):
-    """Motion-speech fusion residual block (optional), attention, feed-forward."""
+    """Motion-speech fusion residual block (optional), attention, temporal convolution
+    (optional), feed-forward."""
 
-    def __init__(self, dim: int, cond_dim: int, cfg: ModelConfig):
+    def __init__(self, dim: int, cond_dim: int, cfg: ModelConfig, temporal_kernel: int = 0):
         super().__init__()
         emb_dim = cfg.time_embed_dim
         if cond_dim:
@@ -124,6 +142,8 @@ class Layer(nn.Module):
             self.feat_proj = nn.Sequential(
                 nn.LayerNorm(fused), nn.Linear(fused, 2 * dim), nn.SiLU(), nn.Linear(2 * dim, dim))
         self.sa_block = LinearSelfAttention(dim, cfg.heads, emb_dim, cfg.dropout)
+        if temporal_kernel:
+            self.conv_block = TemporalConv(dim, temporal_kernel)
         self.ffn = FeedForward(dim, cfg.ff, emb_dim, cfg.dropout)
 
     def fuse(self, h: torch.Tensor, cond: torch.Tensor, null: torch.Tensor | None = None,
@@ -136,9 +156,12 @@ class Layer(nn.Module):
         return h + self.feat_proj(fused)
 
     def forward(self, h: torch.Tensor, emb: torch.Tensor, attend: torch.Tensor | None = None) -> torch.Tensor:
-        """attend: (B,) bool, false for rows that bypass self-attention (skip guidance)."""
+        """attend: (B,) bool, false for rows that bypass self-attention (skip guidance; the
+        temporal convolution, being local, runs for every row)."""
         attended = self.sa_block(h, emb)
         h = attended if attend is None else torch.where(attend.view(-1, 1, 1), attended, h)
+        if hasattr(self, "conv_block"):
+            h = self.conv_block(h)
         return self.ffn(h, emb)
 
 
@@ -146,7 +169,7 @@ class Branch(nn.Module):
     """One motion branch (expression or gesture): embeds its noisy motion, fuses it
     with speech (and, for gesture, expression) in every layer, predicts its noise."""
 
-    def __init__(self, motion_dim: int, extra_dim: int, cfg: ModelConfig):
+    def __init__(self, motion_dim: int, extra_dim: int, cfg: ModelConfig, temporal_kernel: int = 0):
         super().__init__()
         speech = cfg.speech_latent if cfg.has_speech_input else 0
         cond_dim = cfg.audio_latent + speech + extra_dim
@@ -164,7 +187,8 @@ class Branch(nn.Module):
             )
         self.time_embed = _mlp(cfg.latent, cfg.time_embed_dim)
         self.pid_embed = _mlp(cfg.style_dim, cfg.time_embed_dim)
-        self.temporal_decoder_blocks = nn.ModuleList(Layer(cfg.latent, cond_dim, cfg) for _ in range(cfg.layers))
+        self.temporal_decoder_blocks = nn.ModuleList(Layer(cfg.latent, cond_dim, cfg, temporal_kernel)
+                                                     for _ in range(cfg.layers))
         self.out = nn.Linear(cfg.latent, motion_dim)
         self.latent = cfg.latent
 
@@ -200,7 +224,7 @@ class UniEG(nn.Module):
         self.time_embed = _mlp(cfg.latent, cfg.time_embed_dim)
         self.encoder_aud = Layer(cfg.mel_dim, 0, cfg)
         self.encoder_exp = Branch(cfg.expression_dim, 0, cfg)
-        self.encoder_ges = Branch(cfg.gesture_dim, cfg.expression_dim, cfg)
+        self.encoder_ges = Branch(cfg.gesture_dim, cfg.expression_dim, cfg, cfg.temporal_kernel)
 
     def _check_speech(self, speech: torch.Tensor | None) -> None:
         if (speech is not None) != self.cfg.has_speech_input:

@@ -61,11 +61,12 @@ def test_bundled_weights_load(bundle):
     assert DEFAULT_WEIGHTS.is_file()
     # float16 weights for the torch backend and the same weights as ONNX graphs for onnxruntime
     assert DEFAULT_WEIGHTS.stat().st_size <= 50 * 2**20 and bundle.has_graphs
-    assert bundle.trained and bundle.model_id == "diffsheg-default-v7"
+    assert bundle.trained and bundle.model_id == "diffsheg-default-v8"
+    assert bundle.config.temporal_kernel == 5  # the gesture branch's temporal convolutions
     assert bundle.style_names == ["calm", "conversational", "animated"] and bundle.null_style
     assert bundle.default_style == "conversational"
     assert bundle.config.classifier_free and bundle.guidance == 2.0  # generation is guided by default
-    assert bundle.skip_guidance == 0.1
+    assert bundle.skip_guidance == 0.14
     assert bundle.sampling.prior_start and bundle.prior is not None
     cfg = bundle.config
     assert cfg.layout == "beat" and cfg.fps == 15.0 and cfg.clip_len == 34
@@ -254,15 +255,16 @@ def whole_take(bundle):
 
 def test_gestures_move_about_as_the_capture_does(whole_take):
     """Issue 17's measures on the real take 2_scott_0_1_1, 2 seeds of the default style
-    (model card, 3 seeds: wrist speed 0.83x the capture's, jitter 1.06x, spread 0.92x, head
-    pitch 1.0 degree above the capture's; v6: 1.09x, 1.46x, 0.86x and 4.1 degrees down)."""
+    (model card, 3 seeds: wrist speed 0.90x the capture's, jitter 1.09x, spread 1.03x, head
+    pitch 1.0 degree above the capture's; v7: 0.83x, 1.06x, 0.92x; v6: 1.09x, 1.46x, 0.86x
+    and 4.1 degrees down)."""
     from diffsheg_core.training.evaluate import load_reference
     from diffsheg_core.training.metrics.posture import naturalness
 
     real = naturalness(load_reference(REAL_BVH, fps=15.0))
     ours = _wrists(whole_take)
     ratio = {k.split(" (")[0]: ours[k.split(" (")[0]] / v for k, v in real.items() if "pitch" not in k}
-    assert ratio["wrist jitter"] < 1.2 and 0.78 < ratio["wrist speed"] < 1.1 and 0.85 < ratio["wrist spread"] < 1.15, ratio
+    assert ratio["wrist jitter"] < 1.2 and 0.82 < ratio["wrist speed"] < 1.1 and 0.85 < ratio["wrist spread"] < 1.15, ratio
     assert abs(ours["head pitch"] - real["head pitch (deg, down)"]) < 3
 
 

@@ -206,10 +206,12 @@ GUIDANCE_MODES = {"none": Guidance(), "cfg": Guidance(2.0), "skip": Guidance(ski
                   "cfg+skip": Guidance(2.0, skip=0.5)}
 
 
-@pytest.fixture(scope="module")
-def guided_bundle():
-    """A fresh random model with a null condition and a second speech input (HuBERT layout)."""
-    return random_bundle(classifier_free=True, speech_encoder="hubert", speech_dim=32)
+@pytest.fixture(scope="module", params=[0, 5], ids=["official", "temporal-conv"])
+def guided_bundle(request):
+    """A fresh random model with a null condition and a second speech input (HuBERT layout),
+    as published and with temporal convolutions."""
+    return random_bundle(classifier_free=True, speech_encoder="hubert", speech_dim=32,
+                         temporal_kernel=request.param)
 
 
 @pytest.mark.parametrize("length", [34, 20])

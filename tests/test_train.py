@@ -27,8 +27,9 @@ from diffsheg_core.diffusion import Schedule
 from diffsheg_core.model import UniEG
 from diffsheg_core.training.train import (
     LOG_FILE, MODEL_FILE, STATE_FILE, SUMMARY_FILE, Dist, TrainConfig, Trainer, diffsheg_loss,
-    read_config_file, train, x0_term_weight,
+    fine_tuning_statistics, read_config_file, train, x0_term_weight,
 )
+from diffsheg_core.training.data import NormStats
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 REPO = Path(__file__).resolve().parents[1]
@@ -374,3 +375,65 @@ def test_named_styles_a_null_style_and_the_acceleration_term(small_root, tmp_pat
         Trainer(TrainConfig.from_dict({**settings, "default_style": "calm", "out_dir": str(tmp_path / "y")}), Dist())
     with pytest.raises(DiffshegError, match="style_names must be 2 different names"):
         Trainer(TrainConfig.from_dict({**settings, "style_names": ["a"], "out_dir": str(tmp_path / "z")}), Dist())
+
+
+def test_fine_tuning_adds_temporal_convolutions_to_the_gestures_and_keeps_the_face(small_root, tmp_path):
+    """init_from a model without temporal convolutions: the new blocks (gesture branch only)
+    start as the identity (the same motion from the same seed) and training moves them; with
+    freeze_expression the expression branch and the speech layer keep the source's weights
+    to the bit, so the face is the source's; the file records the kernel; a model that already
+    has convolutions must match them."""
+    from diffsheg_core.model import PhoneticEncoder
+    from diffsheg_core.phonetic import PhoneticConfig
+    from diffsheg_core.training.phonetic import save_phonetic
+
+    torch.manual_seed(0)  # a speech encoder, whose batch norm must keep its statistics too
+    save_phonetic(PhoneticEncoder(PhoneticConfig(channels=16, dilations=(1,))).eval(),
+                  tmp_path / "phonetic.safetensors", {})
+    model = {**TINY, "speech_encoder": "phonetic", "speech_latent": 16}
+    speech = {"phonetic": str(tmp_path / "phonetic.safetensors")}
+    base = tmp_path / "base"
+    train(TrainConfig.from_dict(config(small_root, base, steps=5, checkpoint_every=5, model=model, **speech)))
+    settings = config(small_root, tmp_path / "conv", steps=8, checkpoint_every=100, freeze_expression=True,
+                      init_from=str(base / MODEL_FILE), model={**model, "temporal_kernel": 5}, **speech)
+    start = Trainer(TrainConfig.from_dict(settings), Dist())
+    assert not start.begin()
+    source = load_model(base / MODEL_FILE)
+    audio = str(small_root / "talk.wav")
+    before = generate(audio, model=source, steps=3, device="cpu", seed=1)
+    same = generate(audio, model=start.bundle(), steps=3, device="cpu", seed=1)
+    np.testing.assert_allclose(same.rotations, before.rotations, atol=1e-5)
+    # the run trains in the source's normalisation, which the data's need only be close to
+    np.testing.assert_array_equal(start.stats.mean, source.mean)
+
+    train(TrainConfig.from_dict(settings))
+    tuned = load_model(tmp_path / "conv" / MODEL_FILE)
+    assert tuned.config.temporal_kernel == 5
+    convs = [k for k in tuned.weights if "conv_block" in k]
+    assert convs and all(k.startswith("encoder_ges.") for k in convs)
+    assert np.abs(tuned.weights["encoder_ges.temporal_decoder_blocks.0.conv_block.proj_out.weight"]).max() > 0
+    kept = [k for k in source.weights if not k.startswith("encoder_ges.")]
+    assert "encoder_exp.hubert_encoder.1.running_mean" in kept
+    assert kept and all(np.array_equal(tuned.weights[k], source.weights[k]) for k in kept)
+    assert not all(np.array_equal(tuned.weights[k], v) for k, v in source.weights.items())
+    after = generate(audio, model=tuned, steps=3, device="cpu", seed=1)
+    np.testing.assert_array_equal(after.face, before.face)
+    assert not np.allclose(after.rotations, before.rotations)
+
+    with pytest.raises(DiffshegError, match="its model differs in temporal_kernel"):
+        Trainer(TrainConfig.from_dict({**settings, "init_from": str(tmp_path / "conv" / MODEL_FILE),
+                                       "model": {**model, "temporal_kernel": 3},
+                                       "out_dir": str(tmp_path / "other")}), Dist()).begin()
+    with pytest.raises(DiffshegError, match=r"temporal_kernel must be 0 \(none\) or an odd number of frames, got 4"):
+        Trainer(TrainConfig.from_dict({**settings, "model": {**model, "temporal_kernel": 4}}), Dist())
+
+
+def test_a_fine_tuned_run_keeps_its_source_normalisation_on_a_rebuilt_corpus():
+    """A rebuild of the same corpus moves the statistics by a few percent of a channel's
+    spread: the source's are kept. Other data is refused."""
+    source = NormStats(np.array([0.2, -0.1, 0.0], np.float32), np.array([0.04, 0.5, 1.0], np.float32))
+    rebuilt = NormStats(source.mean + 0.02 * source.std, source.std * 1.02)
+    assert fine_tuning_statistics("v7.safetensors", source, rebuilt) is source
+    other = NormStats(source.mean + np.array([0.0, 0.0, 0.2], np.float32), source.std)
+    with pytest.raises(DiffshegError, match="init_from v7.safetensors: it was trained with other normalisation"):
+        fine_tuning_statistics("v7.safetensors", source, other)

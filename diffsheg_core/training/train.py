@@ -84,6 +84,9 @@ class TrainConfig:
     guidance: float | None = None   # default guidance scale stored in the checkpoints (guided models)
     skip_guidance: float | None = None  # default gesture skip-guidance scale stored in the checkpoints
     init_from: str = ""             # start from this checkpoint's weights (fine-tuning; see init_weights)
+    # train the gesture branch alone: the expression branch and the speech layer both branches
+    # read keep the weights they start with, so a fine-tuned model keeps its source's face
+    freeze_expression: bool = False
     precision: str = "auto"         # auto (bf16/fp16 on GPU, fp32 on CPU), fp32, bf16, fp16
     device: str = "auto"
     seed: int = 0
@@ -353,6 +356,23 @@ def phonetic_encoder(cfg: TrainConfig, model_cfg: ModelConfig) -> PhoneticEncode
     return load_phonetic(cfg.phonetic)
 
 
+# how far (a share of each channel's standard deviation) the data's own statistics may lie
+# from those of the model a run is fine-tuned from: a rebuild of the same corpus moves them
+# by up to 2 %, other data by far more
+STATS_TOLERANCE = 0.05
+
+
+def fine_tuning_statistics(path: str, source: NormStats, data: NormStats) -> NormStats:
+    """The normalisation a run fine-tuned from a model trains in: the model's own (its weights
+    work in it), once the data's statistics are seen to be close to it."""
+    if source.mean.shape != data.mean.shape or not (
+            np.all(np.abs(source.mean - data.mean) <= STATS_TOLERANCE * source.std)
+            and np.all(np.abs(source.std - data.std) <= STATS_TOLERANCE * source.std)):
+        raise DiffshegError(f"init_from {path}: it was trained with other normalisation statistics, "
+                            "so on other data; train on the data it was trained on")
+    return source
+
+
 class Trainer:
     def __init__(self, cfg: TrainConfig, env: Dist):
         self.cfg, self.env = cfg, env
@@ -384,6 +404,11 @@ class Trainer:
         val = load_takes(cfg.data, "val", speech)
         self.skipped = train.skipped + val.skipped
         self.stats: NormStats = normalisation(cfg.data, train)
+        # the model a new run is fine-tuned from (a resumed run has its weights and statistics)
+        self.source = load_model(cfg.init_from) if cfg.init_from and not (self.out / STATE_FILE).is_file() else None
+        if self.source is not None:
+            self.stats = fine_tuning_statistics(cfg.init_from, NormStats(self.source.mean, self.source.std),
+                                                self.stats)
         self.train_set = ClipDataset(train.takes, cfg.data.clip_len, cfg.data.stride, self.stats)
         self.val_set = ClipDataset(val.takes, cfg.data.clip_len, cfg.data.clip_len, self.stats) \
             if val.takes and any(t.n_frames >= cfg.data.clip_len for t in val.takes) else None
@@ -397,10 +422,15 @@ class Trainer:
         self.ema = UniEG(self.model_cfg).to(env.device).eval()
         self.ema.load_state_dict(self.model.state_dict())
         self.ema.requires_grad_(False)
+        self.frozen = [self.model.time_embed, self.model.encoder_aud, self.model.encoder_exp] \
+            if cfg.freeze_expression else []
+        for part in self.frozen:
+            part.requires_grad_(False)
         # a rank whose batch drew no null rows leaves the null condition without a gradient
         self.ddp = torch.nn.parallel.DistributedDataParallel(
             self.model, find_unused_parameters=self.model_cfg.classifier_free) if env.world > 1 else self.model
-        self.opt = torch.optim.AdamW(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        self.opt = torch.optim.AdamW([p for p in self.model.parameters() if p.requires_grad], lr=cfg.lr,
+                                     weight_decay=cfg.weight_decay)
         self.amp = autocast_dtype(cfg.precision, env.device)
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp == torch.float16)
         self.schedule = Schedule.linear()
@@ -420,8 +450,8 @@ class Trainer:
         Returns whether the run resumed."""
         if self.resume():
             return True
-        if self.cfg.init_from:
-            self.init_weights(self.cfg.init_from)
+        if self.source is not None:
+            self.init_weights(self.source, self.cfg.init_from)
         return False
 
     def resume(self) -> bool:
@@ -443,24 +473,21 @@ class Trainer:
         self.step = int(state["step"])
         return True
 
-    def init_weights(self, path: str) -> None:
-        """Model and EMA from a generation checkpoint of the same network on the same data.
+    def init_weights(self, source: ModelBundle, path: str) -> None:
+        """Model and EMA from a generation checkpoint (`source`, read from `path`) of the same
+        network on the same data (see fine_tuning_statistics).
 
-        The one difference allowed is a learned null condition (classifier_free) that the
-        checkpoint lacks: it keeps its fresh initialisation, so an unguided model can be
-        fine-tuned into a guided one.
+        The differences allowed are parts the checkpoint lacks, which keep their fresh
+        initialisation: a learned null condition (classifier_free), so an unguided model can
+        be fine-tuned into a guided one, and temporal convolutions (temporal_kernel, which
+        start as the identity), added to a model without them.
         """
-        source = load_model(path)
         theirs, ours = source.config.to_dict(), self.model_cfg.to_dict()
-        differ = sorted(k for k in ours if k != "classifier_free" and theirs.get(k) != ours[k])
+        added = {"classifier_free"} | ({"temporal_kernel"} if not theirs.get("temporal_kernel") else set())
+        differ = sorted(k for k in ours if k not in added and theirs.get(k) != ours[k])
         if differ:
             raise DiffshegError(f"init_from {path}: its model differs in {', '.join(differ)}; "
                                 "make the [model] settings match it")
-        if source.mean.shape != self.stats.mean.shape or not (
-                np.allclose(source.mean, self.stats.mean, atol=1e-4)
-                and np.allclose(source.std, self.stats.std, atol=1e-4)):
-            raise DiffshegError(f"init_from {path}: it was trained with other normalisation statistics, "
-                                "so on other data; train on the data it was trained on")
         state = {**self.model.state_dict(),
                  **{k: torch.from_numpy(np.array(v)).float() for k, v in source.weights.items()}}
         load_state_strict(self.model, state, f"init_from {path}")
@@ -504,6 +531,8 @@ class Trainer:
         per_rank = cfg.batch_size // env.world
         batch = self.batch(self.train_set, torch.randint(len(self.train_set), (per_rank,), generator=gen))
         self.ddp.train()
+        for part in self.frozen:  # no dropout, and batch-norm statistics kept as they are
+            part.eval()
         with torch.autocast(env.device.type, dtype=self.amp, enabled=self.amp is not None):
             losses = diffsheg_loss(self.ddp, self.schedule, batch, cfg, gen, self.model_cfg.style_dim,
                                    self.model_cfg.classifier_free)
