@@ -49,7 +49,8 @@ class ModelConfig:
         if self.speech_encoder is not None and self.speech_encoder not in SPEECH_ENCODERS:
             raise ValueError(f"speech_encoder must be one of {', '.join(SPEECH_ENCODERS)} or none, "
                              f"got {self.speech_encoder!r}")
-        if self.temporal_kernel < 0 or self.temporal_kernel % 2 == 0 and self.temporal_kernel:
+        k = self.temporal_kernel
+        if isinstance(k, bool) or not isinstance(k, int) or k < 0 or (k and k % 2 == 0):
             raise ValueError(f"temporal_kernel must be 0 (none) or an odd number of frames, "
                              f"got {self.temporal_kernel}")
 

@@ -424,8 +424,9 @@ def test_fine_tuning_adds_temporal_convolutions_to_the_gestures_and_keeps_the_fa
         Trainer(TrainConfig.from_dict({**settings, "init_from": str(tmp_path / "conv" / MODEL_FILE),
                                        "model": {**model, "temporal_kernel": 3},
                                        "out_dir": str(tmp_path / "other")}), Dist()).begin()
-    with pytest.raises(DiffshegError, match=r"temporal_kernel must be 0 \(none\) or an odd number of frames, got 4"):
-        Trainer(TrainConfig.from_dict({**settings, "model": {**model, "temporal_kernel": 4}}), Dist())
+    for bad in (4, -3, 5.0, True):
+        with pytest.raises(DiffshegError, match=rf"temporal_kernel must be 0 \(none\) or an odd number of frames, got {bad}"):
+            Trainer(TrainConfig.from_dict({**settings, "model": {**model, "temporal_kernel": bad}}), Dist())
 
 
 def test_a_fine_tuned_run_keeps_its_source_normalisation_on_a_rebuilt_corpus():
