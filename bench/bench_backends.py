@@ -77,6 +77,7 @@ def flops_per_call() -> tuple[float, int]:
     from diffsheg_core.checkpoints import load_model
     from diffsheg_core.diffusion import Schedule
     from diffsheg_core.guidance import Guidance, step_eps
+    from diffsheg_core.pipeline import style_vector, style_weights
     from diffsheg_core.runtime.backends import TorchNetwork
 
     bundle = load_model()
@@ -98,7 +99,8 @@ def flops_per_call() -> tuple[float, int]:
     cond = np.zeros((1, cfg.clip_len, cfg.speech_dim), np.float32)
     i = np.array([10])
     step_eps(net, cfg.gesture_dim, x, sched.model_timesteps(i), np.zeros((1, cfg.clip_len, 128), np.float32),
-             cond, np.ones((1, 1), np.float32), sched.x0_coefs(i, x), Guidance(bundle.guidance, bundle.skip_guidance))
+             cond, style_vector(bundle, style_weights(bundle, None)), sched.x0_coefs(i, x),
+             Guidance(bundle.guidance, bundle.skip_guidance))
     return total[0], 2
 
 

@@ -5,7 +5,8 @@ lip-sync contrast), three seeds per setting:
   - every named style of the model, mixes of its first and last style (0.25 / 0.5 / 0.75)
     and style guidance 1.5 and 2 on the last (the liveliest in the bundled model);
   - candidates 1 and 4 in the style closest to the capture (conversational), and there
-    without the sampler's seam carry (FoppasConfig.carry) when the model sets one;
+    without the sampler's seam carry (FoppasConfig.carry) and without its refining pass
+    (FoppasConfig.refine) when the model sets them;
 each with wrist speed, jitter and spread (and their ratios to the capture), head pitch,
 diversity between seeds, FGD to the take (with --autoencoder), beat alignment, lip-sync and
 blinks; the take's last 20 s (which the teacher's gesture library never saw) are reported
@@ -66,6 +67,8 @@ def settings(bundle) -> list[tuple[str, dict]]:
     rows += [(f"{middle}, candidates 4", {"style": middle, "candidates": 4})]
     if bundle.sampling.carry:  # the seams as the sampler left them before the overlap's gap was carried
         rows += [(f"{middle}, seam carry off", {"style": middle, "sampling": replace(bundle.sampling, carry=0)})]
+    if bundle.sampling.refine is not None:  # the windows as sampled, without the last pass over them
+        rows += [(f"{middle}, refining pass off", {"style": middle, "sampling": replace(bundle.sampling, refine=None)})]
     return rows
 
 

@@ -117,7 +117,7 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
                             description="classifier-free guidance scale; 1 = off")
     set_gesture_energy: BoolProperty(name="Set gesture energy", default=False,
                                      description="use your own gesture energy instead of the model's default")
-    gesture_energy: FloatProperty(name="Gesture energy", default=0.14, min=SKIP_GUIDANCE[0], max=SKIP_GUIDANCE[1],
+    gesture_energy: FloatProperty(name="Gesture energy", default=0.1, min=SKIP_GUIDANCE[0], max=SKIP_GUIDANCE[1],
                                   description="skip-guidance scale of the gestures: higher gives larger, "
                                               "livelier gestures; 0 = off")
     start_at_scene_start: BoolProperty(name="Scene start", default=True,

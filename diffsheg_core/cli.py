@@ -32,6 +32,9 @@ def _generate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-prior", action="store_true",
                    help="start later FOPPAS windows from pure noise, as in the paper, instead of from "
                         "the model's gesture prior (models that have one)")
+    p.add_argument("--no-refine", action="store_true",
+                   help="keep each FOPPAS window as sampled, without the last pass of the network over its "
+                        "gestures (models that set one)")
     p.add_argument("--hubert", help="local folder of facebook/hubert-large-ls960-ft (models that use HuBERT)")
     p.add_argument("--hubert-official-quirk", action="store_true",
                    help="feed HuBERT 22.05 kHz audio as the official code does (default: correct 16 kHz)")
@@ -72,6 +75,8 @@ def run_generate(args: argparse.Namespace) -> int:
     sampling = PRESETS[args.preset] if args.preset else bundle.sampling
     if args.no_prior:
         sampling = replace(sampling, prior_start=False)
+    if args.no_refine:
+        sampling = replace(sampling, refine=None)
     cancel = threading.Event()
     try:
         result = generate(speech, settings=settings, model=bundle, sampling=sampling, hubert_path=args.hubert,

@@ -18,6 +18,13 @@ it made blinks rarer and the mouth follow the speech envelope less.
 A later window starts at `later_start` from pure noise, as in the paper, or, given a
 `Proposal`, from a draw that continues the overlap, noised to that level (see prior.py).
 
+The fast wobble a small network leaves in its gestures builds up along the sampling path;
+its own denoiser, shown the finished window as if it were still noisy, removes it. With
+`refine` set, each finished window is passed through the network once more as if at that
+schedule index (no noise is added), and the gestures are replaced by its x0; the face is
+kept as sampled. `refine_skip` scales that pass's gesture skip guidance (see
+`EpsFn`), which brings back the amplitude the denoising takes off.
+
 The sampler is model-agnostic: it calls `eps_fn(x_t, index)` for a window, where
 `index` is the step in the respaced schedule. `FoppasStream` takes conditioning
 frames as they arrive and returns motion frames as soon as they are final.
@@ -44,8 +51,10 @@ FACE_STREAM = 0xFACE5EED  # the face's generator is seeded with (face_seed, this
 MAX_CANDIDATES = 16
 SEAM_FRAMES = 5  # frames either side of a seam that best-of-N selection compares
 
-EpsFn = Callable[[np.ndarray, int], np.ndarray]
-"""(x_t of shape (1, L, D), schedule index) -> predicted noise (1, L, D)."""
+EpsFn = Callable[..., np.ndarray]
+"""(x_t of shape (B, L, D), schedule index) -> predicted noise (B, L, D). The refining pass
+calls it with `refine=True`: a guided model then multiplies its gesture skip-guidance scale
+by `FoppasConfig.refine_skip` (see pipeline.make_eps_fn_factory)."""
 
 Proposal = Callable[[np.ndarray, int, np.random.Generator], np.ndarray]
 """(known overlap frames (n, D), window length, generator) -> a (length, C) draw of the
@@ -68,6 +77,8 @@ class FoppasConfig:
     prior_start: bool = True           # later windows start from the model's gesture prior, if it has one
     candidates: int = 1                # later windows sampled this many times in one batch; the best continues
     carry: int = 0                     # frames the overlap's x0 gap is carried into (0: off, as the official code)
+    refine: Optional[int] = None       # schedule index of a last pass over each window's gestures (None: off)
+    refine_skip: float = 1.0           # that pass's skip-guidance scale, as a multiple of the steps'
 
     def check(self, clip_len: int) -> None:
         """Raise ValueError naming any setting that cannot work with `clip_len`-frame windows."""
@@ -87,14 +98,25 @@ class FoppasConfig:
             raise ValueError(f"candidates must be a whole number from 1 to {MAX_CANDIDATES}, got {self.candidates!r}")
         if isinstance(self.carry, bool) or not isinstance(self.carry, int) or self.carry < 0:
             raise ValueError(f"carry must be a whole number of frames >= 0, got {self.carry!r}")
+        if self.refine is not None and (isinstance(self.refine, bool) or not isinstance(self.refine, int)
+                                        or not 0 <= self.refine < self.steps):
+            raise ValueError(f"refine must be None (off) or a step index from 0 to {self.steps - 1}, "
+                             f"got {self.refine!r}")
+        if isinstance(self.refine_skip, bool) or not isinstance(self.refine_skip, (int, float)) \
+                or not 0 <= self.refine_skip < float("inf"):
+            raise ValueError(f"refine_skip must be a finite number >= 0, got {self.refine_skip!r}")
 
     def with_steps(self, steps: int) -> "FoppasConfig":
-        """The same settings with `steps` DDIM steps; later windows keep starting at the
-        same fraction of the schedule (official: index 14 of 25)."""
-        later = self.later_start
-        if later is not None and self.steps > 1:
-            later = min(steps - 1, round(later * (steps - 1) / (self.steps - 1)))
-        return replace(self, steps=steps, later_start=later)
+        """The same settings with `steps` DDIM steps; later windows keep starting, and the
+        refining pass keeps running, at the same fraction of the schedule (official: later
+        windows at index 14 of 25)."""
+
+        def rescale(index: Optional[int]) -> Optional[int]:
+            if index is None or self.steps <= 1:
+                return index
+            return min(steps - 1, round(index * (steps - 1) / (self.steps - 1)))
+
+        return replace(self, steps=steps, later_start=rescale(self.later_start), refine=rescale(self.refine))
 
     @property
     def start_index(self) -> int:
@@ -181,7 +203,7 @@ class Foppas:
             c = draw.shape[-1]
             x[..., :c] = sched.q_sample(draw.astype(np.float32), cfg.start_index, x[..., :c])
         times = self.times(known is not None)
-        n_calls, call = model_calls(times), 0
+        n_calls, call = model_calls(times) + (cfg.refine is not None), 0
         if known is not None:
             n_known = known.shape[1]
             ramp = np.linspace(0, 1, n_known, dtype=np.float32).reshape(1, -1, 1)
@@ -202,10 +224,31 @@ class Foppas:
                 x = np.concatenate([noisy_known, x[:, n_known:]], axis=1)
             on_step(call, n_calls)
             call += 1
+        if cfg.refine is not None:
+            x = self.refine_window(eps_fn, x, known)
+            on_step(call, n_calls)
         if batch > 1:
             best = int(np.argmin(seam_scores(x[..., : self.gestures], known[..., : self.gestures])))
             x = x[best: best + 1]
         return x
+
+    def refine_window(self, eps_fn: EpsFn, x: np.ndarray, known: Optional[np.ndarray]) -> np.ndarray:
+        """The finished (B, L, D) window `x` with its gestures replaced by the network's x0
+        for it taken as noisy at schedule index `refine`, the known overlap painted back as
+        the last step paints it; the face channels are returned as they were. It draws no
+        noise, so every later window's noise is the same as without it."""
+        cfg, sched, g = self.config, self.schedule, self.gestures
+        eps = eps_fn(x, cfg.refine, refine=True)
+        out = x.copy()
+        out[..., :g] = sched.predict_x0(x[..., :g], np.full(len(x), cfg.refine), eps[..., :g])
+        if known is not None:
+            n = known.shape[1]
+            painted = np.broadcast_to(known[..., :g], out[:, :n, :g].shape)
+            if cfg.blend:
+                ramp = np.linspace(0, 1, n, dtype=np.float32).reshape(1, -1, 1)
+                painted = painted * (1 - ramp) + out[:, :n, :g] * ramp
+            out[:, :n, :g] = painted
+        return out
 
 
 def carry_overlap(sched: Schedule, x: np.ndarray, index: int, eps: np.ndarray, known: np.ndarray,
@@ -326,9 +369,9 @@ class FoppasStream:
             if self.progress is not None:
                 self.progress(Progress(clip=clip, n_clips=total, step=step, n_steps=n_steps))
 
-        def eps_fn(x: np.ndarray, index: int) -> np.ndarray:
+        def eps_fn(x: np.ndarray, index: int, **options) -> np.ndarray:
             check_cancel(self.cancel)
-            return base_fn(x, index)
+            return base_fn(x, index, **options)
 
         base_fn = self.make_eps_fn(cond)
         window = self.sampler.sample_window(eps_fn, length, known, self.noise, on_step)

@@ -249,18 +249,23 @@ def _repeat(values: Optional[np.ndarray], rows: int) -> Optional[np.ndarray]:
 
 def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas, style: np.ndarray,
                         guidance: Guidance) -> Callable[[np.ndarray], EpsFn]:
-    """Bind network, style and guidance scales; the result binds one window's speech features."""
+    """Bind network, style and guidance scales; the result binds one window's speech features.
+    The sampler's refining pass steers the gestures with the skip-guidance scale times
+    `refine_skip` of the sampling settings."""
     cfg, sched = bundle.config, sampler.schedule
+    refining = guidance if guidance.skip is None else \
+        replace(guidance, skip=guidance.skip * sampler.config.refine_skip)
 
     def make(cond: np.ndarray) -> EpsFn:
         mel = cond[..., : cfg.mel_dim]
         speech = cond[..., cfg.mel_dim:] if cfg.has_speech_input else None
 
-        def eps_fn(x: np.ndarray, index: int) -> np.ndarray:
+        def eps_fn(x: np.ndarray, index: int, refine: bool = False) -> np.ndarray:
             rows = len(x)  # best-of-N: one window, several candidates
             idx = np.full(rows, index)
             return step_eps(network, cfg.gesture_dim, x, sched.model_timesteps(idx), _repeat(mel, rows),
-                            _repeat(speech, rows), _repeat(style, rows), sched.x0_coefs(idx, x), guidance)
+                            _repeat(speech, rows), _repeat(style, rows), sched.x0_coefs(idx, x),
+                            refining if refine else guidance)
 
         return eps_fn
 
@@ -317,6 +322,7 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
         "skip_guidance": resolve_skip_guidance(bundle, s.skip_guidance),
         "steps": config.steps, "overlap": config.overlap, "candidates": config.candidates,
         "prior_start": uses_prior(bundle, config), "carry": config.carry,
+        "refine": config.refine, "refine_skip": config.refine_skip if config.refine is not None else None,
         "clip_len": bundle.config.clip_len, "backend": network.name,
         "warnings": list(getattr(speech, "notes", [])),
         "device": str(network.device), "software": f"diffsheg_core {__version__}",

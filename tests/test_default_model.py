@@ -66,7 +66,8 @@ def test_bundled_weights_load(bundle):
     assert bundle.style_names == ["calm", "conversational", "animated"] and bundle.null_style
     assert bundle.default_style == "conversational"
     assert bundle.config.classifier_free and bundle.guidance == 2.0  # generation is guided by default
-    assert bundle.skip_guidance == 0.14
+    assert bundle.skip_guidance == 0.1
+    assert bundle.sampling.refine == 1 and bundle.sampling.refine_skip == 3.5  # the refining pass
     assert bundle.sampling.prior_start and bundle.prior is not None
     cfg = bundle.config
     assert cfg.layout == "beat" and cfg.fps == 15.0 and cfg.clip_len == 34
@@ -100,9 +101,9 @@ def test_motion_from_real_speech_passes_coarse_bars(samples, speech):
 
 
 def test_skip_guidance_brings_the_arms_to_the_real_captures_speed(bundle, samples, speech):
-    """Skip guidance makes the arms faster (v8, seed 0: 0.87x the real capture's mean joint
-    speed on these 30 s with it, v7 0.84x; v6 moved at 1.04-1.20x, trained on the jerkier
-    teacher v1)."""
+    """Skip guidance makes the arms faster (v8 with the refining pass, seed 0: 0.88x the real
+    capture's mean joint speed on these 30 s with it, 0.66x without; v7 0.84x; v6 moved at
+    1.04-1.20x, trained on the jerkier teacher v1)."""
     real = read_gesture(REAL_BVH, 15.0, source_fps=15.0)[1:, _arm_columns()]
     real_speed = float(speed(real, 15.0).mean())
 
@@ -117,7 +118,7 @@ def test_skip_guidance_brings_the_arms_to_the_real_captures_speed(bundle, sample
 
 def test_the_gesture_prior_gives_the_gestures_the_real_captures_spread(bundle, samples, speech):
     """Gesture spread (std over the 30 s, mean over all 141 channels, fingers and spine too)
-    against the real capture's over 30 s stretches: v8 0.76x and 1.07x with the prior for seeds 0
+    against the real capture's over 30 s stretches: v8 0.76x and 1.04x with the prior for seeds 0
     and 1 (v7: 0.69x and 0.88x; v6: 0.81-0.92x;
     the wrists alone, the measure of issue 17: 1.03x on the whole take), more than from pure
     noise. The first window is the same either way, and so is the face."""
@@ -256,17 +257,18 @@ def whole_take(bundle):
 
 
 def test_gestures_move_about_as_the_capture_does(whole_take):
-    """Issue 17's measures on the real take 2_scott_0_1_1, 2 seeds of the default style
-    (model card, 3 seeds: wrist speed 0.90x the capture's, jitter 1.09x, spread 1.03x, head
-    pitch 1.0 degree above the capture's; v7: 0.83x, 1.06x, 0.92x; v6: 1.09x, 1.46x, 0.86x
-    and 4.1 degrees down)."""
+    """Issue 17's goals on the real take 2_scott_0_1_1, 2 seeds of the default style (these
+    two: wrist speed 0.94x the capture's, jitter 1.02x, spread 1.04x, head pitch 1.1 degrees
+    above the capture's; model card, 3 seeds: 0.93x, 1.00x, 1.04x; v8 before the refining
+    pass: 0.90x, 1.09x, 1.03x; v7: 0.83x, 1.06x, 0.92x; v6: 1.09x, 1.46x, 0.86x and 4.1
+    degrees down)."""
     from diffsheg_core.training.evaluate import load_reference
     from diffsheg_core.training.metrics.posture import naturalness
 
     real = naturalness(load_reference(REAL_BVH, fps=15.0))
     ours = _wrists(whole_take)
     ratio = {k.split(" (")[0]: ours[k.split(" (")[0]] / v for k, v in real.items() if "pitch" not in k}
-    assert ratio["wrist jitter"] < 1.2 and 0.82 < ratio["wrist speed"] < 1.1 and 0.85 < ratio["wrist spread"] < 1.15, ratio
+    assert ratio["wrist jitter"] < 1.1 and 0.9 < ratio["wrist speed"] < 1.1 and 0.9 < ratio["wrist spread"] < 1.1, ratio
     assert abs(ours["head pitch"] - real["head pitch (deg, down)"]) < 3
 
 
@@ -291,3 +293,18 @@ def test_later_windows_continue_the_overlap_without_a_jump(bundle, whole_take):
     assert max(seams) < 1.1, seams
     uncarried = generate(load_audio(TAKE_WAV), model=bundle, seed=0, sampling=replace(bundle.sampling, carry=0))
     assert _seam_acceleration(uncarried, bundle.config.clip_len) > 1.2
+
+
+def test_the_refining_pass_takes_the_fast_wobble_out_of_the_gestures(bundle, whole_take):
+    """Each finished window's gestures through the network once more (FoppasConfig.refine):
+    against the same sampling without that pass, the wrists move faster with no more jitter
+    (seed 0: 0.98 against 0.88 arm lengths/s, jitter 8.27 against 8.30), and the face is the
+    same to the bit."""
+    assert all(m.meta["refine"] == 1 and m.meta["refine_skip"] == 3.5 for m in whole_take)
+    unrefined = generate(load_audio(TAKE_WAV), model=bundle, seed=0, sampling=replace(bundle.sampling, refine=None))
+    assert unrefined.meta["refine"] is None and unrefined.meta["refine_skip"] is None
+    ours, before = _wrists(whole_take[:1]), _wrists([unrefined])
+    jerk = {k: w["wrist jitter"] / w["wrist speed"] for k, w in (("refined", ours), ("unrefined", before))}
+    assert jerk["refined"] < 0.93 * jerk["unrefined"], jerk
+    assert ours["wrist speed"] > before["wrist speed"]
+    assert np.array_equal(unrefined.face, whole_take[0].face)

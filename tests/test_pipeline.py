@@ -264,6 +264,29 @@ def test_later_windows_start_from_the_models_gesture_prior(speech, prior_model, 
         load_model(tmp_path / "bad_prior.safetensors")
 
 
+def test_the_refining_pass_is_kept_in_the_model_file_and_changes_the_gestures_only(speech, model, tmp_path):
+    """A model's refining pass (FoppasConfig.refine) is saved with it and recorded in the
+    motion's meta; it changes the gestures, not the face, and the CLI's --no-refine turns
+    it off."""
+    bundle = replace(model, sampling=replace(model.sampling, refine=1, refine_skip=2.0), skip_guidance=0.2)
+    refined = generate(speech, model=bundle, device="cpu")
+    plain = generate(speech, model=bundle, device="cpu", sampling=replace(bundle.sampling, refine=None))
+    assert (refined.meta["refine"], refined.meta["refine_skip"]) == (1, 2.0)
+    assert (plain.meta["refine"], plain.meta["refine_skip"]) == (None, None)
+    assert np.array_equal(refined.face, plain.face)
+    assert not np.allclose(refined.rotations, plain.rotations)
+
+    path = save_checkpoint(bundle, tmp_path / "refined.safetensors")
+    assert load_model(path).sampling == bundle.sampling
+    for flags, expected in (([], 1), (["--no-refine"], None)):
+        out = tmp_path / f"cli{len(flags)}.npz"
+        result = subprocess.run([sys.executable, "-m", "diffsheg_core", "generate", str(speech), "-o", str(out),
+                                 "--checkpoint", str(path), "--device", "cpu", *flags],
+                                capture_output=True, text=True, timeout=300)
+        assert result.returncode == 0, result.stderr
+        assert Motion.load_npz(out).meta["refine"] == expected
+
+
 def test_a_face_seed_keeps_the_face_while_the_seed_changes_the_gestures(speech):
     """SpeechAct's fixed face beside a stochastic body, on the bundled model and real speech:
     one face_seed gives one face bit for bit whatever the seed, and the gestures still differ."""
