@@ -232,16 +232,24 @@ def test_training_with_hubert_features(small_root, tmp_path, tiny_hubert):
     assert motion.n_frames == 45 and np.isfinite(motion.rotations).all()
 
 
-def test_training_with_the_phonetic_encoder_bundles_it(small_root, tmp_path):
+def tiny_phonetic_encoder(path: Path):
+    """A small random phonetic encoder (seed 0), saved to `path` for the training settings."""
     from diffsheg_core.model import PhoneticEncoder
     from diffsheg_core.phonetic import PhoneticConfig
-    from diffsheg_core.pipeline import speech_features
-    from diffsheg_core.runtime.backends import open_network
-    from diffsheg_core.training.phonetic import save_phonetic, speech_encoding
+    from diffsheg_core.training.phonetic import save_phonetic
 
     torch.manual_seed(0)
     encoder = PhoneticEncoder(PhoneticConfig(channels=16, dilations=(1,))).eval()
-    save_phonetic(encoder, tmp_path / "phonetic.safetensors", {})
+    save_phonetic(encoder, path, {})
+    return encoder
+
+
+def test_training_with_the_phonetic_encoder_bundles_it(small_root, tmp_path):
+    from diffsheg_core.pipeline import speech_features
+    from diffsheg_core.runtime.backends import open_network
+    from diffsheg_core.training.phonetic import speech_encoding
+
+    encoder = tiny_phonetic_encoder(tmp_path / "phonetic.safetensors")
     # the settings names from before the second speech input was renamed still read
     model = {**TINY, "use_hubert": True, "speech_encoder": "phonetic", "hubert_latent": 16}
     settings = config(small_root, tmp_path / "run", steps=3, checkpoint_every=3, model=model,
@@ -278,7 +286,8 @@ def test_fine_tuning_an_unguided_run_into_a_guided_model_with_torchrun(small_roo
                       guidance=1.5, skip_guidance=0.2, init_from=str(base / MODEL_FILE), model=guided_model)
 
     start = Trainer(TrainConfig.from_dict(settings), Dist())
-    assert not start.begin()
+    assert start.source is not None and not start.begin()
+    assert start.source is None  # the source model is not held for the rest of the run
     source = load_model(base / MODEL_FILE).weights
     for name, value in start.ema.state_dict().items():
         if "null_cond_emb" not in name:
@@ -383,13 +392,7 @@ def test_fine_tuning_adds_temporal_convolutions_to_the_gestures_and_keeps_the_fa
     freeze_expression the expression branch and the speech layer keep the source's weights
     to the bit, so the face is the source's; the file records the kernel; a model that already
     has convolutions must match them."""
-    from diffsheg_core.model import PhoneticEncoder
-    from diffsheg_core.phonetic import PhoneticConfig
-    from diffsheg_core.training.phonetic import save_phonetic
-
-    torch.manual_seed(0)  # a speech encoder, whose batch norm must keep its statistics too
-    save_phonetic(PhoneticEncoder(PhoneticConfig(channels=16, dilations=(1,))).eval(),
-                  tmp_path / "phonetic.safetensors", {})
+    tiny_phonetic_encoder(tmp_path / "phonetic.safetensors")  # its batch norm must keep its statistics too
     model = {**TINY, "speech_encoder": "phonetic", "speech_latent": 16}
     speech = {"phonetic": str(tmp_path / "phonetic.safetensors")}
     base = tmp_path / "base"

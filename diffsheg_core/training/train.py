@@ -452,6 +452,7 @@ class Trainer:
             return True
         if self.source is not None:
             self.init_weights(self.source, self.cfg.init_from)
+            self.source = None  # its weights are the model's now: the run does not hold them twice
         return False
 
     def resume(self) -> bool:
