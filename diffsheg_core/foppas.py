@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, replace
-from typing import Callable, Optional
+from typing import Callable, Optional, Protocol
 
 import numpy as np
 
@@ -51,10 +51,13 @@ FACE_STREAM = 0xFACE5EED  # the face's generator is seeded with (face_seed, this
 MAX_CANDIDATES = 16
 SEAM_FRAMES = 5  # frames either side of a seam that best-of-N selection compares
 
-EpsFn = Callable[..., np.ndarray]
-"""(x_t of shape (B, L, D), schedule index) -> predicted noise (B, L, D). The refining pass
-calls it with `refine=True`: a guided model then multiplies its gesture skip-guidance scale
-by `FoppasConfig.refine_skip` (see pipeline.make_eps_fn_factory)."""
+class EpsFn(Protocol):
+    """(x_t of shape (B, L, D), schedule index) -> predicted noise (B, L, D). Only the
+    refining pass passes `refine=True` (a guided model then multiplies its gesture
+    skip-guidance scale by `FoppasConfig.refine_skip`, see pipeline.make_eps_fn_factory), so a
+    function of (x, index) serves a sampler without that pass."""
+
+    def __call__(self, x: np.ndarray, index: int, refine: bool = False) -> np.ndarray: ...
 
 Proposal = Callable[[np.ndarray, int, np.random.Generator], np.ndarray]
 """(known overlap frames (n, D), window length, generator) -> a (length, C) draw of the
@@ -204,9 +207,6 @@ class Foppas:
             x[..., :c] = sched.q_sample(draw.astype(np.float32), cfg.start_index, x[..., :c])
         times = self.times(known is not None)
         n_calls, call = model_calls(times) + (cfg.refine is not None), 0
-        if known is not None:
-            n_known = known.shape[1]
-            ramp = np.linspace(0, 1, n_known, dtype=np.float32).reshape(1, -1, 1)
         for t_now, t_next in zip(times, times[1:]):
             if t_next > t_now:
                 beta_index = t_now if cfg.reference_renoise else t_next
@@ -219,35 +219,39 @@ class Foppas:
             if known is not None:
                 level = sched.noise_level_prev(t_now)
                 noisy_known = float((1 - level ** 2) ** 0.5) * known + level * randn(batch, *known.shape[1:])
-                if cfg.blend and level < cfg.blend_below:
-                    noisy_known = noisy_known * (1 - ramp) + x[:, :n_known] * ramp
-                x = np.concatenate([noisy_known, x[:, n_known:]], axis=1)
+                x = self.paint_overlap(x, noisy_known, level)
             on_step(call, n_calls)
             call += 1
-        if cfg.refine is not None:
-            x = self.refine_window(eps_fn, x, known)
-            on_step(call, n_calls)
         if batch > 1:
             best = int(np.argmin(seam_scores(x[..., : self.gestures], known[..., : self.gestures])))
             x = x[best: best + 1]
+        if cfg.refine is not None:
+            x = self.refine_window(eps_fn, x, known)
+            on_step(call, n_calls)
         return x
+
+    def paint_overlap(self, x: np.ndarray, known: np.ndarray, level: float) -> np.ndarray:
+        """`x` (B, L, C) with its first frames replaced by `known` (B or 1, n, C), already at
+        x's noise level `level`; below `blend_below` (with `blend`) the known frames are
+        cross-faded linearly into x's own."""
+        n = known.shape[1]
+        if self.config.blend and level < self.config.blend_below:
+            ramp = np.linspace(0, 1, n, dtype=np.float32).reshape(1, -1, 1)
+            known = known * (1 - ramp) + x[:, :n] * ramp
+        return np.concatenate([np.broadcast_to(known, (len(x),) + known.shape[1:]), x[:, n:]], axis=1)
 
     def refine_window(self, eps_fn: EpsFn, x: np.ndarray, known: Optional[np.ndarray]) -> np.ndarray:
         """The finished (B, L, D) window `x` with its gestures replaced by the network's x0
         for it taken as noisy at schedule index `refine`, the known overlap painted back as
-        the last step paints it; the face channels are returned as they were. It draws no
-        noise, so every later window's noise is the same as without it."""
+        the last step paints it; the face channels are returned as they were. It runs after
+        best-of-N has chosen and draws no noise, so the face, the choice and every later
+        window's noise are the same as without it."""
         cfg, sched, g = self.config, self.schedule, self.gestures
         eps = eps_fn(x, cfg.refine, refine=True)
         out = x.copy()
         out[..., :g] = sched.predict_x0(x[..., :g], np.full(len(x), cfg.refine), eps[..., :g])
         if known is not None:
-            n = known.shape[1]
-            painted = np.broadcast_to(known[..., :g], out[:, :n, :g].shape)
-            if cfg.blend:
-                ramp = np.linspace(0, 1, n, dtype=np.float32).reshape(1, -1, 1)
-                painted = painted * (1 - ramp) + out[:, :n, :g] * ramp
-            out[:, :n, :g] = painted
+            out[..., :g] = self.paint_overlap(out[..., :g], known[..., :g], level=0.0)
         return out
 
 

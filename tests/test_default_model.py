@@ -120,7 +120,7 @@ def test_the_gesture_prior_gives_the_gestures_the_real_captures_spread(bundle, s
     """Gesture spread (std over the 30 s, mean over all 141 channels, fingers and spine too)
     against the real capture's over 30 s stretches: v8 0.76x and 1.04x with the prior for seeds 0
     and 1 (v7: 0.69x and 0.88x; v6: 0.81-0.92x;
-    the wrists alone, the measure of issue 17: 1.03x on the whole take), more than from pure
+    the wrists alone, the measure of issue 17: 1.04x on the whole take), more than from pure
     noise. The first window is the same either way, and so is the face."""
     real = read_gesture(REAL_BVH, 15.0, source_fps=15.0)[1:, : BEAT.gesture_dim]
     n = samples[0].n_frames

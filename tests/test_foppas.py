@@ -248,6 +248,10 @@ def test_refine_window_replaces_the_gestures_by_the_x0_at_its_step_and_paints_th
     ramp = np.linspace(0, 1, 4).reshape(1, -1, 1)
     np.testing.assert_allclose(out[:, :4, :3], known[..., :3] * (1 - ramp) + x0[:, :4] * ramp, atol=1e-5)
     assert np.array_equal(out[:, 0, :3], np.broadcast_to(known[:, 0, :3], (2, 3)))
+    # without the cross-fade at the lowest level, the overlap is the known frames, as the last step leaves it
+    unblended = Foppas(Schedule.linear(), FoppasConfig(overlap=4, refine=2, blend_below=0.0), 34, 5, gestures=3)
+    out = unblended.refine_window(eps_fn, x, known)
+    assert np.array_equal(out[:, :4, :3], np.broadcast_to(known[..., :3], (2, 4, 3)))
 
 
 def test_the_refining_pass_steers_with_the_skip_scale_times_refine_skip(model):
@@ -482,6 +486,17 @@ def test_best_of_n_keeps_the_candidate_that_continues_the_motion():
     window = sampler.sample_window(eps_fn, 34, known, Noise(0))
     assert window.shape == (1, 34, 3)
     np.testing.assert_allclose(window[0, 4:], targets[2, 4:], atol=1e-3)
+
+    refined_rows = []
+
+    def refining_eps_fn(x, index, refine=False):
+        if refine:
+            refined_rows.append(len(x))
+        return eps_fn(x, index)
+
+    refining = Foppas(Schedule.linear(), replace(config, refine=1), 34, 3)
+    assert refining.sample_window(refining_eps_fn, 34, known, Noise(0)).shape == (1, 34, 3)
+    assert refined_rows == [1]  # the refining pass runs on the chosen candidate alone
     scores = seam_scores(targets, known)
     assert int(np.argmin(scores)) == 2 and list(np.argsort(scores)) == [2, 1, 3, 0]
 

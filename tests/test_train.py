@@ -232,7 +232,7 @@ def test_training_with_hubert_features(small_root, tmp_path, tiny_hubert):
     assert motion.n_frames == 45 and np.isfinite(motion.rotations).all()
 
 
-def tiny_phonetic_encoder(path: Path):
+def tiny_phonetic_encoder(path: Path) -> torch.nn.Module:
     """A small random phonetic encoder (seed 0), saved to `path` for the training settings."""
     from diffsheg_core.model import PhoneticEncoder
     from diffsheg_core.phonetic import PhoneticConfig

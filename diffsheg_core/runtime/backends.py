@@ -35,9 +35,9 @@ def default_threads() -> int:
 
     The bundled model's products are small (68 x 192 rows by columns): one thread runs them
     at the machine's matrix-multiply rate, a second adds more overhead than speed (onnx on 2
-    cores: 3.1 s for 60 s of speech with 1 thread, 3.4 s with 2), and a second thread that
-    must share a core with Blender's UI or another job collapses (torch: 5.4 s idle, 19.7 s
-    with one core busy; 1 thread: 6.5 / 6.8 s). See bench/bench_backends.py. onnxruntime's
+    cores: 3.7 s for 60 s of speech with 1 thread, 4.2 s with 2), and a second thread that
+    must share a core with Blender's UI or another job collapses (torch: 6.9 s idle, 23.0 s
+    with one core busy; 1 thread: 8.3 / 8.4 s). See bench/bench_backends.py. onnxruntime's
     threads are also told not to spin when more are asked for."""
     value = os.environ.get(THREADS_ENV)
     if value:
