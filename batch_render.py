@@ -106,7 +106,13 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     k.add_argument("--start-frame", type=int, default=None,
                    help="frame of the first key and the sound strip (default: the scene's start frame)")
     k.add_argument("--smoothing", type=float, default=0.0, help="Gaussian smoothing in scene frames (0 = none)")
-    k.add_argument("--tolerance", type=float, default=0.0, help="key reduction tolerance; 0 keys every frame")
+    k.add_argument("--max-error", type=float, default=1.0, metavar="DEGREES",
+                   help="largest angle between a bone's keys and the generated rotation on any frame "
+                        "(default %(default)s degrees): keys go on the motion's turning points")
+    k.add_argument("--max-face-error", type=float, default=0.02,
+                   help="largest difference of a shape key's keys from the generated weight (default %(default)s)")
+    k.add_argument("--every-frame", action="store_true",
+                   help="key every frame on every channel instead (baked curves for game export)")
     k.add_argument("--no-sound", action="store_true", help="add no sound strip")
     k.add_argument("--keep-frame-range", action="store_true", help="leave the scene's frame range as it is")
     return p.parse_args(argv)
@@ -191,7 +197,8 @@ def bake_options(args, scene, armature, faces):
         armature=armature, face_meshes=faces,
         preset=None if args.preset == preset.AUTO else preset.load_preset(args.preset),
         start_frame=scene.frame_start if args.start_frame is None else args.start_frame,
-        tolerance=args.tolerance, smoothing=args.smoothing,
+        every_frame=args.every_frame, max_error=args.max_error, max_face_error=args.max_face_error,
+        smoothing=args.smoothing,
         add_sound=not args.no_sound, set_frame_range=not args.keep_frame_range)
 
 

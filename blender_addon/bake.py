@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from diffsheg_core.errors import DiffshegError
+from diffsheg_core.keyframes import Keys, fit_keys, rotation_error, value_error
 from diffsheg_core.motion import Motion, resample_motion
 
 from .keying import Channel, Undo, new_action, rotation_channels, shape_key_channel, write_channels
@@ -24,18 +25,30 @@ from .sound import NO_AUDIO_NOTE, add_sound_strip, audio_supported, remove_strip
 
 @dataclass
 class BakeOptions:
-    """What to key and how. `tolerance` 0 keys every frame; above 0, keys are reduced
-    so the curve stays within it. `smoothing` is a Gaussian sigma in scene frames."""
+    """What to key and how. By default sparse Bezier keys on the motion's turning points,
+    within `max_error` degrees per bone and `max_face_error` per shape key on every frame;
+    `every_frame` keys each frame instead (baked curves for game export). `smoothing` is
+    a Gaussian sigma in scene frames."""
 
     armature: object | None
     face_meshes: list = field(default_factory=list)
     preset: Preset | None = None   # None: Auto, the preset whose names the rig has
     start_frame: int = 1
-    tolerance: float = 0.0
+    every_frame: bool = False
+    max_error: float = 1.0          # degrees, the angle between keyed and generated rotation
+    max_face_error: float = 0.02    # shape-key weight
     smoothing: float = 0.0
     add_sound: bool = True
     set_frame_range: bool = True
     action_name: str = ""
+
+    def __post_init__(self):
+        for name, value in (("max_error", self.max_error), ("max_face_error", self.max_face_error),
+                            ("smoothing", self.smoothing)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) \
+                    or value < 0 or (value == 0 and name != "smoothing"):
+                raise DiffshegError(f"{name.replace('_', ' ')} must be a number "
+                                    f"{'>= 0' if name == 'smoothing' else 'above 0'}, got {value!r}")
 
 
 @dataclass
@@ -113,7 +126,9 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
                 quats = smooth(quats, options.smoothing)
                 quats /= np.linalg.norm(quats, axis=1, keepdims=True)
             mode = options.armature.pose.bones[bone].rotation_mode
-            channels += rotation_channels(bone, mode, quats)
+            bone_channels = rotation_channels(bone, mode, quats)
+            channels += bone_channels if options.every_frame else \
+                with_keys(bone_channels, lambda v, m=mode: rotation_error(v, m), options.max_error)
         plans.append((options.armature, name, channels))
     unmatched_keys: dict[str, list[str]] = {}
     face_notes: list[str] = []
@@ -126,16 +141,17 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
         channels = []
         for key_name, weights in keys.curves(face):
             block = mesh.data.shape_keys.key_blocks[key_name]
-            channels.append(shape_key_channel(key_name, np.clip(weights, block.slider_min, block.slider_max)))
+            channel = shape_key_channel(key_name, np.clip(weights, block.slider_min, block.slider_max))
+            channels += [channel] if options.every_frame else \
+                with_keys([channel], value_error, options.max_face_error)
         plans.append((mesh.data.shape_keys, f"{name}_{mesh.name}", channels))
 
     undo: list[Undo] = []
     try:
         actions, n_keys = [], 0
-        tolerance = options.tolerance if options.tolerance > 0 else None
         for id_data, action_name, channels in plans:
             action, slot = new_action(id_data, action_name, undo)
-            n_keys += write_channels(action, slot, channels, options.start_frame, tolerance)
+            n_keys += write_channels(action, slot, channels, options.start_frame)
             actions.append(action.name)
         if options.armature is not None:
             _set_properties(options.armature, options.preset.properties, undo)
@@ -159,6 +175,15 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
                       unmatched_bones=unmatched_bones, unmatched_shape_keys=unmatched_keys,
                       sound_strip=strip,
                       notes=preset_notes + notes + rig_notes + face_notes + [f"warning: {w}" for w in motion.meta.get("warnings", [])])
+
+
+def with_keys(channels: list[Channel], error, bound: float) -> list[Channel]:
+    """`channels` (one bone's rotation, or one shape key) with sparse keys on shared frames,
+    within `bound` by `error(values)` on every frame."""
+    values = np.stack([ch.values for ch in channels], axis=1)
+    keys = fit_keys(values, error(values), bound)
+    return [replace(ch, keys=Keys(keys.frames, keys.values[:, i:i + 1], keys.slopes[:, i:i + 1]))
+            for i, ch in enumerate(channels)]
 
 
 def auto_preset(layout: str, armature, face_meshes) -> tuple[Preset, str]:

@@ -6,8 +6,10 @@ moves. F-Curves go into the slot's channelbag where
 `bpy_extras.anim_utils.action_ensure_channelbag_for_slot` exists (5.0+), else into
 `Action.fcurves` (4.2-4.3; on 4.4-4.5 the legacy API's first slot, the only one here).
 A user's Action already on the datablock is kept and pushed onto an NLA track, never
-overwritten. Keys go in with `keyframe_points.add` + `foreach_set`, optionally reduced
-to fewer keys that stay within a tolerance.
+overwritten. Keys go in with `keyframe_points.add` + `foreach_set`: either a channel's
+sparse Bezier keys (`diffsheg_core.keyframes`: poses with aligned handles) or one key per
+frame. Every key written is typed GENERATED, Blender's type for keys a tool made; any
+other type is the animator's.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import numpy as np
 import bpy
 
 from diffsheg_core.errors import DiffshegError
+from diffsheg_core.keyframes import Keys, handles
 
 try:
     from bpy_extras.anim_utils import action_ensure_channelbag_for_slot
@@ -29,12 +32,14 @@ except ImportError:  # Blender 4.2-4.3: legacy actions only
 
 @dataclass
 class Channel:
-    """One F-Curve's worth of values, one per frame from the start frame."""
+    """One F-Curve's worth of values, one per frame from the start frame, and its sparse
+    keys (values and slopes of this channel alone) where it is keyed sparsely."""
 
     data_path: str
     index: int
     values: np.ndarray
     group: str = ""
+    keys: Keys | None = None
 
 
 Undo = Callable[[], None]
@@ -89,11 +94,9 @@ def _push_to_nla(anim, action, undo: list[Undo]) -> None:
     undo.append(restore)
 
 
-def write_channels(action, slot, channels: list[Channel], start_frame: float,
-                   tolerance: float | None = None) -> int:
-    """Key every channel from `start_frame`, one value per frame; with `tolerance`,
-    keep only the keys needed for linear interpolation to stay within it.
-    Returns the number of keys written."""
+def write_channels(action, slot, channels: list[Channel], start_frame: float) -> int:
+    """Key every channel from `start_frame`: its sparse keys where it has them, else one
+    key per frame. Returns the number of keys written."""
     make = _fcurve_factory(action, slot)
     groups: dict[str, object] = {}
     total = 0
@@ -103,18 +106,35 @@ def write_channels(action, slot, channels: list[Channel], start_frame: float,
             raise DiffshegError(f"the motion holds non-finite values for {ch.data_path}[{ch.index}]: "
                                 "try another seed or model")
         fc = make(ch.data_path, ch.index, ch.group, groups)
-        keep = reduce_keys(values, tolerance) if tolerance else np.arange(len(values))
-        co = np.empty((len(keep), 2), dtype=np.float32)
-        co[:, 0] = start_frame + keep
-        co[:, 1] = values[keep]
-        fc.keyframe_points.add(len(keep))
-        fc.keyframe_points.foreach_set("co", co.ravel())
-        if tolerance:
-            linear = bpy.types.Keyframe.bl_rna.properties["interpolation"].enum_items["LINEAR"].value
-            fc.keyframe_points.foreach_set("interpolation", [linear] * len(keep))
-        fc.update()
-        total += len(keep)
+        total += _write_keys(fc, ch.keys, values, start_frame)
     return total
+
+
+def _enum(prop: str, item: str) -> int:
+    return bpy.types.Keyframe.bl_rna.properties[prop].enum_items[item].value
+
+
+def _write_keys(fc, keys: Keys | None, values: np.ndarray, start_frame: float) -> int:
+    points = fc.keyframe_points
+    if keys is None:
+        n = len(values)
+        points.add(n)
+        points.foreach_set("co", np.column_stack([start_frame + np.arange(n), values]).astype(np.float32).ravel())
+    else:
+        n = len(keys)
+        left, right = handles(keys)
+        offset = np.array([start_frame, 0.0])
+        points.add(n)
+        points.foreach_set("co", np.column_stack([start_frame + keys.frames, keys.values[:, 0]])
+                           .astype(np.float32).ravel())
+        points.foreach_set("handle_left", (left[:, 0] + offset).astype(np.float32).ravel())
+        points.foreach_set("handle_right", (right[:, 0] + offset).astype(np.float32).ravel())
+        points.foreach_set("interpolation", [_enum("interpolation", "BEZIER")] * n)
+        for side in ("handle_left_type", "handle_right_type"):
+            points.foreach_set(side, [_enum(side, "ALIGNED")] * n)
+    points.foreach_set("type", [_enum("type", "GENERATED")] * n)
+    fc.update()
+    return n
 
 
 def _fcurve_factory(action, slot):
@@ -136,29 +156,6 @@ def _fcurve_factory(action, slot):
         return action.fcurves.new(path, index=index, action_group=group)
 
     return make_legacy
-
-
-def reduce_keys(values: np.ndarray, tolerance: float) -> np.ndarray:
-    """Indices of the keys to keep so that linear interpolation between them is within
-    `tolerance` of every value (split at the worst sample until all segments fit)."""
-    n = len(values)
-    if n <= 2:
-        return np.arange(n)
-    keep = {0, n - 1}
-    stack = [(0, n - 1)]
-    while stack:
-        a, b = stack.pop()
-        if b - a < 2:
-            continue
-        t = np.arange(a + 1, b)
-        line = values[a] + (values[b] - values[a]) * (t - a) / (b - a)
-        err = np.abs(values[a + 1:b] - line)
-        worst = int(np.argmax(err))
-        if err[worst] > tolerance:
-            mid = a + 1 + worst
-            keep.add(mid)
-            stack.extend([(a, mid), (mid, b)])
-    return np.array(sorted(keep))
 
 
 def action_fcurves(action, slot=None) -> list:

@@ -81,7 +81,8 @@ def bake_options(settings):
     return BakeOptions(
         armature=settings.armature, face_meshes=settings.face_objects(), preset=preset_of(settings),
         start_frame=settings.start(),
-        tolerance=settings.tolerance if settings.key_mode == "REDUCED" else 0.0,
+        every_frame=settings.key_mode == "EVERY_FRAME", max_error=settings.max_error,
+        max_face_error=settings.max_face_error,
         smoothing=settings.smoothing, add_sound=settings.add_sound,
         set_frame_range=settings.set_frame_range)
 

@@ -97,8 +97,9 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
         sub.prop(s, "start_frame")
         col.prop(s, "smoothing")
         col.prop(s, "key_mode")
-        if s.key_mode == "REDUCED":
-            col.prop(s, "tolerance")
+        if s.key_mode == "POSES":
+            col.prop(s, "max_error")
+            col.prop(s, "max_face_error")
         col.prop(s, "add_sound")
         col.prop(s, "set_frame_range")
 

@@ -135,12 +135,16 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
         ("GPU", "GPU", "a CUDA GPU: needs the GPU support (torch with CUDA) from the preferences")])
     smoothing: FloatProperty(name="Smoothing", default=0.0, min=0.0, max=10.0,
                              description="Gaussian smoothing of the keys, sigma in frames; 0 = off")
-    key_mode: EnumProperty(name="Keys", default="ALL", items=[
-        ("ALL", "Every frame", "one key per scene frame"),
-        ("REDUCED", "Reduced", "fewer keys, the curve stays within the tolerance")])
-    tolerance: FloatProperty(name="Tolerance", default=0.01, min=1e-5, max=1.0, precision=4,
-                             description="largest allowed difference from the full curve "
-                                         "(quaternion / radian / shape-key units)")
+    key_mode: EnumProperty(name="Keys", default="POSES", items=[
+        ("POSES", "Poses", "keys on the motion's turning points with smooth handles, within the error "
+                           "bounds on every frame: easy to edit"),
+        ("EVERY_FRAME", "Every frame", "one key per frame on every channel (baked curves for game export)")])
+    max_error: FloatProperty(name="Max error", default=1.0, min=0.01, max=30.0, precision=2,
+                             description="largest angle in degrees between a bone's keyed rotation and the "
+                                         "generated one, on any frame: higher gives fewer keys")
+    max_face_error: FloatProperty(name="Face max error", default=0.02, min=0.001, max=0.5, precision=3,
+                                  description="largest difference of a shape key's keyed value from the "
+                                              "generated one, on any frame: higher gives fewer keys")
     add_sound: BoolProperty(name="Add sound strip", default=True)
     set_frame_range: BoolProperty(name="Set frame range", default=True,
                                   description="make the scene's frame range cover the clip")

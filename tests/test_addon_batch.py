@@ -108,7 +108,7 @@ def test_every_generation_option_of_the_panel_is_a_batch_option(scene_blend, tmp
     proc = _batch("--blend", str(scene_blend), "--audio", str(speech), "--preset", "beat", "--steps", "3",
                   "--overlap", "6", "--style", "0", "--guidance", "1.5", "--gesture-energy", "0.2",
                   "--smoothing", "1", "--candidates", "2", "--face-seed", "3", "--start-frame", "10",
-                  "--tolerance", "0.001", "--no-render", "--save", str(tmp_path / "all.blend"), cwd=tmp_path)
+                  "--max-error", "0.5", "--max-face-error", "0.01", "--no-render", "--save", str(tmp_path / "all.blend"), cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert (tmp_path / "all.blend").is_file()
     bad = _batch("--blend", str(scene_blend), "--audio", str(speech), "--gesture-energy", "3", "--no-render",

@@ -59,7 +59,7 @@ def test_bvh_mocap_keyed_by_the_addon_matches_blenders_bvh_import():
         scene.frame_set(f)
         reference.append(armature_pose_matrices(ob, list(BEAT_JOINTS)))
     motion = mocap_motion()
-    result = bake_motion(scene, motion, None, BakeOptions(
+    result = bake_motion(scene, motion, None, BakeOptions(every_frame=True, 
         armature=ob, preset=load_preset("beat"), start_frame=2, add_sound=False))
     assert result.unmatched_bones == []
     assert result.n_frames == motion.n_frames
@@ -90,7 +90,7 @@ def test_bone_rolls_and_rotation_modes_do_not_change_the_motion():
     motion = mocap_motion(frames=120)
     preset = load_preset("smplx")
     for ob in (plain, rolled):
-        bake_motion(scene, motion, None, BakeOptions(armature=ob, preset=preset, add_sound=False))
+        bake_motion(scene, motion, None, BakeOptions(every_frame=True, armature=ob, preset=preset, add_sound=False))
     bones = ["spine1", "neck", "head", "left_shoulder", "left_elbow", "right_wrist", "right_index2", "jaw"]
     moved = False
     for f in (10, 60, 150):
@@ -108,7 +108,7 @@ def test_rig_matching_nothing_is_a_clear_error_and_leaves_no_action():
     before = set(bpy.data.actions.keys())
     with pytest.raises(DiffshegError, match="none of the bones of preset 'mixamo'"):
         bake_motion(scene, mocap_motion(frames=30), None,
-                    BakeOptions(armature=ob, preset=load_preset("mixamo"), add_sound=False))
+                    BakeOptions(every_frame=True, armature=ob, preset=load_preset("mixamo"), add_sound=False))
     assert set(bpy.data.actions.keys()) == before
     assert ob.animation_data is None
 
@@ -150,8 +150,8 @@ def test_smplx_layout_motion_keys_smplx_and_beat_rigs_alike():
     smplx = build_smplx_armature(roll_seed=2)
     beat = import_beat_armature()
     motion = smplx_mocap_motion(frames=90)
-    bake_motion(scene, motion, None, BakeOptions(armature=smplx, preset=load_preset("smplx"), add_sound=False))
-    result = bake_motion(scene, motion, None, BakeOptions(armature=beat, preset=load_preset("beat"), add_sound=False))
+    bake_motion(scene, motion, None, BakeOptions(every_frame=True, armature=smplx, preset=load_preset("smplx"), add_sound=False))
+    result = bake_motion(scene, motion, None, BakeOptions(every_frame=True, armature=beat, preset=load_preset("beat"), add_sound=False))
     assert result.unmatched_bones == []
     for f in (1, 45, 90):
         scene.frame_set(f)
@@ -168,8 +168,8 @@ def test_same_motion_looks_the_same_on_rigify_and_beat(rigify_blend):
     rig = bpy.data.objects["rig"]
     beat = import_beat_armature()
     motion = mocap_motion(frames=200)
-    bake_motion(scene, motion, None, BakeOptions(armature=rig, preset=load_preset("rigify"), add_sound=False))
-    bake_motion(scene, motion, None, BakeOptions(armature=beat, preset=load_preset("beat"), add_sound=False))
+    bake_motion(scene, motion, None, BakeOptions(every_frame=True, armature=rig, preset=load_preset("rigify"), add_sound=False))
+    bake_motion(scene, motion, None, BakeOptions(every_frame=True, armature=beat, preset=load_preset("beat"), add_sound=False))
     pairs = [("DEF-upper_arm.L", "LeftArm"), ("DEF-forearm.L", "LeftForeArm"),
              ("DEF-upper_arm.R", "RightArm"), ("DEF-forearm.R", "RightForeArm")]
     for f in range(1, 200, 25):
@@ -205,7 +205,7 @@ def test_a_vroid_style_face_talks_and_blinks_through_its_own_keys(speech_motion)
     scene = reset_scene()
     face = _viseme_face("VRoidFace", {"jawOpen": False, "Fcl_MTH_A": True, "Fcl_MTH_O": True,
                                       "Fcl_EYE_Close_L": True, "Fcl_EYE_Close_R": True})
-    result = bake_motion(scene, speech_motion, None, BakeOptions(
+    result = bake_motion(scene, speech_motion, None, BakeOptions(every_frame=True, 
         armature=None, face_meshes=[face], preset=load_preset("beat"), start_frame=1, add_sound=False))
     assert any("jawOpen moves no vertex" in n for n in result.notes)
     assert any("Fcl_MTH_A" in n and "driven from the ARKit weights" in n for n in result.notes)
@@ -224,7 +224,7 @@ def test_a_vroid_style_face_talks_and_blinks_through_its_own_keys(speech_motion)
 def test_a_face_with_arkit_keys_ignores_its_visemes(speech_motion):
     scene = reset_scene()
     face = _viseme_face("RPMFace", {"jawOpen": True, "viseme_aa": True})
-    bake_motion(scene, speech_motion, None, BakeOptions(
+    bake_motion(scene, speech_motion, None, BakeOptions(every_frame=True, 
         armature=None, face_meshes=[face], preset=load_preset("beat"), start_frame=1, add_sound=False))
     paths = {fc.data_path for fc in fcurves_of(face.data.shape_keys)}
     assert 'key_blocks["jawOpen"].value' in paths and 'key_blocks["viseme_aa"].value' not in paths
@@ -259,8 +259,8 @@ def test_unreal_rig_whose_bone_axes_miss_their_children_keys_like_the_beat_skele
     beat = import_beat_armature()
     rig = build_unreal_armature(beat, spine_bones=spine_bones, neck_02=neck_02, arms_down=arms_down)
     motion = mocap_motion(frames=300)
-    bake_motion(scene, motion, None, BakeOptions(armature=beat, preset=load_preset("beat"), add_sound=False))
-    result = bake_motion(scene, motion, None, BakeOptions(armature=rig, preset=load_preset("unreal"), add_sound=False))
+    bake_motion(scene, motion, None, BakeOptions(every_frame=True, armature=beat, preset=load_preset("beat"), add_sound=False))
+    result = bake_motion(scene, motion, None, BakeOptions(every_frame=True, armature=rig, preset=load_preset("unreal"), add_sound=False))
     assert result.unmatched_bones == []
     assert (("Neck1 (neck_02 not on the rig) passed on to head" in result.notes) == (not neck_02))
     arm, head, chest = _compare_with_beat(scene, rig, beat, range(1, 300, 23), chest=f"spine_{spine_bones:02d}")
@@ -280,12 +280,12 @@ def test_the_old_bone_axis_alignment_would_have_crossed_the_arms():
     beat = import_beat_armature()
     rig = build_unreal_armature(beat)
     motion = mocap_motion(frames=60)
-    bake_motion(scene, motion, None, BakeOptions(armature=beat, preset=load_preset("beat"), add_sound=False))
+    bake_motion(scene, motion, None, BakeOptions(every_frame=True, armature=beat, preset=load_preset("beat"), add_sound=False))
     chained = retarget._rest_directions
     try:
         retarget._rest_directions = lambda bones, chains, axes: {
             k: (v[0], retarget._rest(bones[k])[:, 1]) for k, v in chained(bones, chains, axes).items()}
-        bake_motion(scene, motion, None, BakeOptions(armature=rig, preset=load_preset("unreal"), add_sound=False))
+        bake_motion(scene, motion, None, BakeOptions(every_frame=True, armature=rig, preset=load_preset("unreal"), add_sound=False))
     finally:
         retarget._rest_directions = chained
     arm, _, _ = _compare_with_beat(scene, rig, beat, [1, 30, 59])
@@ -307,8 +307,8 @@ def test_a_joint_missing_from_a_chain_passes_its_rotation_on():
         bpy.ops.object.mode_set(mode="OBJECT")
     motion = smplx_mocap_motion(frames=90)
     preset = load_preset("smplx")
-    bake_motion(scene, motion, None, BakeOptions(armature=full, preset=preset, add_sound=False))
-    result = bake_motion(scene, motion, None, BakeOptions(armature=gap, preset=preset, add_sound=False))
+    bake_motion(scene, motion, None, BakeOptions(every_frame=True, armature=full, preset=preset, add_sound=False))
+    result = bake_motion(scene, motion, None, BakeOptions(every_frame=True, armature=gap, preset=preset, add_sound=False))
     assert "left_elbow (left_elbow not on the rig) passed on to left_wrist" in result.notes
     assert result.unmatched_bones == []
     for f in (1, 45, 90):
@@ -356,7 +356,7 @@ def test_a_preset_may_drive_several_keys_from_one_channel(tmp_path, speech_motio
                                 "also_drives": {"eyeBlinkLeft": ["Lashes_Blink_L"]}}))
     scene = reset_scene()
     face = _viseme_face("CCFace", {"eyeBlinkLeft": True, "Lashes_Blink_L": True, "jawOpen": True})
-    bake_motion(scene, speech_motion, None, BakeOptions(
+    bake_motion(scene, speech_motion, None, BakeOptions(every_frame=True, 
         armature=None, face_meshes=[face], preset=load_preset(str(mine)), start_frame=1, add_sound=False))
     curves = {fc.data_path: fc for fc in fcurves_of(face.data.shape_keys)}
     blink, lashes = curves['key_blocks["eyeBlinkLeft"].value'], curves['key_blocks["Lashes_Blink_L"].value']

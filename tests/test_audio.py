@@ -165,7 +165,9 @@ def test_stored_filterbanks_equal_librosa(bank):
         filters = stored[mel_filter_key(n_fft, n_mels)]
     assert mel_filter_key(n_fft, n_mels) == f"sr18000_nfft{n_fft}_mels{n_mels}"
     assert filters.dtype == np.float32 and filters.shape == (n_mels, 1 + n_fft // 2)
-    np.testing.assert_array_equal(filters, librosa.filters.mel(sr=18000, n_fft=n_fft, n_mels=n_mels))
+    # equal to float32 rounding: librosa 0.11 leaves 3.7e-17 at one triangle's foot where the stored bank has 0
+    np.testing.assert_allclose(filters, librosa.filters.mel(sr=18000, n_fft=n_fft, n_mels=n_mels),
+                               rtol=1e-6, atol=1e-12)
 
 
 @pytest.mark.parametrize("path", [SCOTT_24BIT, ZHAO, FORREST], ids=lambda p: p.stem)
