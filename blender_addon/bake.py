@@ -17,6 +17,7 @@ from diffsheg_core.errors import DiffshegError
 from diffsheg_core.keyframes import Keys, fit_keys, rotation_error, value_error
 from diffsheg_core.motion import Motion, resample_motion
 
+from . import takes
 from .keying import Channel, Undo, new_action, rotation_channels, shape_key_channel, write_channels
 from .preset import choose_preset
 from .retarget import Preset, bone_quaternions, map_armature, map_shape_keys
@@ -40,7 +41,6 @@ class BakeOptions:
     smoothing: float = 0.0
     add_sound: bool = True
     set_frame_range: bool = True
-    action_name: str = ""
 
     def __post_init__(self):
         for name, value in (("max_error", self.max_error), ("max_face_error", self.max_face_error),
@@ -53,6 +53,7 @@ class BakeOptions:
 
 @dataclass
 class BakeResult:
+    take: str
     actions: list[str]
     n_frames: int
     n_keys: int
@@ -111,9 +112,9 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
         preset, note = auto_preset(motion.rig, options.armature, options.face_meshes)
         options, preset_notes = replace(options, preset=preset), [note]
     check_frames(options.start_frame, motion.n_frames)
-    name = options.action_name or Path(audio_path or motion.meta.get("audio_file") or "speech").stem
+    audio_name = Path(audio_path or motion.meta.get("audio_file") or "speech").stem
 
-    plans: list[tuple[object, str, list[Channel]]] = []
+    plans: list[tuple[object, list[Channel]]] = []
     unmatched_bones: list[str] = []
     face_maps = [map_shape_keys(mesh, options.preset, motion) for mesh in options.face_meshes]
     rig_notes: list[str] = []
@@ -129,7 +130,7 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
             bone_channels = rotation_channels(bone, mode, quats)
             channels += bone_channels if options.every_frame else \
                 with_keys(bone_channels, lambda v, m=mode: rotation_error(v, m), options.max_error)
-        plans.append((options.armature, name, channels))
+        plans.append((options.armature, channels))
     unmatched_keys: dict[str, list[str]] = {}
     face_notes: list[str] = []
     for mesh, keys in zip(options.face_meshes, face_maps):
@@ -144,13 +145,16 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
             channel = shape_key_channel(key_name, np.clip(weights, block.slider_min, block.slider_max))
             channels += [channel] if options.every_frame else \
                 with_keys([channel], value_error, options.max_face_error)
-        plans.append((mesh.data.shape_keys, f"{name}_{mesh.name}", channels))
+        plans.append((mesh.data.shape_keys, channels))
 
     undo: list[Undo] = []
     try:
         actions, n_keys = [], 0
-        for id_data, action_name, channels in plans:
-            action, slot = new_action(id_data, action_name, undo)
+        number = takes.next_number(audio_name)
+        take = takes.take_name(audio_name, number)
+        for id_data, channels in plans:
+            action, slot = new_action(id_data, takes.action_name(take, id_data), undo)
+            takes.mark(action, take, audio_name, number, id_data)
             n_keys += write_channels(action, slot, channels, options.start_frame)
             actions.append(action.name)
         if options.armature is not None:
@@ -171,7 +175,7 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
             raise
         raise DiffshegError(f"could not write the animation into the scene: {exc}") from exc
     remove_strips(scene, replaced)  # only once everything else has succeeded
-    return BakeResult(actions=actions, n_frames=motion.n_frames, n_keys=n_keys,
+    return BakeResult(take=take, actions=actions, n_frames=motion.n_frames, n_keys=n_keys,
                       unmatched_bones=unmatched_bones, unmatched_shape_keys=unmatched_keys,
                       sound_strip=strip,
                       notes=preset_notes + notes + rig_notes + face_notes + [f"warning: {w}" for w in motion.meta.get("warnings", [])])

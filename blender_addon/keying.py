@@ -5,8 +5,8 @@ datablock, assigned with the Action: without it, 4.4-4.5 key the curves but noth
 moves. F-Curves go into the slot's channelbag where
 `bpy_extras.anim_utils.action_ensure_channelbag_for_slot` exists (5.0+), else into
 `Action.fcurves` (4.2-4.3; on 4.4-4.5 the legacy API's first slot, the only one here).
-A user's Action already on the datablock is kept and pushed onto an NLA track, never
-overwritten. Keys go in with `keyframe_points.add` + `foreach_set`: either a channel's
+A take already playing there is replaced by the new one (see takes.py); a user's Action
+is kept and pushed onto an NLA track, never overwritten. Keys go in with `keyframe_points.add` + `foreach_set`: either a channel's
 sparse Bezier keys (`diffsheg_core.keyframes`: poses with aligned handles) or one key per
 frame. Every key written is typed GENERATED, Blender's type for keys a tool made; any
 other type is the animator's.
@@ -23,6 +23,8 @@ import bpy
 
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.keyframes import Keys, handles
+
+from .takes import assign, is_take
 
 try:
     from bpy_extras.anim_utils import action_ensure_channelbag_for_slot
@@ -54,15 +56,18 @@ def _uses_channelbags(slot) -> bool:
 
 
 def new_action(id_data, name: str, undo: list[Undo]):
-    """Create and assign a new Action on `id_data` (an Object or a shape-key Key);
-    a user's Action already there is pushed to the NLA. Each change is recorded in
-    `undo` (callables restoring the previous state, run in reverse on failure)."""
+    """Create and assign a new Action on `id_data` (an Object or a shape-key Key). A take
+    playing there is replaced (it stays in the file); an Action of the user's is pushed to
+    the NLA. Each change is recorded in `undo` (callables restoring the previous state,
+    run in reverse on failure)."""
     created_anim = id_data.animation_data is None
     anim = id_data.animation_data_create()
     if created_anim:
         undo.append(lambda: id_data.animation_data_clear())
     previous = anim.action
-    if previous is not None:
+    if is_take(previous):
+        undo.append(lambda: assign(id_data, previous))
+    elif previous is not None:
         _push_to_nla(anim, previous, undo)
     action = bpy.data.actions.new(name)
     undo.append(lambda: bpy.data.actions.remove(action))

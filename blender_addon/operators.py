@@ -356,6 +356,28 @@ class DIFFSHEG_OT_face_remove(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (DIFFSHEG_OT_generate, DIFFSHEG_OT_new_seed, DIFFSHEG_OT_face_add, DIFFSHEG_OT_face_remove)
+class DIFFSHEG_OT_use_take(bpy.types.Operator):
+    """Play this take on the character (body and face); the other takes stay in the file"""
+
+    bl_idname = "diffsheg.use_take"
+    bl_label = "Use Take"
+    bl_options = {"REGISTER", "UNDO"}
+
+    take: bpy.props.StringProperty(name="Take")
+
+    def execute(self, context):
+        from . import takes
+
+        try:
+            names = takes.use_take(self.take)
+        except DiffshegError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"playing {self.take}: {', '.join(names)}")
+        return {"FINISHED"}
+
+
+CLASSES = (DIFFSHEG_OT_generate, DIFFSHEG_OT_new_seed, DIFFSHEG_OT_face_add, DIFFSHEG_OT_face_remove,
+           DIFFSHEG_OT_use_take)
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)

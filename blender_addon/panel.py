@@ -26,6 +26,22 @@ def device_label(choice: str) -> str:
     return "GPU (CUDA)" if has_cuda else "CPU (no CUDA GPU found)"
 
 
+def draw_takes(layout, settings) -> None:
+    """One button per take of the panel's character; the one playing is pressed."""
+    from . import takes
+
+    targets = [settings.armature] + [ob.data.shape_keys for ob in settings.face_objects()]
+    names = takes.takes_of(targets)
+    if not names:
+        return
+    current = next((t for t in map(takes.playing, targets) if t is not None), None)
+    col = layout.column(align=True)
+    col.label(text="Takes:")
+    for name in names:
+        col.operator("diffsheg.use_take", text=name, depress=name == current,
+                     icon="PLAY" if name == current else "ACTION").take = name
+
+
 class DIFFSHEG_UL_face_meshes(bpy.types.UIList):
     def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index=0):
         layout.prop(item, "object", text="", emboss=False, icon="MESH_DATA")
@@ -104,6 +120,7 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
         col.prop(s, "set_frame_range")
 
         layout.operator("diffsheg.generate", icon="PLAY_SOUND")
+        draw_takes(layout, s)
         if s.model_label:
             untrained = "UNTRAINED" in s.model_label
             layout.label(text=f"Model: {s.model_label}", icon="ERROR" if untrained else "INFO")

@@ -11,7 +11,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "AudioError", "Cancelled", "CheckpointError", "DiffshegError",
-    "Motion", "Progress", "generate", "__version__",
+    "Motion", "Progress", "generate", "regenerate", "__version__",
 ]
 
 
@@ -20,3 +20,10 @@ def generate(*args, **kwargs) -> Motion:
     from .pipeline import generate as _generate
 
     return _generate(*args, **kwargs)
+
+
+def regenerate(*args, **kwargs) -> Motion:
+    """Generate a range of a motion anew; see `diffsheg_core.pipeline.regenerate`."""
+    from .pipeline import regenerate as _regenerate
+
+    return _regenerate(*args, **kwargs)

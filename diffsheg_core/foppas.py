@@ -25,6 +25,11 @@ schedule index (no noise is added), and the gestures are replaced by its x0; the
 kept as sampled. `refine_skip` scales that pass's gesture skip guidance (see
 `EpsFn`), which brings back the amplitude the denoising takes off.
 
+Any frames and channels of a window can be held too (`Fixed`): they are painted in at
+every step like the overlap, re-noised to the step's level, and are exact at the end.
+`inpaint_range` samples a range of a finished motion anew this way, between the frames
+before it (the known overlap) and after it (held): the animator's "regenerate this range".
+
 The sampler is model-agnostic: it calls `eps_fn(x_t, index)` for a window, where
 `index` is the step in the respaced schedule. `FoppasStream` takes conditioning
 frames as they arrive and returns motion frames as soon as they are final.
@@ -50,6 +55,7 @@ PROPOSAL_STREAM = 0x5EED0F9A0D  # the proposal's generator is seeded with (seed,
 FACE_STREAM = 0xFACE5EED  # the face's generator is seeded with (face_seed, this)
 MAX_CANDIDATES = 16
 SEAM_FRAMES = 5  # frames either side of a seam that best-of-N selection compares
+HOLD_CARRY = 16  # frames at least that a held value's gap is carried into (a pin flows in and out)
 
 class EpsFn(Protocol):
     """(x_t of shape (B, L, D), schedule index) -> predicted noise (B, L, D). Only the
@@ -170,6 +176,19 @@ def plan_windows(n_frames: int, clip_len: int, overlap: int) -> list[tuple[int, 
         start = end - overlap
 
 
+@dataclass(frozen=True)
+class Fixed:
+    """Values a window must pass through: `values` (1, L, D) wherever `mask` (1, L, D) is true."""
+
+    values: np.ndarray
+    mask: np.ndarray
+
+    def paint(self, x: np.ndarray, level: float, noise: np.ndarray) -> np.ndarray:
+        """`x` with the held values put in at noise level `level` (sqrt(1 - abar))."""
+        noisy = float((1 - level ** 2) ** 0.5) * self.values + level * noise
+        return np.where(self.mask, noisy, x).astype(np.float32, copy=False)
+
+
 class Foppas:
     """Samples one window at a time with a fixed schedule, settings and window size."""
 
@@ -191,8 +210,10 @@ class Foppas:
         return jump_schedule(self.config.start_index, self.config.jump_length, self.config.jump_n_sample)
 
     def sample_window(self, eps_fn: EpsFn, length: int, known: Optional[np.ndarray], noise: "Noise",
-                      on_step: Callable[[int, int], None] = lambda step, n: None) -> np.ndarray:
-        """Sample a (1, length, dim) window; `known` (1, overlap, dim) fixes its first frames.
+                      on_step: Callable[[int, int], None] = lambda step, n: None,
+                      fixed: Optional[Fixed] = None) -> np.ndarray:
+        """Sample a (1, length, dim) window; `known` (1, overlap, dim) fixes its first frames,
+        `fixed` any others (painted at every step, exact in the result).
         The proposal draws from its own generator, so the noise of every channel it does not
         cover is the same as without it. A later window is sampled `candidates` times in one
         batch and the one that best continues `known` is kept (see `seam_scores`)."""
@@ -215,20 +236,24 @@ class Foppas:
             eps = eps_fn(x, t_now)
             if known is not None and cfg.carry > 0:
                 eps = carry_overlap(sched, x, t_now, eps, known, cfg.carry, self.gestures)
+            if fixed is not None:
+                eps = carry_fixed(sched, x, t_now, eps, fixed, max(cfg.carry, HOLD_CARRY), self.gestures)
             x, _ = sched.ddim_step(x, t_now, eps, cfg.eta, randn(*x.shape) if cfg.eta > 0 else None)
             if known is not None:
                 level = sched.noise_level_prev(t_now)
                 noisy_known = float((1 - level ** 2) ** 0.5) * known + level * randn(batch, *known.shape[1:])
                 x = self.paint_overlap(x, noisy_known, level)
+            if fixed is not None:
+                x = fixed.paint(x, sched.noise_level_prev(t_now), randn(*x.shape))
             on_step(call, n_calls)
             call += 1
         if batch > 1:
             best = int(np.argmin(seam_scores(x[..., : self.gestures], known[..., : self.gestures])))
             x = x[best: best + 1]
         if cfg.refine is not None:
-            x = self.refine_window(eps_fn, x, known)
+            x = self.refine_window(eps_fn, x, known, fixed)
             on_step(call, n_calls)
-        return x
+        return x if fixed is None else fixed.paint(x, 0.0, x)
 
     def paint_overlap(self, x: np.ndarray, known: np.ndarray, level: float) -> np.ndarray:
         """`x` (B, L, C) with its first frames replaced by `known` (B or 1, n, C), already at
@@ -240,14 +265,18 @@ class Foppas:
             known = known * (1 - ramp) + x[:, :n] * ramp
         return np.concatenate([np.broadcast_to(known, (len(x),) + known.shape[1:]), x[:, n:]], axis=1)
 
-    def refine_window(self, eps_fn: EpsFn, x: np.ndarray, known: Optional[np.ndarray]) -> np.ndarray:
+    def refine_window(self, eps_fn: EpsFn, x: np.ndarray, known: Optional[np.ndarray],
+                      fixed: Optional[Fixed] = None) -> np.ndarray:
         """The finished (B, L, D) window `x` with its gestures replaced by the network's x0
         for it taken as noisy at schedule index `refine`, the known overlap painted back as
         the last step paints it; the face channels are returned as they were. It runs after
         best-of-N has chosen and draws no noise, so the face, the choice and every later
-        window's noise are the same as without it."""
+        window's noise are the same as without it. Held frames (`fixed`) are carried into
+        their neighbours as in the sampling steps."""
         cfg, sched, g = self.config, self.schedule, self.gestures
         eps = eps_fn(x, cfg.refine, refine=True)
+        if fixed is not None:
+            eps = carry_fixed(sched, x, cfg.refine, eps, fixed, max(cfg.carry, HOLD_CARRY), g)
         out = x.copy()
         out[..., :g] = sched.predict_x0(x[..., :g], np.full(len(x), cfg.refine), eps[..., :g])
         if known is not None:
@@ -270,6 +299,47 @@ def carry_overlap(sched: Schedule, x: np.ndarray, index: int, eps: np.ndarray, k
     fade = np.where(k < width, 0.5 * (1.0 + np.cos(np.pi * k / width)), 0.0).astype(np.float32)
     x0[:, :n] = known[..., :c]
     x0[:, n:] += gap * fade.reshape(1, -1, 1)
+    out = eps.copy()
+    out[..., :c] = (a * x[..., :c] - x0) / b
+    return out
+
+
+def carry_fixed(sched: Schedule, x: np.ndarray, index: int, eps: np.ndarray, fixed: Fixed,
+                width: int, channels: int) -> np.ndarray:
+    """`eps` with the x0 of the first `channels` channels of (B, L, D) `x` made to pass
+    through the held values and leave them smoothly. The x0 of held frames is set to their
+    values; at each edge of the held frames (a held frame beside a free one) the gap
+    between the value and the network's x0, and where the frame behind the edge is held
+    too the gap in velocity, are carried into the free frames beyond it: gap + d * velocity
+    gap, weighted 0.5 (1 + cos(pi d / width)) at d frames from the edge (where two edges
+    reach a free frame their weights are shared). So the new frames continue the held ones
+    in position and velocity; replacement alone leaves a jump where a held range begins or
+    at a pin, as `carry_overlap` explains for the overlap."""
+    c, length = channels, x.shape[1]
+    a, b = sched.x0_coefs(np.full(x.shape[0], index), x)
+    x0 = a * x[..., :c] - b * eps[..., :c]
+    held = np.broadcast_to(fixed.mask[..., :c], x0.shape)
+    values = np.broadcast_to(fixed.values[..., :c], x0.shape)
+    gap = np.where(held, values - x0, 0.0)
+    spread, weight = np.zeros_like(x0), np.zeros_like(x0)
+    for step in (1, -1):  # edges whose free side is later (1) or earlier (-1) in time
+        ahead = np.roll(held, -step, axis=1)  # the frame on the free side
+        behind = np.roll(held, step, axis=1)
+        edge_of = slice(0, length - 1) if step == 1 else slice(1, length)
+        edge = np.zeros_like(held)
+        edge[:, edge_of] = held[:, edge_of] & ~ahead[:, edge_of]
+        turn = np.where(behind & edge, gap - np.roll(gap, step, axis=1), 0.0)  # velocity gap, away from the edge
+        if step == 1:
+            turn[:, 0] = 0.0
+        else:
+            turn[:, -1] = 0.0
+        for d in range(1, min(width, length)):
+            w = np.float32(0.5 * (1.0 + np.cos(np.pi * d / width)))
+            src = slice(0, length - d) if step == 1 else slice(d, length)
+            dst = slice(d, length) if step == 1 else slice(0, length - d)
+            spread[:, dst] += w * edge[:, src] * (gap[:, src] + d * turn[:, src])
+            weight[:, dst] += w * edge[:, src]
+    x0 = np.where(held, values, x0 + spread / np.maximum(weight, 1.0))
     out = eps.copy()
     out[..., :c] = (a * x[..., :c] - x0) / b
     return out
@@ -389,6 +459,67 @@ class FoppasStream:
         if not parts:
             return np.zeros((0, self.sampler.dim), np.float32)
         return np.concatenate(parts)
+
+
+def inpaint_range(sampler: Foppas, make_eps_fn: Callable[[np.ndarray], EpsFn], cond: np.ndarray,
+                  motion: np.ndarray, start: int, end: int, seed: int, hold: Optional[np.ndarray] = None,
+                  progress: Optional[ProgressCallback] = None, cancel: Optional[threading.Event] = None,
+                  face_seed: Optional[int] = None) -> np.ndarray:
+    """Frames [start, end) of the (T, D) normalised `motion` sampled anew for the (T, F)
+    conditioning `cond`, continuing the `overlap` frames before the range and joining the
+    `overlap` frames after it. Windows run left to right over the range with its context;
+    each continues what is final before it (FOPPAS's known overlap) and holds the frames
+    after the range, and wherever the (T, D) bool `hold` is set (a kept face, pins), at
+    `motion`'s values. Returns the (end - start, D) new frames."""
+    n, length, overlap = len(motion), sampler.clip_len, sampler.config.overlap
+    if not 0 <= start < end <= n or len(cond) != n:
+        raise DiffshegError(f"frames {start}-{end} are not a range of the {n}-frame motion")
+    s0, e0 = max(0, start - max(overlap, 1)), min(n, end + max(overlap, 1))
+    work = motion[s0:e0].astype(np.float32, copy=True)
+    held = np.zeros(work.shape, dtype=bool) if hold is None else hold[s0:e0].copy()
+    held[end - s0:] = True
+    held[: start - s0] = True
+    width = max(sampler.config.carry, HOLD_CARRY)
+    pins = np.flatnonzero(held[: end - s0, : sampler.gestures].any(axis=1))
+    windows = _range_windows(e0 - s0, start - s0, length, overlap, pins, width)
+    noise = Noise(seed, face_seed, sampler.gestures)
+    done = start - s0
+    for w, (a, b) in enumerate(windows):
+        n_known = max(0, done - a) if w else 0  # the first window holds the left context as it holds the right
+
+        def on_step(step: int, n_steps: int, w=w) -> None:
+            check_cancel(cancel)
+            if progress is not None:
+                progress(Progress(clip=w, n_clips=len(windows), step=step, n_steps=n_steps))
+
+        window = sampler.sample_window(make_eps_fn(cond[None, s0 + a: s0 + b]), b - a,
+                                       work[None, a: a + n_known] if n_known else None, noise, on_step,
+                                       Fixed(work[None, a:b], held[None, a:b]))
+        stop = min(b, end - s0)
+        work[a + n_known: stop] = np.where(held[a + n_known: stop], work[a + n_known: stop],
+                                           window[0, n_known: stop - a])
+        done = b
+    return work[start - s0: end - s0]
+
+
+def _range_windows(span: int, done: int, length: int, overlap: int, pins: np.ndarray = (),
+                   lead: int = 0) -> list[tuple[int, int]]:
+    """Windows over `span` frames whose first `done` (the left context) are final: the last
+    window, at full length where the span allows, holds the range's end and the frames
+    after it; the windows before it reach `overlap` frames into it. A window before it ends
+    early where the next would begin fewer than `lead` free frames before a pin (frames in
+    `pins`), so that the motion can turn towards the pin in the window that holds it."""
+    last = (max(0, span - length), span)
+    head_end = last[0] + overlap
+    windows, a = [], 0
+    while done < head_end:
+        b = min(a + length, head_end)
+        late = [p for p in pins if b <= p < b + lead and p - lead > done]
+        if late and b < head_end:
+            b = min(late) - lead
+        windows.append((a, b))
+        a, done = b - overlap, b
+    return windows + [last]
 
 
 def check_seed(seed) -> int:

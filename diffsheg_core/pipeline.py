@@ -9,7 +9,7 @@ are the same for both.
 from __future__ import annotations
 
 import threading
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import Callable, Iterator, Optional, Union
@@ -23,7 +23,7 @@ from .audio import (MEL_RATE, PIECE_SECONDS, Audio, AudioFile, SpeechEncoding, r
 from .checkpoints import ModelBundle, load_model
 from .diffusion import Schedule
 from .errors import DiffshegError
-from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, with_overrides
+from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, inpaint_range, with_overrides
 from .guidance import Guidance, step_eps
 from .motion import Motion
 from .phonetic import PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel, stack_posteriors
@@ -314,7 +314,13 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     normalised = np.concatenate(parts + [stream.finish()])
     del parts  # a long take's motion is held once, not twice
     check_finite(bundle, normalised)
-    return to_motion(bundle, normalised, meta={
+    return to_motion(bundle, normalised, meta=generation_meta(bundle, s, config, network, speech))
+
+
+def generation_meta(bundle: ModelBundle, s: GenerateSettings, config: FoppasConfig, network,
+                    speech: Union[Audio, AudioFile]) -> dict:
+    """What a Motion records of how it was made."""
+    return {
         "model_id": bundle.model_id, "trained": bundle.trained, "seed": s.seed, "face_seed": s.face_seed,
         "audio_file": speech.path, "sample_rate": speech.sample_rate,
         **style_meta(bundle, s.style, s.style_guidance),
@@ -326,7 +332,81 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
         "clip_len": bundle.config.clip_len, "backend": network.name,
         "warnings": list(getattr(speech, "notes", [])),
         "device": str(network.device), "software": f"diffsheg_core {__version__}",
-    })
+    }
+
+
+@dataclass(frozen=True)
+class Pin:
+    """A pose the regenerated motion passes through: `joint`'s rotation (axis-angle, in its
+    parent's frame, as Motion holds it) at `frame` of the motion."""
+
+    frame: int
+    joint: str
+    rotation: tuple[float, float, float]
+
+
+def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = None, *, start: int, end: int,
+               settings: Optional[GenerateSettings] = None, keep_face: bool = False, pins: tuple[Pin, ...] = (),
+               sampling: Optional[FoppasConfig] = None, progress: Optional[ProgressCallback] = None,
+               cancel: Optional[threading.Event] = None, **options) -> Motion:
+    """`motion` (made from `audio` by a model of its layout) with frames [start, end)
+    generated anew with other `settings` or options (a seed, a style): the frames before
+    and after the range are held and the sampler inpaints the range against both
+    (`foppas.inpaint_range`). Every frame outside the range is returned bit for bit; with
+    `keep_face` the face inside it too. `pins` are poses the new motion passes through."""
+    s = replace(settings or GenerateSettings(), **options)
+    bundle = s.model if isinstance(s.model, ModelBundle) else load_model(s.model)
+    layout = bundle.layout
+    if motion.rig != layout.name or motion.fps != bundle.config.fps:
+        raise DiffshegError(f"this motion is {motion.rig} at {motion.fps:g} fps, but model {bundle.model_id} "
+                            f"makes {layout.name} at {bundle.config.fps:g} fps: regenerate with the model "
+                            "that made it")
+    if isinstance(start, bool) or isinstance(end, bool) or not 0 <= int(start) < int(end) <= motion.n_frames:
+        raise DiffshegError(f"the range to regenerate, frames {start} to {end}, must lie within the motion's "
+                            f"{motion.n_frames} frames and hold at least one frame")
+    network = open_network(bundle, s.backend, s.device, s.precision, s.threads)
+    speech = open_speech(audio, sample_rate)
+    if n_motion_frames(speech, bundle.config.fps) != motion.n_frames:
+        raise DiffshegError(f"the audio gives {n_motion_frames(speech, bundle.config.fps)} frames of motion, the "
+                            f"motion has {motion.n_frames}: regenerate with the audio it was made from")
+    config = with_overrides(sampling or bundle.sampling, steps=s.steps, overlap=s.overlap, candidates=s.candidates)
+    sampler, make_eps_fn = build_sampling(bundle, network, config, s.style, s.guidance, s.skip_guidance,
+                                          s.style_guidance)
+    cond = np.concatenate(list(speech_chunks(bundle, network, speech)))
+    normalised = bundle.normalise(layout.join(motion.rotations, motion.face)).astype(np.float32)
+    hold = np.zeros(normalised.shape, dtype=bool)
+    if keep_face:
+        hold[start:end, layout.gesture_dim:] = True
+    for pin in pins:
+        channels = _pin_channels(layout, pin, start, end)
+        rotation = np.array(pin.rotation, dtype=np.float32)
+        normalised[pin.frame, channels] = (rotation - bundle.mean[channels]) / bundle.std[channels]
+        hold[pin.frame, channels] = True
+    new = inpaint_range(sampler, make_eps_fn, cond, normalised, start, end, s.seed, hold, progress, cancel,
+                        face_seed=s.face_seed)
+    check_finite(bundle, new)
+    part = to_motion(bundle, new, meta={})
+    rotations, face = motion.rotations.copy(), motion.face.copy()
+    rotations[start:end] = part.rotations
+    if not keep_face:
+        face[start:end] = part.face
+    record = {"start": int(start), "end": int(end), "keep_face": keep_face, "pins": len(pins),
+              **generation_meta(bundle, s, config, network, speech)}
+    return replace(motion, rotations=rotations, face=face,
+                   meta={**motion.meta, "regenerated": list(motion.meta.get("regenerated", [])) + [record]})
+
+
+def _pin_channels(layout, pin: Pin, start: int, end: int) -> np.ndarray:
+    """The model channels of a pin's joint; a pin outside the range or on a joint the
+    model does not move raises DiffshegError."""
+    if pin.joint not in layout.gesture_joints:
+        raise DiffshegError(f"pin on '{pin.joint}': the model does not move that joint (it moves "
+                            f"{', '.join(layout.gesture_joints[:4])}, ...)")
+    if not start <= pin.frame < end:
+        raise DiffshegError(f"pin at frame {pin.frame} on {pin.joint} lies outside the range {start}-{end} "
+                            "being regenerated: only the range is generated anew")
+    j = layout.gesture_joints.index(pin.joint)
+    return np.arange(3 * j, 3 * j + 3)
 
 
 def check_finite(bundle: ModelBundle, normalised: np.ndarray) -> None:

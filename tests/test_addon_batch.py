@@ -56,7 +56,7 @@ def test_folder_without_render_saves_keyed_scenes(clips, scene_blend, tmp_path):
         bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "saved" / f"{stem}.blend"))
         scene = bpy.context.scene
         ob = scene.objects["2_scott_0_1_1"]
-        assert ob.animation_data.action.name == stem
+        assert ob.animation_data.action.name == f"{stem} take 1"
         curves = fcurves_of(ob)
         assert len(curves) == 3 * 47  # the BVH importer makes Euler bones
         assert curves[0].keyframe_points[-1].co[0] == round(seconds * 12)
