@@ -14,7 +14,7 @@ from addon_fixtures import REPO, append_face, bpy, cut_speech, import_beat_armat
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 
 import diffsheg_core
-from blender_addon.bake import MAX_FRAME
+from blender_addon.bake import MAX_FRAME, MIN_FRAME, check_frames
 from blender_addon.preset import load_preset
 from blender_addon.properties import CUSTOM_PRESET
 from diffsheg_core.errors import DiffshegError
@@ -65,6 +65,13 @@ def test_a_start_frame_beyond_blenders_range_is_refused(speech, monkeypatch):
         pytest.skip("this Blender's start frame property stops short of its frame range")
     with pytest.raises(RuntimeError, match="outside Blender's frames"):
         bpy.ops.diffsheg.generate()
+
+
+@pytest.mark.parametrize("start,frames,allowed", [(MIN_FRAME - 1, 1, f"{MIN_FRAME} to {MAX_FRAME}"),
+                                                   (MAX_FRAME - 10, 100, f"{MIN_FRAME} to {MAX_FRAME - 99}")])
+def test_a_start_frame_outside_blenders_range_is_told_the_range_it_may_take(start, frames, allowed):
+    with pytest.raises(DiffshegError, match=f"outside Blender's frames .*: choose a start frame from {allowed}$"):
+        check_frames(start, frames)
 
 
 def test_a_preset_without_the_models_layout_is_refused_before_generating(speech, tmp_path, monkeypatch):
