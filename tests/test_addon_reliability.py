@@ -10,11 +10,12 @@ import sys
 
 import pytest
 
-from addon_fixtures import REPO, append_face, bpy, cut_speech, import_beat_armature, reset_scene, scene_state
+from addon_fixtures import (HAS_AUDIO, REPO, append_face, bpy, cut_speech, import_beat_armature, mocap_motion,
+                            reset_scene, scene_state)
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 
 import diffsheg_core
-from blender_addon.bake import MAX_FRAME, MIN_FRAME, check_frames
+from blender_addon.bake import MAX_FRAME, MIN_FRAME, BakeOptions, bake_motion, check_frames
 from blender_addon.preset import load_preset
 from blender_addon.properties import CUSTOM_PRESET
 from diffsheg_core.errors import DiffshegError
@@ -72,6 +73,23 @@ def test_a_start_frame_beyond_blenders_range_is_refused(speech, monkeypatch):
 def test_a_start_frame_outside_blenders_range_is_told_the_range_it_may_take(start, frames, allowed):
     with pytest.raises(DiffshegError, match=f"outside Blender's frames .*: choose a start frame from {allowed}$"):
         check_frames(start, frames)
+
+
+def test_with_every_sequencer_channel_taken_the_sound_strip_says_how_to_free_one(speech):
+    if not HAS_AUDIO:
+        pytest.skip("this Blender build has no audio support: no sound strips")
+    from blender_addon.sound import CHANNELS, _strips
+
+    scene = reset_scene()
+    strips = _strips(scene.sequence_editor_create())
+    for channel in range(1, CHANNELS + 1):
+        strips.new_sound(f"busy {channel}", str(speech), channel=channel, frame_start=1)
+    armature = import_beat_armature()
+    before = scene_state(scene)
+    with pytest.raises(DiffshegError, match="all 128 channels of the sequencer are in use at frame 1 or later. "
+                                            "Free one by deleting or moving a strip in the Video Sequencer"):
+        bake_motion(scene, mocap_motion(frames=30), str(speech), BakeOptions(armature=armature))
+    assert scene_state(scene) == before
 
 
 def test_a_preset_without_the_models_layout_is_refused_before_generating(speech, tmp_path, monkeypatch):
