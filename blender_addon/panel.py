@@ -107,7 +107,7 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
             untrained = "UNTRAINED" in s.model_label
             layout.label(text=f"Model: {s.model_label}", icon="ERROR" if untrained else "INFO")
         if s.last_report:
-            layout.label(text=s.last_report)
+            layout.label(text=s.last_report, icon="ERROR" if s.last_failed else "NONE")
 
 
 CLASSES = (DIFFSHEG_UL_face_meshes, DIFFSHEG_PT_generate)

@@ -147,6 +147,7 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
     model_label: StringProperty(name="Model used", default="",
                                 description="the model of the last generation")
     last_report: StringProperty(default="")
+    last_failed: BoolProperty(default=False, description="the last Generate keyed nothing (last_report says why)")
 
     def face_objects(self) -> list:
         return [item.object for item in self.face_meshes if item.object is not None]

@@ -75,6 +75,14 @@ def test_a_start_frame_outside_blenders_range_is_told_the_range_it_may_take(star
         check_frames(start, frames)
 
 
+def test_a_failed_generate_replaces_the_report_of_the_last_run(tmp_path, monkeypatch):
+    scene = reset_scene()
+    settings = _configure(scene, tmp_path, None, None)  # a folder as the audio
+    settings.last_report, settings.last_failed = "keyed 72 frames (13392 keys) into speech", False
+    _refused(scene, "is a folder, not an audio file", monkeypatch)
+    assert settings.last_failed and "is a folder, not an audio file" in settings.last_report
+
+
 def test_with_every_sequencer_channel_taken_the_sound_strip_says_how_to_free_one(speech):
     if not HAS_AUDIO:
         pytest.skip("this Blender build has no audio support: no sound strips")
