@@ -83,6 +83,28 @@ def test_a_failed_generate_replaces_the_report_of_the_last_run(tmp_path, monkeyp
     assert settings.last_failed and "is a folder, not an audio file" in settings.last_report
 
 
+def test_style_names_that_are_not_text_get_a_menu_and_generate_says_why(speech, tmp_path):
+    """The style menu (asked on every redraw) never raises: it offers the style indices;
+    Generate names the problem, in the status bar and in the panel."""
+    from blender_addon.properties import _style_items
+    from diffsheg_core.checkpoints import DEFAULT_WEIGHTS, read_safetensors, write_safetensors
+
+    meta, tensors = read_safetensors(DEFAULT_WEIGHTS, "")
+    info = {**json.loads(meta["info"]), "style_names": [1, 2, 3]}
+    model = write_safetensors(tensors, {**meta, "info": json.dumps(info)}, tmp_path / "numbered.safetensors")
+    scene = reset_scene()
+    settings = _configure(scene, speech, import_beat_armature(), append_face())
+    settings.model_path = str(model)
+    assert [label for _, label, _ in _style_items(settings, bpy.context)] == [
+        "Default", "Style 0", "Style 1", "Style 2"]
+    before = scene_state(scene)
+    with pytest.raises(RuntimeError, match=r"numbered.safetensors: its style names \[1, 2, 3\] are not 3 different "
+                                           "names") as err:
+        bpy.ops.diffsheg.generate()
+    assert "Traceback" not in str(err.value) and scene_state(scene) == before
+    assert settings.last_failed and "its style names [1, 2, 3]" in settings.last_report
+
+
 def test_with_every_sequencer_channel_taken_the_sound_strip_says_how_to_free_one(speech):
     if not HAS_AUDIO:
         pytest.skip("this Blender build has no audio support: no sound strips")
