@@ -113,6 +113,26 @@ def test_legacy_zip_has_the_addon_in_a_folder_and_no_wheels(built):
     assert not [n for n in names if n.endswith(".whl") or _tooling_or_cache(n)]
 
 
+@pytest.fixture(scope="module")
+def shipped_core(built, tmp_path_factory):
+    """The lib/ folder of the linux-x64 extension: the diffsheg_core users get."""
+    folder = tmp_path_factory.mktemp("shipped")
+    with zipfile.ZipFile(built["linux-x64"]) as zf:
+        zf.extractall(folder, [n for n in zf.namelist() if n.startswith("lib/")])
+    return folder / "lib"
+
+
+@pytest.mark.parametrize("command", ["train", "evaluate", "train-autoencoder", "train-phonetic", "export-onnx"])
+def test_the_shipped_core_says_where_the_tooling_commands_are(shipped_core, command, tmp_path):
+    # -S: no site-packages, where the checkout's editable install would bring the missing tooling back
+    proc = subprocess.run([sys.executable, "-S", "-m", "diffsheg_core", command, "--help"], cwd=tmp_path,
+                          env=dict(os.environ, PYTHONPATH=str(shipped_core)), capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.startswith(f"error: '{command}' needs the tooling of diffsheg_core")
+    assert "no module named 'diffsheg_core." in proc.stderr and 'pip install -e ".[train]" (see README)' in proc.stderr
+
+
 def test_source_manifest_stays_the_template():
     text = (REPO / "blender_addon" / "blender_manifest.toml").read_text()
     manifest = tomllib.loads(text)
