@@ -4,6 +4,7 @@ register the panel and the operator, using the diffsheg_core bundled in the zip.
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import importlib.util
 import json
@@ -111,6 +112,15 @@ def test_legacy_zip_has_the_addon_in_a_folder_and_no_wheels(built):
     assert {"diffsheg/__init__.py", "diffsheg/batch_render.py", "diffsheg/lib/diffsheg_core/__init__.py"} <= names
     assert "diffsheg/blender_manifest.toml" not in names
     assert not [n for n in names if n.endswith(".whl") or _tooling_or_cache(n)]
+
+
+def test_legacy_zip_claims_the_oldest_blender_it_runs_on(built):
+    """Blender before 4.2 reads bl_info (4.2+ the manifest): the legacy add-on runs from 3.4
+    on (checked in Debian's Blender 3.4, whose Python lacks numpy)."""
+    source = zipfile.ZipFile(built["legacy"]).read("diffsheg/__init__.py").decode()
+    bl_info = next(ast.literal_eval(node.value) for node in ast.parse(source).body
+                   if isinstance(node, ast.Assign) and getattr(node.targets[0], "id", None) == "bl_info")
+    assert bl_info["blender"] == (3, 4, 0)
 
 
 @pytest.fixture(scope="module")
