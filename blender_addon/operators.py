@@ -18,7 +18,6 @@ import bpy
 from diffsheg_core.errors import DiffshegError
 
 from . import preset
-from .bake import check_frames
 from .preferences import INSTALL_GPU_HINT, RUNTIME, missing_runtime, runtime_fix, torch_installed
 from .properties import CUSTOM_PRESET, DEFAULT_STYLE, NO_MIX
 
@@ -140,6 +139,8 @@ def check_ready(settings) -> tuple:
     options = bake_options(settings)
     if options.armature is None and not options.face_meshes:
         raise DiffshegError("no target: choose an armature and/or a face mesh in the panel")
+    from .bake import check_frames  # numpy: checked above
+
     check_frames(options.start_frame)
     from diffsheg_core.checkpoints import stored_layout  # the runtime's packages: checked above
 

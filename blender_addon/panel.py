@@ -6,7 +6,7 @@ import sys
 
 import bpy
 
-from .preferences import missing_runtime, runtime_fix, torch_installed
+from .preferences import draw_problems, runtime_problems, torch_installed
 from .properties import CUSTOM_PRESET, NO_MIX
 
 
@@ -41,12 +41,9 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         s = context.scene.diffsheg
-        missing = missing_runtime()
-        if missing:
-            box = layout.box()
-            box.label(text=f"Missing Python packages: {', '.join(missing)}", icon="ERROR")
-            fix = runtime_fix()
-            box.label(text=fix[0].upper() + fix[1:])
+        problems = runtime_problems()
+        if problems:
+            draw_problems(layout.box(), problems)
 
         layout.prop(s, "audio_path")
         layout.prop(s, "armature")
