@@ -2,7 +2,8 @@
 
 A client of `diffsheg_core` (bundled beside this package in the installable zip,
 under lib/): generation runs through `diffsheg_core.generate`; this package matches
-rigs, keys the result and adds the sound. See blender_manifest.toml for 4.2+.
+rigs, keys the result and adds the sound. `bl_info` describes the legacy add-on (the zip
+for Blender 3.4 to 4.1); 4.2+ read blender_manifest.toml instead.
 """
 
 import sys
@@ -12,7 +13,7 @@ bl_info = {
     "name": "DiffSHEG: Generate from audio",
     "author": "diffsheg_core contributors",
     "version": (0, 1, 0),
-    "blender": (4, 2, 0),
+    "blender": (3, 4, 0),  # the oldest Blender it runs on (Debian's 3.4, Python 3.11 without numpy)
     "location": "View3D > Sidebar > DiffSHEG",
     "description": "Co-speech body, hand, head and face animation from a speech recording (DiffSHEG)",
     "category": "Animation",

@@ -72,8 +72,8 @@ def check_frames(start: int, n_frames: int = 1) -> None:
     last = start + n_frames - 1
     if start < MIN_FRAME or last > MAX_FRAME:
         raise DiffshegError(f"start frame {start} with {n_frames} frames of motion ends at frame {last}, "
-                            f"outside Blender's frames {MIN_FRAME} to {MAX_FRAME}: choose an earlier "
-                            "start frame")
+                            f"outside Blender's frames {MIN_FRAME} to {MAX_FRAME}: choose a start frame "
+                            f"from {MIN_FRAME} to {MAX_FRAME - n_frames + 1}")
 
 
 def check_local(objects) -> None:

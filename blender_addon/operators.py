@@ -18,7 +18,6 @@ import bpy
 from diffsheg_core.errors import DiffshegError
 
 from . import preset
-from .bake import check_frames
 from .preferences import INSTALL_GPU_HINT, RUNTIME, missing_runtime, runtime_fix, torch_installed
 from .properties import CUSTOM_PRESET, DEFAULT_STYLE, NO_MIX
 
@@ -141,6 +140,8 @@ def check_ready(settings) -> tuple:
     options = bake_options(settings)
     if options.armature is None and not options.face_meshes:
         raise DiffshegError("no target: choose an armature and/or a face mesh in the panel")
+    from .bake import check_frames  # numpy: checked above
+
     check_frames(options.start_frame)
     from diffsheg_core.checkpoints import stored_layout  # the runtime's packages: checked above
 
@@ -179,7 +180,7 @@ def apply_result(context, settings, motion, path: Path, options):
 
     result = bake_motion(context.scene, motion, str(path), options)
     settings.model_label = model_label(motion.meta)
-    settings.last_report = summary(result)
+    settings.last_report, settings.last_failed = summary(result), False
     return result
 
 
@@ -248,17 +249,23 @@ class DIFFSHEG_OT_generate(bpy.types.Operator):
                 raise job.error
             result = apply_result(context, settings, job.motion, path, options)
         except Exception as exc:
-            self.report({"ERROR"}, error_message(exc))
-            return {"CANCELLED"}
+            return self._failed(context, error_message(exc))
         self.report({"INFO"}, summary(result))
         return {"FINISHED"}
+
+    def _failed(self, context, message: str, level: str = "ERROR") -> set[str]:
+        """Report a run that keyed nothing, in the status bar and in the panel in place of
+        the previous run's report."""
+        settings = context.scene.diffsheg
+        settings.last_report, settings.last_failed = message, True
+        self.report({level}, message)
+        return {"CANCELLED"}
 
     def invoke(self, context, event):
         try:
             settings, path, options, generation = self._prepare(context)
         except Exception as exc:  # a message in the status bar, never a traceback
-            self.report({"ERROR"}, error_message(exc))
-            return {"CANCELLED"}
+            return self._failed(context, error_message(exc))
         self._path, self._options = path, options
         self._job = GenerationJob(path, generation).start()
         wm = context.window_manager
@@ -283,15 +290,12 @@ class DIFFSHEG_OT_generate(bpy.types.Operator):
         self._finish(context)
         if job.error is not None:
             if job.cancel.is_set():
-                self.report({"WARNING"}, "generation cancelled: the scene is unchanged")
-            else:
-                self.report({"ERROR"}, error_message(job.error))
-            return {"CANCELLED"}
+                return self._failed(context, "generation cancelled: the scene is unchanged", "WARNING")
+            return self._failed(context, error_message(job.error))
         try:
             result = apply_result(context, context.scene.diffsheg, job.motion, self._path, self._options)
         except Exception as exc:
-            self.report({"ERROR"}, error_message(exc))
-            return {"CANCELLED"}
+            return self._failed(context, error_message(exc))
         self.report({"INFO"}, summary(result))
         return {"FINISHED"}
 

@@ -6,7 +6,7 @@ import sys
 
 import bpy
 
-from .preferences import missing_runtime, runtime_fix, torch_installed
+from .preferences import draw_problems, runtime_problems, torch_installed
 from .properties import CUSTOM_PRESET, NO_MIX
 
 
@@ -57,12 +57,9 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         s = context.scene.diffsheg
-        missing = missing_runtime()
-        if missing:
-            box = layout.box()
-            box.label(text=f"Missing Python packages: {', '.join(missing)}", icon="ERROR")
-            fix = runtime_fix()
-            box.label(text=fix[0].upper() + fix[1:])
+        problems = runtime_problems()
+        if problems:
+            draw_problems(layout.box(), problems)
 
         layout.prop(s, "audio_path")
         layout.prop(s, "armature")
@@ -125,7 +122,7 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
             untrained = "UNTRAINED" in s.model_label
             layout.label(text=f"Model: {s.model_label}", icon="ERROR" if untrained else "INFO")
         if s.last_report:
-            layout.label(text=s.last_report)
+            layout.label(text=s.last_report, icon="ERROR" if s.last_failed else "NONE")
 
 
 CLASSES = (DIFFSHEG_UL_face_meshes, DIFFSHEG_PT_generate)

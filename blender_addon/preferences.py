@@ -5,7 +5,9 @@ optional GPU support.
   extension they come with the zip, as wheels Blender installs offline (one zip per
   platform, see build_addon.py): the preferences only say whether they import, and that
   installing the zip of this platform again brings back any that is missing. The legacy
-  add-on (Blender before 4.2) keeps a button that installs them with pip.
+  add-on (Blender before 4.2) keeps a button that installs them with pip. numpy comes
+  with Blender, except with the Blenders that Linux distributions build on the system's
+  Python (Debian's 3.4): there the same button installs it too.
 - GPU support: torch, optional, for the official DiffSHEG checkpoints and NVIDIA GPUs. A
   button runs pip (in a background thread, its output streamed to the preferences) into
   Blender's user `scripts/modules` folder, which Blender puts on `sys.path`; torch comes
@@ -13,7 +15,7 @@ optional GPU support.
   version Blender ships so it is not replaced.
 
 Nothing here imports those packages: their presence is looked up with `find_spec`, so the
-add-on registers with nothing but the standard library, numpy and bpy.
+add-on registers with nothing but the standard library and bpy.
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ RUNTIME: dict[str, str] = {
     "safetensors": "safetensors>=0.4",
 }
 TORCH_REQUIREMENT = "torch>=2.1"
+NUMPY_REQUIREMENT = "numpy>=1.26"  # where Blender's Python lacks it (else Blender's own is kept)
+NUMPY_MISSING = "This Blender's Python lacks numpy (a Linux distribution's build; Blender's own has it)"
 
 TORCH_INDEXES: dict[str, str | None] = {
     "CPU": "https://download.pytorch.org/whl/cpu",
@@ -66,8 +70,14 @@ def addon_version() -> str:
 
 
 def missing_runtime() -> list[str]:
-    """Import names of the runtime packages Blender's Python cannot find."""
-    return [name for name in RUNTIME if importlib.util.find_spec(name) is None]
+    """Import names of the runtime packages Blender's Python cannot find, numpy first."""
+    return [name for name in ("numpy", *RUNTIME) if importlib.util.find_spec(name) is None]
+
+
+def pip_installs_runtime() -> bool:
+    """The runtime comes from the "Install dependencies" button: in the legacy add-on, and
+    wherever numpy is missing (no extension zip brings it)."""
+    return not is_extension() or importlib.util.find_spec("numpy") is None
 
 
 def torch_installed() -> bool:
@@ -76,10 +86,26 @@ def torch_installed() -> bool:
 
 def runtime_fix() -> str:
     """What brings the runtime packages back, for this kind of install."""
-    if is_extension():
+    if not pip_installs_runtime():
         return (f"they come with the extension: install diffsheg-{addon_version()}-{blender_platform()}.zip "
                 "again (Edit > Preferences > Get Extensions > Install from Disk)")
     return "install them with Edit > Preferences > Add-ons > DiffSHEG > Install dependencies"
+
+
+def runtime_problems() -> list[str]:
+    """What the panel and the preferences say while runtime packages are missing ([]: none)."""
+    missing = missing_runtime()
+    if not missing:
+        return []
+    fix = runtime_fix()
+    return [f"Missing Python packages: {', '.join(missing)}", *([NUMPY_MISSING] if "numpy" in missing else []),
+            fix[0].upper() + fix[1:]]
+
+
+def draw_problems(layout, lines: list[str]) -> None:
+    """`lines` as labels, the first marked as an error."""
+    for i, line in enumerate(lines):
+        layout.label(text=line, icon="ERROR" if i == 0 else "NONE")
 
 
 def modules_dir(create: bool = True) -> Path:
@@ -99,13 +125,17 @@ def _pip_base(target: Path) -> list[str]:
 
 
 def _numpy_pin() -> str:
-    import numpy
-
+    """Blender's numpy, so pip keeps it; NUMPY_REQUIREMENT where there is none."""
+    try:
+        import numpy
+    except ImportError:
+        return NUMPY_REQUIREMENT
     return f"numpy=={numpy.__version__}"
 
 
 def runtime_pip_commands(target: Path) -> list[list[str]]:
-    """The pip run installing the runtime packages into `target` (the legacy add-on)."""
+    """The pip run installing the runtime packages into `target` (the legacy add-on, or
+    where numpy is missing)."""
     return [_pip_base(target) + list(RUNTIME.values()) + [_numpy_pin()]]
 
 
@@ -219,8 +249,9 @@ class _PipOperator:
 
 
 class DIFFSHEG_OT_install_dependencies(_PipOperator, bpy.types.Operator):
-    """Install onnxruntime, soundfile, soxr and safetensors into Blender's Python with pip
-    (the legacy add-on; the 4.2+ extension brings them with its zip)"""
+    """Install onnxruntime, soundfile, soxr and safetensors (and numpy where Blender's Python
+    lacks it) into Blender's Python with pip (the legacy add-on; the 4.2+ extension brings them
+    with its zip)"""
 
     bl_idname = "diffsheg.install_dependencies"
     bl_label = "Install dependencies"
@@ -254,13 +285,11 @@ class DIFFSHEG_AP_preferences(bpy.types.AddonPreferences):
     def draw(self, context):
         layout = self.layout
         box = layout.box()
-        missing = missing_runtime()
-        if missing:
-            box.label(text=f"Missing Python packages: {', '.join(missing)}", icon="ERROR")
-            box.label(text=runtime_fix()[0].upper() + runtime_fix()[1:])
-        else:
+        problems = runtime_problems()
+        draw_problems(box, problems)
+        if not problems:
             box.label(text="Generation is ready: " + ", ".join(RUNTIME) + " are installed", icon="CHECKMARK")
-        if not is_extension():
+        if pip_installs_runtime():
             box.operator(DIFFSHEG_OT_install_dependencies.bl_idname, icon="IMPORT")
 
         box = layout.box()

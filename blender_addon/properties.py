@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from functools import lru_cache
+
 import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        IntProperty, PointerProperty, StringProperty)
@@ -34,27 +37,41 @@ def _preset_items(_self, _context):
 
 
 _style_items_cache: dict = {}
-OFFICIAL_STYLES = 30  # the official BEAT checkpoint's speakers (SHOW has 4)
 NO_MIX = "__none__"
 DEFAULT_STYLE = "__default__"
 
 
 def style_names(settings) -> list[str]:
-    """The style choices of the panel's model: its style names, else indices (official
-    checkpoints: one per speaker)."""
+    """The style choices of the panel's model: its style names, else its style indices
+    (official checkpoints: one per speaker)."""
     raw = settings.model_path.strip()
     path = bpy.path.abspath(raw) if raw else None
-    from diffsheg_core.checkpoints import stored_style_names
+    return list(_model_styles(path, _modified(path)))
 
-    return stored_style_names(path) or [str(i) for i in range(OFFICIAL_STYLES if raw else 1)]
+
+def _modified(path: str | None) -> int:
+    """The file's modification time (ns): a changed file is read again."""
+    try:
+        return os.stat(path).st_mtime_ns if path else 0
+    except OSError:
+        return -1
+
+
+@lru_cache(maxsize=16)
+def _model_styles(path: str | None, _modified_ns: int) -> tuple[str, ...]:
+    """Read once per path and version of the file: the menu asks on every redraw."""
+    from diffsheg_core.checkpoints import stored_style_count, stored_style_names
+
+    names = stored_style_names(path)
+    return tuple(names or (str(i) for i in range(stored_style_count(path) or 1)))
 
 
 def _style_items(self, _context):
     # Blender keeps only the strings of the last returned list alive: keep a reference.
     try:
         names = style_names(self)
-    except ImportError:  # the runtime packages are missing: the panel says so
-        names = ["0"]
+    except Exception:  # a menu that raises fails every redraw: the runtime packages are
+        names = ["0"]  # missing (the panel says so) or the file is unusable (Generate says why)
     _style_items_cache["style"] = [(DEFAULT_STYLE, "Default", "the model's default style")] + [
         (n, n if not n.isdigit() else f"Style {n}", "") for n in names]
     return _style_items_cache["style"]
@@ -151,6 +168,7 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
     model_label: StringProperty(name="Model used", default="",
                                 description="the model of the last generation")
     last_report: StringProperty(default="")
+    last_failed: BoolProperty(default=False, description="the last Generate keyed nothing (last_report says why)")
 
     def face_objects(self) -> list:
         return [item.object for item in self.face_meshes if item.object is not None]

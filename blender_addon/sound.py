@@ -6,6 +6,8 @@ from pathlib import Path
 
 import bpy
 
+from diffsheg_core.errors import DiffshegError
+
 from .keying import Undo
 
 NO_AUDIO_NOTE = "no sound strip: this Blender build has no audio support (e.g. the bpy 4.x module from PyPI)"
@@ -22,6 +24,7 @@ def _strips(editor):
     return editor.strips if hasattr(editor, "strips") else editor.sequences
 
 
+CHANNELS = 128  # the sequencer's channels
 MARK = "diffsheg_audio"  # custom property on the strips this add-on adds: the audio file they play
 
 
@@ -49,7 +52,11 @@ def add_sound_strip(scene, audio_path: str, frame_start: int, undo: list[Undo]):
         undo.append(lambda: scene.sequence_editor_clear())
     strips = _strips(editor)
     used = {s.channel for s in strips if s.frame_final_end > frame_start}
-    channel = next(c for c in range(1, 129) if c not in used)
+    channel = next((c for c in range(1, CHANNELS + 1) if c not in used), None)
+    if channel is None:
+        raise DiffshegError(f"no channel for the sound strip: all {CHANNELS} channels of the sequencer are in "
+                            f"use at frame {frame_start} or later. Free one by deleting or moving a strip in the "
+                            "Video Sequencer, or turn off 'Add sound strip'")
     strip = strips.new_sound(Path(audio_path).stem, str(audio_path), channel=channel, frame_start=int(frame_start))
     strip[MARK] = _audio_key(audio_path)
     if not created:

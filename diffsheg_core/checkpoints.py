@@ -19,13 +19,14 @@ import json
 import os
 import pickle
 import re
+import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from .config import ModelConfig
+from .config import ModelConfig, style_names_fit
 from .errors import CheckpointError
 from .files import atomic_write
 from .foppas import PRESETS, FoppasConfig
@@ -38,6 +39,7 @@ WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.safetensors"
 MODEL_PREFIX, PHONETIC_PREFIX, GRAPH_PREFIX = "model.", "phonetic.", "onnx."
 STATS_ENV = "DIFFSHEG_OFFICIAL_STATS"
+STYLE_KEY = "encoder_exp.pid_embed.0.weight"  # official networks: (time embedding, style classes)
 TORCH_HOW_TO = ("install torch: in Blender, Edit > Preferences > Add-ons > DiffSHEG > Install GPU "
                 "support; elsewhere `pip install torch==2.13.0` (README, GPU)")
 
@@ -192,11 +194,17 @@ def _load_ours(path: Path) -> ModelBundle:
     weights = _prefixed(tensors, MODEL_PREFIX)
     if not weights:
         raise CheckpointError(f"{path}: the file holds no network weights (model.*); export it again")
+    info = _json(meta, "info", "{}", path)
+    names = info.get("style_names", [])
+    if not style_names_fit(names, cfg.style_dim):
+        raise CheckpointError(f"{path}: its style names {names!r} are not {cfg.style_dim} different names "
+                              "(text), one per style of the model: the file was edited or damaged; export "
+                              "it again from its training run")
     return ModelBundle(
         config=cfg, weights=weights, mean=mean, std=std, sampling=sampling,
         guidance=_json(meta, "guidance", "null", path),
         skip_guidance=_json(meta, "skip_guidance", "null", path), model_id=meta.get("model_id", path.stem),
-        trained=_json(meta, "trained", "true", path), info=_json(meta, "info", "{}", path),
+        trained=_json(meta, "trained", "true", path), info=info,
         **_stored_phonetic(cfg, meta, tensors, path), prior=_stored_prior(cfg, tensors, path),
         graphs={k: v.tobytes() for k, v in _prefixed(tensors, GRAPH_PREFIX).items()}, source=str(path))
 
@@ -266,14 +274,62 @@ def _read_pickle(path: Path) -> dict:
                               "truncated or not a checkpoint at all") from exc
 
 
+def _encoder_state(raw) -> Optional[dict]:
+    """The network's entries of an unpickled official checkpoint (under key `encoder`,
+    `module.` prefixes dropped); None when it holds no dict."""
+    state = raw.get("encoder", raw) if isinstance(raw, dict) else None
+    return {k.removeprefix("module."): v for k, v in state.items()} if isinstance(state, dict) else None
+
+
 def official_state_dict(raw: dict, path: Path) -> dict[str, np.ndarray]:
     """The network's state dict (numpy) from an official checkpoint (key `encoder`, optional `module.`)."""
-    state = raw.get("encoder", raw) if isinstance(raw, dict) else None
-    if not isinstance(state, dict) or not all(hasattr(v, "numpy") for v in state.values()):
+    state = _encoder_state(raw)
+    if state is None or not all(hasattr(v, "numpy") for v in state.values()):
         raise CheckpointError(f"{path}: no state dict found (expected a dict with key 'encoder' "
                               "holding the network's tensors)")
-    return {k[len("module."):] if k.startswith("module.") else k: v.detach().cpu().numpy()
-            for k, v in state.items()}
+    return {k: v.detach().cpu().numpy() for k, v in state.items()}
+
+
+class _Shape(tuple):
+    """A tensor of a checkpoint read for its shape alone."""
+
+
+class _StandIn:
+    """Whatever else a checkpoint's pickle names (storage types, optimiser settings): ignored."""
+
+    def __init__(self, *args, **kwargs):
+        pass
+
+    def __setstate__(self, state) -> None:
+        pass
+
+
+class _ShapeReader(pickle.Unpickler):
+    """Unpickles a torch checkpoint into the shapes of its tensors: every class the file
+    names is replaced by a stand-in, so nothing of the file runs and torch is not needed."""
+
+    def find_class(self, module: str, name: str):
+        if (module, name) == ("torch._utils", "_rebuild_tensor_v2"):
+            return lambda storage, offset, size, *rest: _Shape(size)
+        if (module, name) == ("collections", "OrderedDict"):
+            return dict
+        return _StandIn
+
+    def persistent_load(self, pid) -> None:
+        return None  # the tensors' data, which shapes do not need
+
+
+def official_shapes(path: Path) -> dict[str, tuple[int, ...]]:
+    """The shape of every tensor of an official checkpoint's network, from the pickle in its
+    zip archive (torch.save's format) without torch or the weights; {} when it cannot tell."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            name = next(n for n in zf.namelist() if n.rpartition("/")[2] == "data.pkl")
+            with zf.open(name) as fh:
+                state = _encoder_state(_ShapeReader(fh).load()) or {}
+    except Exception:  # not a zip, not a pickle, damaged: loading the file says what is wrong
+        return {}
+    return {k: tuple(v) for k, v in state.items() if isinstance(v, _Shape)}
 
 
 def config_from_state(state: dict[str, np.ndarray], dataset: Optional[str], path: Path) -> ModelConfig:
@@ -285,7 +341,7 @@ def config_from_state(state: dict[str, np.ndarray], dataset: Optional[str], path
         expression_dim = state["encoder_exp.out.weight"].shape[0]
         cfg = dict(
             gesture_dim=gesture_dim, expression_dim=expression_dim,
-            style_dim=state["encoder_exp.pid_embed.0.weight"].shape[1],
+            style_dim=state[STYLE_KEY].shape[1],
             mel_dim=state["encoder_aud.sa_block.norm.weight"].shape[0],
             audio_latent=state["encoder_exp.audio_proj.weight"].shape[0],
             speech_encoder="hubert" if "encoder_exp.hubert_encoder.0.weight" in state else None,
@@ -372,10 +428,14 @@ def is_ours(path: Path) -> bool:
         return fh.read(16)[8:9] == b"{"
 
 
+def _model_file(source: str | Path | None) -> Path:
+    return DEFAULT_WEIGHTS if source is None else Path(source).expanduser()
+
+
 def _stored_metadata(source: str | Path | None) -> Optional[dict]:
     """The metadata of one of our model files (None: the bundled default) without reading
     the weights; None for official checkpoints and files that cannot tell."""
-    path = DEFAULT_WEIGHTS if source is None else Path(source).expanduser()
+    path = _model_file(source)
     if not path.is_file() or not is_ours(path):
         return None
     from safetensors import safe_open
@@ -387,23 +447,44 @@ def _stored_metadata(source: str | Path | None) -> Optional[dict]:
         return None
 
 
-def stored_layout(source: str | Path | None = None) -> Optional[str]:
-    """The channel layout of one of our model files from its metadata alone (None: official
-    checkpoints, whose layout shows in their tensors, and files that cannot tell)."""
-    meta = _stored_metadata(source)
+def _stored_config(meta: Optional[dict]) -> Optional[ModelConfig]:
+    """The network configuration in one of our files' metadata (None: none, or unreadable)."""
     try:
-        return ModelConfig.from_dict(json.loads(meta["config"])).layout if meta else None
+        return ModelConfig.from_dict(json.loads(meta["config"])) if meta else None
     except Exception:
         return None
 
 
+def stored_layout(source: str | Path | None = None) -> Optional[str]:
+    """The channel layout of one of our model files from its metadata alone (None: official
+    checkpoints, whose layout shows in their tensors, and files that cannot tell)."""
+    cfg = _stored_config(_stored_metadata(source))
+    return cfg.layout if cfg else None
+
+
 def stored_style_names(source: str | Path | None = None) -> list[str]:
-    """The style names of one of our model files from its metadata alone ([] when it has none)."""
+    """The style names of one of our model files from its metadata alone ([] when it has
+    none, or names that do not fit its styles, which loading it reports)."""
     meta = _stored_metadata(source)
+    cfg = _stored_config(meta)
+    if cfg is None:
+        return []
     try:
-        return list(json.loads(meta.get("info", "{}")).get("style_names", [])) if meta else []
+        names = json.loads(meta.get("info", "{}")).get("style_names", [])
     except Exception:
         return []
+    return names if style_names_fit(names, cfg.style_dim) else []
+
+
+def stored_style_count(source: str | Path | None = None) -> Optional[int]:
+    """The number of style classes of a model file without reading its weights: from our
+    files' metadata, from the shapes in an official checkpoint (no torch needed); None when
+    the file cannot tell."""
+    cfg = _stored_config(_stored_metadata(source))
+    if cfg is not None:
+        return cfg.style_dim
+    shape = official_shapes(_model_file(source)).get(STYLE_KEY)
+    return shape[1] if shape and len(shape) == 2 else None
 
 
 def load_model(source: str | Path | None = None, *, dataset: Optional[str] = None,

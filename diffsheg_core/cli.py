@@ -105,10 +105,17 @@ def run_generate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _delegate(module: str, argv: Sequence[str]) -> int:
+def _delegate(command: str, module: str, argv: Sequence[str]) -> int:
     import importlib
 
-    return importlib.import_module(f"diffsheg_core.{module}").main(list(argv)) or 0
+    try:
+        tool = importlib.import_module(f"diffsheg_core.{module}")
+    except ModuleNotFoundError as exc:  # the add-on's copy ships generation alone; torch is an extra
+        raise DiffshegError(f"'{command}' needs the tooling of diffsheg_core and its packages (torch, onnx, "
+                            f"scipy, librosa), which this installation lacks (no module named '{exc.name}'; "
+                            "the Blender add-on's copy ships generation alone): from a checkout of the "
+                            "repository, pip install -e \".[train]\" (see README)") from None
+    return tool.main(list(argv)) or 0
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -123,7 +130,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                  "export-onnx": "export"}
     if argv and argv[0] in delegated:
         try:
-            return _delegate(delegated[argv[0]], argv[1:])
+            return _delegate(argv[0], delegated[argv[0]], argv[1:])
         except DiffshegError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2

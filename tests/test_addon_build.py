@@ -4,6 +4,7 @@ register the panel and the operator, using the diffsheg_core bundled in the zip.
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import importlib.util
 import json
@@ -111,6 +112,35 @@ def test_legacy_zip_has_the_addon_in_a_folder_and_no_wheels(built):
     assert {"diffsheg/__init__.py", "diffsheg/batch_render.py", "diffsheg/lib/diffsheg_core/__init__.py"} <= names
     assert "diffsheg/blender_manifest.toml" not in names
     assert not [n for n in names if n.endswith(".whl") or _tooling_or_cache(n)]
+
+
+def test_legacy_zip_claims_the_oldest_blender_it_runs_on(built):
+    """Blender before 4.2 reads bl_info (4.2+ the manifest): the legacy add-on runs from 3.4
+    on (checked in Debian's Blender 3.4, whose Python lacks numpy)."""
+    source = zipfile.ZipFile(built["legacy"]).read("diffsheg/__init__.py").decode()
+    bl_info = next(ast.literal_eval(node.value) for node in ast.parse(source).body
+                   if isinstance(node, ast.Assign) and getattr(node.targets[0], "id", None) == "bl_info")
+    assert bl_info["blender"] == (3, 4, 0)
+
+
+@pytest.fixture(scope="module")
+def shipped_core(built, tmp_path_factory):
+    """The lib/ folder of the linux-x64 extension: the diffsheg_core users get."""
+    folder = tmp_path_factory.mktemp("shipped")
+    with zipfile.ZipFile(built["linux-x64"]) as zf:
+        zf.extractall(folder, [n for n in zf.namelist() if n.startswith("lib/")])
+    return folder / "lib"
+
+
+@pytest.mark.parametrize("command", ["train", "evaluate", "train-autoencoder", "train-phonetic", "export-onnx"])
+def test_the_shipped_core_says_where_the_tooling_commands_are(shipped_core, command, tmp_path):
+    # -S: no site-packages, where the checkout's editable install would bring the missing tooling back
+    proc = subprocess.run([sys.executable, "-S", "-m", "diffsheg_core", command, "--help"], cwd=tmp_path,
+                          env=dict(os.environ, PYTHONPATH=str(shipped_core)), capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.startswith(f"error: '{command}' needs the tooling of diffsheg_core")
+    assert "no module named 'diffsheg_core." in proc.stderr and 'pip install -e ".[train]" (see README)' in proc.stderr
 
 
 def test_source_manifest_stays_the_template():

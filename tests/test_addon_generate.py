@@ -3,6 +3,8 @@ rigs (BEAT BVH import, SMPL-X-named, Rigify-generated) and the real ARKit face m
 
 from __future__ import annotations
 
+import os
+import sys
 import threading
 from dataclasses import replace
 
@@ -465,12 +467,49 @@ def test_panel_styles_come_from_the_model_and_mix(tmp_path):
     assert style_names(settings) == (bundle.style_names or ["0"])
     assert generate_settings(settings).style is None  # "Default": the model's own default style
     named = tmp_path / "named.safetensors"
-    save_checkpoint(replace(bundle, info={**bundle.info, "style_names": ["calm", "lively"]}), named)
+    save_checkpoint(replace(bundle, info={**bundle.info, "style_names": ["calm", "lively", "wild"]}), named)
     settings.model_path = str(named)
-    assert style_names(settings) == ["calm", "lively"]
+    assert style_names(settings) == ["calm", "lively", "wild"]
     settings.style, settings.mix_style, settings.style_mix = "calm", "lively", 0.25
     settings.style_strength = 1.5
     chosen = generate_settings(settings)
     assert chosen.style == {"calm": 0.75, "lively": 0.25} and chosen.style_guidance == 1.5
     settings.mix_style, settings.style_strength = "__none__", 1.0
     assert generate_settings(settings).style == "calm" and generate_settings(settings).style_guidance is None
+
+
+def test_the_style_menu_offers_exactly_the_models_styles(golden_dir, tmp_path, monkeypatch):
+    """A model without style names offers its own style count (3 for the bundled network),
+    the official SHOW checkpoint its 4 speakers and BEAT its 30, read without torch; the
+    menu asks on every redraw, the file is read once per version."""
+    import torch
+    from safetensors.torch import load_file
+
+    import diffsheg_core.checkpoints as checkpoints
+    from blender_addon.properties import _style_items
+
+    settings = reset_scene().diffsheg
+    bundle = load_model()
+    unnamed = checkpoints.save_checkpoint(replace(bundle, info={}), tmp_path / "unnamed.safetensors")
+    official = {}
+    for name in ("beat", "show"):
+        official[name] = tmp_path / f"{name}_official.pth"
+        torch.save({"encoder": load_file(str(golden_dir / f"{name}_small.safetensors"))}, official[name])
+    reads = []
+    names = checkpoints.stored_style_names
+    monkeypatch.setattr(checkpoints, "stored_style_names", lambda path: reads.append(path) or names(path))
+    monkeypatch.setitem(sys.modules, "torch", None)  # `import torch` fails, as without GPU support
+
+    def menu() -> list[str]:
+        return [identifier for identifier, *_ in _style_items(settings, bpy.context)]
+
+    for path, n in ((unnamed, 3), (official["show"], 4), (official["beat"], 30)):
+        settings.model_path = str(path)
+        for _ in range(3):  # redraws
+            assert menu() == ["__default__"] + [str(i) for i in range(n)]
+    assert len(reads) == 3
+    settings.model_path = str(unnamed)  # the file changes: it is read again
+    checkpoints.save_checkpoint(replace(bundle, info={"style_names": ["a", "b", "c"]}), unnamed)
+    stat = unnamed.stat()
+    os.utime(unnamed, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))  # a newer version, whatever the clock
+    assert menu() == ["__default__", "a", "b", "c"] and len(reads) == 4

@@ -10,11 +10,12 @@ import sys
 
 import pytest
 
-from addon_fixtures import REPO, append_face, bpy, cut_speech, import_beat_armature, reset_scene, scene_state
+from addon_fixtures import (HAS_AUDIO, REPO, append_face, bpy, cut_speech, import_beat_armature, mocap_motion,
+                            reset_scene, scene_state)
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 
 import diffsheg_core
-from blender_addon.bake import MAX_FRAME
+from blender_addon.bake import MAX_FRAME, MIN_FRAME, BakeOptions, bake_motion, check_frames
 from blender_addon.preset import load_preset
 from blender_addon.properties import CUSTOM_PRESET
 from diffsheg_core.errors import DiffshegError
@@ -65,6 +66,60 @@ def test_a_start_frame_beyond_blenders_range_is_refused(speech, monkeypatch):
         pytest.skip("this Blender's start frame property stops short of its frame range")
     with pytest.raises(RuntimeError, match="outside Blender's frames"):
         bpy.ops.diffsheg.generate()
+
+
+@pytest.mark.parametrize("start,frames,allowed", [(MIN_FRAME - 1, 1, f"{MIN_FRAME} to {MAX_FRAME}"),
+                                                   (MAX_FRAME - 10, 100, f"{MIN_FRAME} to {MAX_FRAME - 99}")])
+def test_a_start_frame_outside_blenders_range_is_told_the_range_it_may_take(start, frames, allowed):
+    with pytest.raises(DiffshegError, match=f"outside Blender's frames .*: choose a start frame from {allowed}$"):
+        check_frames(start, frames)
+
+
+def test_a_failed_generate_replaces_the_report_of_the_last_run(tmp_path, monkeypatch):
+    scene = reset_scene()
+    settings = _configure(scene, tmp_path, None, None)  # a folder as the audio
+    settings.last_report, settings.last_failed = "keyed 72 frames (13392 keys) into speech", False
+    _refused(scene, "is a folder, not an audio file", monkeypatch)
+    assert settings.last_failed and "is a folder, not an audio file" in settings.last_report
+
+
+def test_style_names_that_are_not_text_get_a_menu_and_generate_says_why(speech, tmp_path):
+    """The style menu (asked on every redraw) never raises: it offers the style indices;
+    Generate names the problem, in the status bar and in the panel."""
+    from blender_addon.properties import _style_items
+    from diffsheg_core.checkpoints import DEFAULT_WEIGHTS, read_safetensors, write_safetensors
+
+    meta, tensors = read_safetensors(DEFAULT_WEIGHTS, "")
+    info = {**json.loads(meta["info"]), "style_names": [1, 2, 3]}
+    model = write_safetensors(tensors, {**meta, "info": json.dumps(info)}, tmp_path / "numbered.safetensors")
+    scene = reset_scene()
+    settings = _configure(scene, speech, import_beat_armature(), append_face())
+    settings.model_path = str(model)
+    assert [label for _, label, _ in _style_items(settings, bpy.context)] == [
+        "Default", "Style 0", "Style 1", "Style 2"]
+    before = scene_state(scene)
+    with pytest.raises(RuntimeError, match=r"numbered.safetensors: its style names \[1, 2, 3\] are not 3 different "
+                                           "names") as err:
+        bpy.ops.diffsheg.generate()
+    assert "Traceback" not in str(err.value) and scene_state(scene) == before
+    assert settings.last_failed and "its style names [1, 2, 3]" in settings.last_report
+
+
+def test_with_every_sequencer_channel_taken_the_sound_strip_says_how_to_free_one(speech):
+    if not HAS_AUDIO:
+        pytest.skip("this Blender build has no audio support: no sound strips")
+    from blender_addon.sound import CHANNELS, _strips
+
+    scene = reset_scene()
+    strips = _strips(scene.sequence_editor_create())
+    for channel in range(1, CHANNELS + 1):
+        strips.new_sound(f"busy {channel}", str(speech), channel=channel, frame_start=1)
+    armature = import_beat_armature()
+    before = scene_state(scene)
+    with pytest.raises(DiffshegError, match="all 128 channels of the sequencer are in use at frame 1 or later. "
+                                            "Free one by deleting or moving a strip in the Video Sequencer"):
+        bake_motion(scene, mocap_motion(frames=30), str(speech), BakeOptions(armature=armature))
+    assert scene_state(scene) == before
 
 
 def test_a_preset_without_the_models_layout_is_refused_before_generating(speech, tmp_path, monkeypatch):

@@ -2,6 +2,8 @@
 
 import argparse
 import json
+import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,7 +14,8 @@ from safetensors.torch import load_file
 from conftest import random_bundle
 from diffsheg_core import CheckpointError, DiffshegError, generate
 from diffsheg_core.bvh import read_bvh
-from diffsheg_core.checkpoints import load_model, official_stats, read_safetensors, save_checkpoint
+from diffsheg_core.checkpoints import (load_model, official_stats, read_safetensors, save_checkpoint,
+                                       stored_style_count, stored_style_names)
 from diffsheg_core.motion import read_arkit_json
 from diffsheg_core.model import ModelConfig, UniEG
 from diffsheg_core.runtime.backends import choose_backend
@@ -58,6 +61,34 @@ def test_truncated_checkpoint_is_reported(tmp_path):
 def test_missing_checkpoint_is_reported(tmp_path):
     with pytest.raises(CheckpointError, match="no such checkpoint"):
         load_model(tmp_path / "absent.pth")
+
+
+def test_style_names_that_do_not_name_each_style_are_refused_on_load(tmp_path):
+    """Names must be style_dim different texts, as the trainer writes them; reading the
+    metadata alone (the add-on's menu) gives none for such a file, and its style count."""
+    bundle = random_bundle(graphs=False, style_dim=3)
+    for names in ([1, 2, 3], ["calm", "lively"], ["calm", "calm", "wild"], "calm"):
+        path = save_checkpoint(replace(bundle, info={"style_names": names}), tmp_path / "styled.safetensors")
+        with pytest.raises(CheckpointError, match=r"styled.safetensors: its style names .* are not 3 different "
+                                                  r"names \(text\), one per style of the model"):
+            load_model(path)
+        assert stored_style_names(path) == [] and stored_style_count(path) == 3
+    path = save_checkpoint(replace(bundle, info={"style_names": ["a", "b", "c"]}), tmp_path / "styled.safetensors")
+    assert load_model(path).style_names == stored_style_names(path) == ["a", "b", "c"]
+
+
+def test_style_counts_of_official_checkpoints_are_read_without_torch(golden_dir, tmp_path, monkeypatch):
+    """From the tensor shapes in the checkpoint's pickle: 30 speakers for BEAT, 4 for SHOW,
+    with torch unimportable; files that are no torch zip cannot tell."""
+    beat = golden_official_file(golden_dir, tmp_path)
+    show = tmp_path / "show_small.pth"
+    torch.save({"encoder": load_file(str(golden_dir / "show_small.safetensors")), "epoch": 1}, show)
+    other = tmp_path / "other.pth"
+    other.write_bytes(b"\x80\x02 not a torch zip")
+    monkeypatch.setitem(sys.modules, "torch", None)  # `import torch` fails, as where it is not installed
+    assert (stored_style_count(beat), stored_style_count(show), stored_style_count(other)) == (30, 4, None)
+    assert stored_style_count(tmp_path / "absent.pth") is None
+    assert stored_style_names(beat) == []
 
 
 def test_official_checkpoint_loads_strictly_with_inferred_config(golden_dir, data_dir, tmp_path):

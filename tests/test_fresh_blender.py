@@ -1,6 +1,6 @@
 """The add-on as a new user gets it: installed into a Blender that holds nothing but what
-Blender ships (tools/test_fresh_blender.py), and registered with the heavy packages
-unimportable, where the panel and Generate say what is missing instead of failing."""
+Blender ships (tools/test_fresh_blender.py), and registered with the heavy packages, or
+numpy, unimportable, where the panel and Generate say what is missing instead of failing."""
 
 from __future__ import annotations
 
@@ -34,20 +34,19 @@ def test_fresh_blender_installs_the_extension_generates_and_batches():
 
 BLOCKED = ("torch", "scipy", "librosa", "soundfile", "onnxruntime")
 
-# Runs in a subprocess: the blocked packages cannot be imported there (None in sys.modules).
-WITHOUT_PACKAGES = r"""
+# The start of the scripts below: blocks the packages named in argv[1] (None in sys.modules,
+# so `import name` fails, as where it is not installed), registers the add-on of the
+# checkout in argv[2], and draws with a layout that records labels and operator buttons.
+REGISTER_WITHOUT = r"""
 import json, os, sys
 BLOCKED = sys.argv[1].split(",")
 for name in BLOCKED:
     sys.modules[name] = None
 sys.path.insert(0, sys.argv[2])
-fake_checkpoint, audio = sys.argv[3], sys.argv[4]
 import bpy
 
 import blender_addon
 blender_addon.register()
-HEAVY = ("torch", "scipy", "librosa", "numba", "soundfile", "onnxruntime", "soxr", "safetensors")
-at_register = [n for n in HEAVY if sys.modules.get(n) is not None]
 from blender_addon.panel import DIFFSHEG_PT_generate
 
 
@@ -56,15 +55,22 @@ class Layout:
         self.texts = texts
     def label(self, text="", **kw):
         self.texts.append(text)
-    def __getattr__(self, name):  # box, row, column, prop, operator, template_list, ...
+    def operator(self, idname, **kw):
+        self.texts.append(f"[{idname}]")
+        return self
+    def __getattr__(self, name):  # box, row, column, prop, template_list, ...
         return lambda *a, **kw: self
     active = True
 
 
-def panel_texts():
+def drawn(cls, **attrs):
     texts = []
-    DIFFSHEG_PT_generate.draw(type("Self", (), {"layout": Layout(texts)})(), bpy.context)
+    cls.draw(type("Self", (), {"layout": Layout(texts), **attrs})(), bpy.context)
     return texts
+
+
+def panel_texts():
+    return drawn(DIFFSHEG_PT_generate)
 
 
 def generate_error():
@@ -73,7 +79,13 @@ def generate_error():
     except RuntimeError as exc:
         return str(exc)
     return None
+"""
 
+# Runs in a subprocess: the heavy packages cannot be imported there.
+WITHOUT_PACKAGES = REGISTER_WITHOUT + r"""
+fake_checkpoint, audio = sys.argv[3], sys.argv[4]
+HEAVY = ("torch", "scipy", "librosa", "numba", "soundfile", "onnxruntime", "soxr", "safetensors")
+at_register = [n for n in HEAVY if sys.modules.get(n) is not None]
 
 s = bpy.context.scene.diffsheg
 s.audio_path = audio
@@ -124,3 +136,42 @@ def test_addon_registers_without_the_heavy_packages_and_says_what_is_missing(tmp
     assert error and "torch with CUDA" in error and "Install GPU support" in error
     assert got["device_label"] == ["Runs on: GPU needs GPU support: see the add-on's preferences"]
     assert got["imported"] == []
+
+
+# Runs in a subprocess: numpy cannot be imported there, as in Debian's Blender 3.4 (the
+# system's Python); bpy 5.0 says which of its parts need it and goes on.
+WITHOUT_NUMPY = REGISTER_WITHOUT + r"""
+from pathlib import Path
+
+from blender_addon import preferences
+from blender_addon.properties import _style_items
+
+out = {"preferences": drawn(preferences.DIFFSHEG_AP_preferences, install_status="", torch_build="CPU"),
+       "panel": panel_texts(), "error": generate_error(),
+       "menu": _style_items(bpy.context.scene.diffsheg, bpy.context),
+       "pip": preferences.runtime_pip_commands(Path("modules"))[0][-1]}
+preferences.ADDON_PACKAGE = "bl_ext.user_default.diffsheg"  # installed as an extension
+out["extension"] = drawn(preferences.DIFFSHEG_AP_preferences, install_status="", torch_build="CPU")
+print("RESULT", json.dumps(out), flush=True)
+os._exit(0)
+"""
+
+
+def test_addon_registers_without_numpy_and_its_preferences_offer_to_install_it(tmp_path):
+    script = tmp_path / "without_numpy.py"
+    script.write_text(WITHOUT_NUMPY)
+    proc = subprocess.run([sys.executable, str(script), "numpy", str(REPO)], capture_output=True, text=True,
+                          timeout=300, cwd=tmp_path)
+    lines = [l for l in proc.stdout.splitlines() if l.startswith("RESULT ")]
+    assert proc.returncode == 0 and lines, proc.stdout[-2000:] + proc.stderr[-3000:]
+    got = json.loads(lines[0][len("RESULT "):])
+
+    install = "Install them with Edit > Preferences > Add-ons > DiffSHEG > Install dependencies"
+    why = "This Blender's Python lacks numpy (a Linux distribution's build; Blender's own has it)"
+    assert got["preferences"][:4] == ["Missing Python packages: numpy", why, install,
+                                      "[diffsheg.install_dependencies]"]
+    assert got["panel"][:3] == got["preferences"][:3]
+    assert got["error"] == f"Error: missing Python packages: numpy; {install[0].lower()}{install[1:]}\n"
+    assert got["menu"] == [["__default__", "Default", "the model's default style"], ["0", "Style 0", ""]]
+    assert got["pip"] == "numpy>=1.26"  # no numpy of Blender's to keep
+    assert got["extension"][:4] == got["preferences"][:4]  # no extension zip brings numpy

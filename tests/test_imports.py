@@ -160,3 +160,14 @@ except CheckpointError as exc:
     assert result.returncode == 0, result.stderr
     assert "need torch" in result.stdout and "pip install torch==2.13.0" in result.stdout
     assert "Install GPU support" in result.stdout
+
+
+def test_tooling_commands_without_torch_say_what_to_install():
+    code = BLOCK.format(names=("torch",)) + """
+from diffsheg_core.cli import main
+raise SystemExit(main(["train", "--config", "train.toml"]))
+"""
+    result = run_python(code)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert "error: 'train' needs the tooling of diffsheg_core" in result.stderr
+    assert "no module named 'torch'" in result.stderr and 'pip install -e ".[train]"' in result.stderr

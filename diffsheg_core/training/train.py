@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..checkpoints import ModelBundle, load_model, save_checkpoint
-from ..config import ModelConfig
+from ..config import ModelConfig, style_names_fit
 from .data import ClipDataset, DataConfig, NormStats, load_takes, normalisation
 from ..diffusion import Schedule
 from ..errors import DiffshegError
@@ -332,9 +332,7 @@ def check_styles(cfg: TrainConfig, model_cfg: ModelConfig) -> None:
     data is read.)"""
     if model_cfg.style_dim < 1:
         return
-    if cfg.style_names and (len(cfg.style_names) != model_cfg.style_dim
-                            or not all(isinstance(n, str) and n for n in cfg.style_names)
-                            or len(set(cfg.style_names)) != len(cfg.style_names)):
+    if not style_names_fit(cfg.style_names, model_cfg.style_dim):
         raise DiffshegError(f"style_names must be {model_cfg.style_dim} different names (style_dim of the "
                             f"model), got {cfg.style_names!r}")
     known = cfg.style_names or list(range(model_cfg.style_dim))
