@@ -38,6 +38,7 @@ import importlib
 import importlib.util
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -209,7 +210,7 @@ def run_one(args, audio: Path, label: str, several: bool) -> None:
 
     bake_motion = addon("bake").bake_motion
     set_video_output = addon("demo").set_video_output
-    model_label, summary = addon("operators").model_label, addon("operators").summary
+    model_label, report = addon("operators").model_label, addon("report")
 
     settings = from_arguments(args)  # every generation option checked before anything else
     scene = bpy.context.scene
@@ -222,9 +223,13 @@ def run_one(args, audio: Path, label: str, several: bool) -> None:
                    None if args.no_render else output_for(args, audio, several, ".mp4", args.output)],
                   inputs=[audio, args.model, bpy.data.filepath or None])
     options = bake_options(args, scene, armature, faces)
+    started = time.perf_counter()
     motion = diffsheg_core.generate(str(audio), settings=settings, progress=printer(label))
     result = bake_motion(scene, motion, str(audio), options)
-    print(f"{label}: {summary(result)} [model {model_label(motion.meta)}]", flush=True)
+    seconds = time.perf_counter() - started
+    print(f"{label}: {report.report_line(result, seconds)} [model {model_label(motion.meta)}]", flush=True)
+    for line in report.warning_lines(result):
+        print(f"{label}: warning: {line}", flush=True)
     if args.save:
         path = output_for(args, audio, several, ".blend", args.save)
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -19,7 +19,7 @@ from diffsheg_core.motion import Motion, resample_motion
 
 from . import takes
 from .keying import Channel, Undo, new_action, rotation_channels, shape_key_channel, write_channels
-from .preset import choose_preset
+from .preset import available_presets, choose_preset, load_preset, preset_fit
 from .retarget import Preset, bone_quaternions, map_armature, map_shape_keys
 from .sound import NO_AUDIO_NOTE, add_sound_strip, audio_supported, remove_strips, strips_added_for
 
@@ -54,13 +54,15 @@ class BakeOptions:
 @dataclass
 class BakeResult:
     take: str
+    preset: str
     actions: list[str]
     n_frames: int
     n_keys: int
     unmatched_bones: list[str]
     unmatched_shape_keys: dict[str, list[str]]
     sound_strip: str | None
-    notes: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)          # warnings: what may need the animator
+    preset_notes: list[str] = field(default_factory=list)   # how Auto chose the preset
 
 
 MIN_FRAME, MAX_FRAME = -1_048_574, 1_048_574  # Blender's frame range
@@ -111,6 +113,8 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
     if options.preset is None:
         preset, note = auto_preset(motion.rig, options.armature, options.face_meshes)
         options, preset_notes = replace(options, preset=preset), [note]
+    if options.armature is not None:
+        check_preset_fits(options.preset, motion.rig, options.armature)
     check_frames(options.start_frame, motion.n_frames)
     audio_name = Path(audio_path or motion.meta.get("audio_file") or "speech").stem
 
@@ -135,7 +139,9 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
     face_notes: list[str] = []
     for mesh, keys in zip(options.face_meshes, face_maps):
         unmatched_keys[mesh.name] = keys.unmatched
-        face_notes += [f"{mesh.name}: shape key {k} moves no vertex, skipped" for k in keys.empty]
+        if keys.empty:
+            face_notes.append(f"{mesh.name}: shape keys that move no vertex, skipped ({len(keys.empty)}): "
+                              f"{', '.join(keys.empty)}")
         if keys.derived:
             face_notes.append(f"{mesh.name}: {', '.join(k for _, k in keys.derived)} driven from the ARKit weights")
         face = smooth(motion.face, options.smoothing) if options.smoothing > 0 else motion.face
@@ -175,10 +181,10 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
             raise
         raise DiffshegError(f"could not write the animation into the scene: {exc}") from exc
     remove_strips(scene, replaced)  # only once everything else has succeeded
-    return BakeResult(take=take, actions=actions, n_frames=motion.n_frames, n_keys=n_keys,
-                      unmatched_bones=unmatched_bones, unmatched_shape_keys=unmatched_keys,
-                      sound_strip=strip,
-                      notes=preset_notes + notes + rig_notes + face_notes + [f"warning: {w}" for w in motion.meta.get("warnings", [])])
+    return BakeResult(take=take, preset=options.preset.name, actions=actions, n_frames=motion.n_frames,
+                      n_keys=n_keys, unmatched_bones=unmatched_bones, unmatched_shape_keys=unmatched_keys,
+                      sound_strip=strip, preset_notes=preset_notes,
+                      notes=notes + rig_notes + face_notes + [f"warning: {w}" for w in motion.meta.get("warnings", [])])
 
 
 def with_keys(channels: list[Channel], error, bound: float) -> list[Channel]:
@@ -196,6 +202,23 @@ def auto_preset(layout: str, armature, face_meshes) -> tuple[Preset, str]:
     keys = [kb.name for mesh in face_meshes if mesh.data.shape_keys is not None
             for kb in mesh.data.shape_keys.key_blocks]
     return choose_preset(layout, bones, keys)
+
+
+def check_preset_fits(preset: Preset, layout: str, armature) -> None:
+    """Refuse a preset that finds fewer than half of the model's joints on the armature,
+    naming the preset that fits it best (a wrong preset keys a few bones and looks broken)."""
+    bones = armature.data.bones.keys()
+    fit = preset_fit(preset, layout, bones, [])
+    total = fit.bones + fit.missing if fit is not None else 0
+    if fit is not None and (2 * fit.bones >= total or fit.bones == 0):
+        return  # none at all: map_armature names the bones it looked for
+    fits = {name: preset_fit(load_preset(name), layout, bones, []) for name in available_presets()}
+    best = max((n for n in fits if fits[n] is not None), key=lambda n: fits[n].key(), default=None)
+    hint = (f"preset '{best}' finds {fits[best].bones} of {fits[best].bones + fits[best].missing}: choose it "
+            "or Auto" if best and best != preset.name and fits[best].bones else
+            "no preset fits it better: write one for this rig (see presets/)")
+    raise DiffshegError(f"preset '{preset.name}' finds only {fit.bones if fit else 0} of the model's "
+                        f"{total or 'joints'} joints on armature '{armature.name}'; {hint}")
 
 
 def smooth(values: np.ndarray, sigma: float) -> np.ndarray:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib
 import random
 import threading
+import time
 from pathlib import Path
 
 import bpy
@@ -20,6 +21,7 @@ from diffsheg_core.errors import DiffshegError
 from . import preset
 from .preferences import INSTALL_GPU_HINT, RUNTIME, missing_runtime, runtime_fix, torch_installed
 from .properties import CUSTOM_PRESET, DEFAULT_STYLE, NO_MIX
+from .report import REPORT_TEXT, report_details, report_line, write_report
 
 
 def audio_file(settings) -> Path:
@@ -161,27 +163,17 @@ def model_label(meta: dict) -> str:
     return label
 
 
-def summary(result) -> str:
-    text = (f"keyed {result.n_frames} frames ({result.n_keys} keys) into "
-            f"{', '.join(result.actions)}")
-    if result.unmatched_bones:
-        text += f"; bones not on the rig: {', '.join(result.unmatched_bones)}"
-    for mesh, names in result.unmatched_shape_keys.items():
-        if names:
-            text += f"; {len(names)} face channels without a shape key on {mesh}: {', '.join(names)}"
-    for note in result.notes:
-        text += f"; {note}"
-    return text
-
-
-def apply_result(context, settings, motion, path: Path, options):
-    """Key `motion` into the scene (main thread only); returns the BakeResult."""
+def apply_result(context, settings, motion, path: Path, options, seconds: float) -> str:
+    """Key `motion` into the scene (main thread only), write the report's details into the
+    "DiffSHEG report" Text; returns the report's one line."""
     from .bake import bake_motion
 
     result = bake_motion(context.scene, motion, str(path), options)
     settings.model_label = model_label(motion.meta)
-    settings.last_report, settings.last_failed = summary(result), False
-    return result
+    line = report_line(result, seconds)
+    write_report(report_details(result, seconds, settings.model_label))
+    settings.last_report, settings.last_failed = line, False
+    return line
 
 
 class GenerationJob:
@@ -191,6 +183,7 @@ class GenerationJob:
         self.cancel = threading.Event()
         self.fraction = 0.0
         self.motion = None
+        self.started = time.perf_counter()
         self.error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, args=(path, settings), daemon=True)
 
@@ -209,6 +202,11 @@ class GenerationJob:
 
     def _progress(self, p) -> None:
         self.fraction = p.fraction
+
+    @property
+    def elapsed(self) -> float:
+        """Seconds since the job started (generation, then keying)."""
+        return time.perf_counter() - self.started
 
     @property
     def done(self) -> bool:
@@ -247,10 +245,10 @@ class DIFFSHEG_OT_generate(bpy.types.Operator):
             job.wait()
             if job.error is not None:
                 raise job.error
-            result = apply_result(context, settings, job.motion, path, options)
+            line = apply_result(context, settings, job.motion, path, options, job.elapsed)
         except Exception as exc:
             return self._failed(context, error_message(exc))
-        self.report({"INFO"}, summary(result))
+        self.report({"INFO"}, line)
         return {"FINISHED"}
 
     def _failed(self, context, message: str, level: str = "ERROR") -> set[str]:
@@ -293,10 +291,11 @@ class DIFFSHEG_OT_generate(bpy.types.Operator):
                 return self._failed(context, "generation cancelled: the scene is unchanged", "WARNING")
             return self._failed(context, error_message(job.error))
         try:
-            result = apply_result(context, context.scene.diffsheg, job.motion, self._path, self._options)
+            line = apply_result(context, context.scene.diffsheg, job.motion, self._path, self._options,
+                                job.elapsed)
         except Exception as exc:
             return self._failed(context, error_message(exc))
-        self.report({"INFO"}, summary(result))
+        self.report({"INFO"}, line)
         return {"FINISHED"}
 
     def _finish(self, context) -> None:
@@ -360,6 +359,31 @@ class DIFFSHEG_OT_face_remove(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class DIFFSHEG_OT_show_report(bpy.types.Operator):
+    """Open the details of the last Generate (the "DiffSHEG report" text) in a Text Editor"""
+
+    bl_idname = "diffsheg.show_report"
+    bl_label = "Show Report"
+
+    def execute(self, context):
+        text = bpy.data.texts.get(REPORT_TEXT)
+        if text is None:
+            self.report({"WARNING"}, "no report yet: press Generate first")
+            return {"CANCELLED"}
+        area = next((a for a in context.screen.areas if a.type == "TEXT_EDITOR"), None) \
+            if context.screen is not None else None
+        if area is None:
+            try:
+                bpy.ops.wm.window_new()
+            except RuntimeError:  # no window to open one from (headless): the text is there
+                self.report({"INFO"}, f"the report is in the Text '{REPORT_TEXT}'")
+                return {"FINISHED"}
+            area = context.window_manager.windows[-1].screen.areas[0]
+            area.type = "TEXT_EDITOR"
+        area.spaces.active.text = text
+        return {"FINISHED"}
+
+
 class DIFFSHEG_OT_use_take(bpy.types.Operator):
     """Play this take on the character (body and face); the other takes stay in the file"""
 
@@ -382,6 +406,6 @@ class DIFFSHEG_OT_use_take(bpy.types.Operator):
 
 
 CLASSES = (DIFFSHEG_OT_generate, DIFFSHEG_OT_new_seed, DIFFSHEG_OT_face_add, DIFFSHEG_OT_face_remove,
-           DIFFSHEG_OT_use_take)
+           DIFFSHEG_OT_use_take, DIFFSHEG_OT_show_report)
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)

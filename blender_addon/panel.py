@@ -122,7 +122,10 @@ class DIFFSHEG_PT_generate(bpy.types.Panel):
             untrained = "UNTRAINED" in s.model_label
             layout.label(text=f"Model: {s.model_label}", icon="ERROR" if untrained else "INFO")
         if s.last_report:
-            layout.label(text=s.last_report, icon="ERROR" if s.last_failed else "NONE")
+            row = layout.row()
+            row.label(text=s.last_report, icon="ERROR" if s.last_failed else "NONE")
+            if not s.last_failed:
+                row.operator("diffsheg.show_report", text="", icon="TEXT")
 
 
 CLASSES = (DIFFSHEG_UL_face_meshes, DIFFSHEG_PT_generate)

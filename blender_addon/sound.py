@@ -45,7 +45,8 @@ def remove_strips(scene, strips: list) -> None:
 
 def add_sound_strip(scene, audio_path: str, frame_start: int, undo: list[Undo]):
     """Add `audio_path` as a sound strip starting at `frame_start` on the lowest
-    channel free over the clip, marked as this add-on's; returns the strip."""
+    channel free over the clip, marked as this add-on's, and play the scene back in sync
+    with the audio; returns the strip."""
     created = scene.sequence_editor is None
     editor = scene.sequence_editor_create()
     if created:
@@ -61,6 +62,9 @@ def add_sound_strip(scene, audio_path: str, frame_start: int, undo: list[Undo]):
     strip[MARK] = _audio_key(audio_path)
     if not created:
         undo.append(lambda: strips.remove(strip))
+    sync = scene.sync_mode
+    undo.append(lambda: setattr(scene, "sync_mode", sync))
+    scene.sync_mode = "AUDIO_SYNC"  # lip-sync is reviewed at speed: play back in step with the sound
     return strip
 
 

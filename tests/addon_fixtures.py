@@ -61,6 +61,11 @@ def _exit_now(session) -> None:
     os._exit(int(session.exitstatus))
 
 
+def report_text() -> str:
+    """The details of the last Generate: the "DiffSHEG report" Text datablock."""
+    return bpy.data.texts["DiffSHEG report"].as_string()
+
+
 def reset_scene(fps: float = 24.0) -> "bpy.types.Scene":
     """Factory settings, empty scene, the add-on registered, the given frame rate."""
     bpy.ops.wm.read_factory_settings(use_empty=True)

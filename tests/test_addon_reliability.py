@@ -11,7 +11,7 @@ import sys
 import pytest
 
 from addon_fixtures import (HAS_AUDIO, REPO, append_face, bpy, cut_speech, import_beat_armature, mocap_motion,
-                            reset_scene, scene_state)
+                            report_text, reset_scene, scene_state)
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 
 import diffsheg_core
@@ -196,4 +196,5 @@ def test_a_wav_cut_short_is_keyed_and_the_report_says_so(speech, tmp_path):
     scene = reset_scene()
     settings = _configure(scene, cut, import_beat_armature(), append_face())
     assert bpy.ops.diffsheg.generate() == {"FINISHED"}
-    assert "warning: " in settings.last_report and "is cut short" in settings.last_report
+    assert "1 warning, see DiffSHEG report" in settings.last_report
+    assert "warning: " in report_text() and "is cut short" in report_text()

@@ -92,3 +92,41 @@ def test_a_take_number_skips_names_already_used(speech, motions):
     result = bake_motion(scene, motions[0], str(speech), BakeOptions(armature=ob, preset=load_preset("beat"),
                                                                     add_sound=False))
     assert result.take == "talk take 2" and mine.name == "talk take 1" and not takes.is_take(mine)
+
+
+def test_report_line_and_text_and_sync_to_audio(speech):
+    """The Ready Player Me avatar: one line of at most 120 characters, the details (skipped
+    shape keys grouped per mesh) in the "DiffSHEG report" Text; playback syncs to the audio."""
+    from addon_fixtures import HAS_AUDIO, import_readyplayerme, report_text
+
+    scene = reset_scene(fps=24)
+    rig, faces = import_readyplayerme()
+    s = scene.diffsheg
+    s.audio_path, s.armature, s.steps = str(speech), rig, 5
+    for face in faces:
+        s.face_meshes.add().object = face
+    assert bpy.ops.diffsheg.generate() == {"FINISHED"}
+    assert len(s.last_report) <= 120 and s.last_report.startswith("talk take 1: 72 frames")
+    assert "preset readyplayerme" in s.last_report and "see DiffSHEG report" in s.last_report
+    text = report_text()
+    assert "preset Auto chose 'readyplayerme'" in text
+    skipped = [line for line in text.splitlines() if "move no vertex" in line]
+    assert skipped and all(line.count("Wolf3D_") == 1 for line in skipped)  # one line per mesh
+    assert bpy.ops.diffsheg.show_report() == {"FINISHED"}
+    if HAS_AUDIO:
+        assert scene.sync_mode == "AUDIO_SYNC"
+
+
+def test_a_preset_that_finds_few_joints_is_refused_naming_the_best(speech, motions):
+    from addon_fixtures import import_readyplayerme
+
+    from diffsheg_core.errors import DiffshegError
+
+    scene = reset_scene(fps=24)
+    rig, _ = import_readyplayerme()
+    before = sorted(bpy.data.actions.keys())
+    with pytest.raises(DiffshegError, match=r"preset 'rigify' finds only \d+ of the model's \d+ joints on "
+                                            r"armature 'Armature'; preset '(readyplayerme|mixamo)' finds"):
+        bake_motion(scene, motions[0], str(speech), BakeOptions(armature=rig, preset=load_preset("rigify"),
+                                                                add_sound=False))
+    assert sorted(bpy.data.actions.keys()) == before

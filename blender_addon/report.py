@@ -1,0 +1,44 @@
+"""What a Generate did, for people: one line for the status bar and the panel, the
+details in a Text datablock ("DiffSHEG report") that the panel opens."""
+
+from __future__ import annotations
+
+import bpy
+
+REPORT_TEXT = "DiffSHEG report"
+MAX_LINE = 120
+
+
+def report_line(result, seconds: float) -> str:
+    """At most MAX_LINE characters: take, frames, preset, keys, time, warnings."""
+    warnings = len(warning_lines(result))
+    line = (f"{result.take}: {result.n_frames} frames, {result.n_keys:,} keys, preset {result.preset}, "
+            f"{seconds:.1f} s")
+    if warnings:
+        line += f"; {warnings} warning{'s' if warnings > 1 else ''}, see {REPORT_TEXT}"
+    return line if len(line) <= MAX_LINE else line[: MAX_LINE - 3] + "..."
+
+
+def warning_lines(result) -> list[str]:
+    """Everything the animator may want to act on, one line each."""
+    lines = [f"bones not on the rig: {', '.join(result.unmatched_bones)}"] if result.unmatched_bones else []
+    lines += [f"{mesh}: {len(names)} face channels without a shape key: {', '.join(names)}"
+              for mesh, names in result.unmatched_shape_keys.items() if names]
+    return lines + list(result.notes)
+
+
+def report_details(result, seconds: float, model: str) -> str:
+    lines = [report_line(result, seconds), "", f"model: {model}", f"actions: {', '.join(result.actions)}",
+             f"sound strip: {result.sound_strip or 'none'}", *result.preset_notes]
+    warnings = warning_lines(result)
+    if warnings:
+        lines += ["", "warnings:"] + [f"- {w}" for w in warnings]
+    return "\n".join(lines) + "\n"
+
+
+def write_report(text: str):
+    """The "DiffSHEG report" Text datablock, holding `text` (the previous report replaced)."""
+    block = bpy.data.texts.get(REPORT_TEXT) or bpy.data.texts.new(REPORT_TEXT)
+    block.clear()
+    block.write(text)
+    return block
