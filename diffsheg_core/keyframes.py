@@ -23,7 +23,6 @@ from typing import Callable
 import numpy as np
 
 from .errors import DiffshegError
-from .rotations import convert
 
 ErrorFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 """(N, C) evaluated channel values at (N,) frames -> (N,) error per frame against the motion."""
@@ -228,10 +227,33 @@ def to_quaternions(values: np.ndarray, mode: str) -> np.ndarray:
         unit = np.where(norm > 1e-12, axis / np.where(norm > 1e-12, norm, 1.0), [[0.0, 1.0, 0.0]])
         q = np.concatenate([np.cos(values[:, :1] / 2), np.sin(values[:, :1] / 2) * unit], axis=1)
     elif mode in ROTATION_MODES:
-        return convert(values, "euler", "quaternion", order=mode.lower(), degrees=False)
+        return _euler_quaternions(values, mode)
     else:
         raise DiffshegError(f"unknown rotation mode {mode!r}: expected one of {', '.join(ROTATION_MODES)}")
     return q / np.maximum(np.sqrt(np.sum(q * q, axis=1, keepdims=True)), 1e-12)
+
+
+def _euler_quaternions(angles: np.ndarray, mode: str) -> np.ndarray:
+    """(T, 4) unit quaternions of Blender Euler angles (radians) in `mode`: extrinsic, so
+    'XYZ' turns about X, then Y, then Z (q = qz qy qx). The same as rotations.convert with
+    order 'xyz' up to sign, written out because keys are fitted with it millions of times."""
+    half = 0.5 * angles
+    c, s = np.cos(half), np.sin(half)
+    q = None
+    for k in reversed(range(3)):
+        axis = "XYZ".index(mode[k])
+        e = np.zeros(angles.shape[:1] + (4,))
+        e[:, 0], e[:, 1 + axis] = c[:, k], s[:, k]
+        q = e if q is None else _product(q, e)
+    return q
+
+
+def _product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of (T, 4) quaternions, scalar first."""
+    aw, ax, ay, az = a.T
+    bw, bx, by, bz = b.T
+    return np.column_stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
 
 
 def rotation_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
