@@ -477,6 +477,22 @@ def stored_style_names(source: str | Path | None = None) -> list[str]:
         return []
 
 
+def files_read(source: str | Path | None = None, stats_dir: str | Path | None = None,
+               hubert: str | Path | None = None) -> list[Path]:
+    """Every model file a run with `source` (None: the bundled model) may read, which no
+    output of the run may overwrite: the model file; for an official checkpoint, the
+    statistics it may take from `stats_dir`, $DIFFSHEG_OFFICIAL_STATS or its own folder;
+    the files of the HuBERT folder `hubert`."""
+    path = DEFAULT_WEIGHTS if source is None else Path(source).expanduser()
+    files = [path]
+    if path.is_file() and not is_ours(path):
+        folders = [Path(f).expanduser() for f in (stats_dir, os.environ.get(STATS_ENV)) if f] + [path.parent]
+        files += [folder / name for folder in folders for setup in OFFICIAL.values() for name in setup.stats_files]
+    if hubert is not None:
+        files += [f for f in Path(hubert).expanduser().rglob("*") if f.is_file()]
+    return files
+
+
 def load_model(source: str | Path | None = None, *, dataset: Optional[str] = None,
                stats_dir: str | Path | None = None) -> ModelBundle:
     """Load a model: None = the bundled default; else a checkpoint path (ours or official)."""
