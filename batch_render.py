@@ -217,11 +217,12 @@ def run_one(args, audio: Path, label: str, several: bool) -> None:
     if not args.no_render and scene.camera is None:
         raise DiffshegError("the scene has no camera to render with: add one, or pass --no-render")
     armature, faces = find_targets(args)
+    from diffsheg_core.checkpoints import files_read
     from diffsheg_core.files import check_outputs
 
     check_outputs([output_for(args, audio, several, ".blend", args.save) if args.save else None,
                    None if args.no_render else output_for(args, audio, several, ".mp4", args.output)],
-                  inputs=[audio, args.model, bpy.data.filepath or None])
+                  inputs=[audio, *files_read(args.model), bpy.data.filepath or None])
     options = bake_options(args, scene, armature, faces)
     started = time.perf_counter()
     motion = diffsheg_core.generate(str(audio), settings=settings, progress=printer(label))

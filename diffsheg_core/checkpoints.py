@@ -10,7 +10,9 @@ onnxruntime backend), optionally `phonetic.*` (the phonetic encoder) and `prior.
 gesture prior), and JSON metadata (config, sampling, guidance scales, model id, model
 card). Reading it needs numpy and safetensors only. Official checkpoints are torch pickles
 holding the state dict under `encoder`; they need torch, are read with
-`weights_only=True` and loaded strictly.
+`weights_only=True` and loaded strictly. Their normalisation statistics (.npy) are read
+without running code: plain arrays, or (SHOW) a pickled dict unpickled with numpy's array
+globals only.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from numpy.lib import format as npy_format
 
 from .config import ModelConfig, style_names_fit
 from .errors import CheckpointError
@@ -364,6 +367,72 @@ def config_from_state(state: dict[str, np.ndarray], dataset: Optional[str], path
     return ModelConfig(**cfg, clip_len=setup.clip_len, layout=setup.layout)
 
 
+STATS_FIX = "use the file from the DiffSHEG repository's assets/data.tar.gz"
+SHOW_STATS = {"pose_mean": 165, "pose_std": 165, "expression_mean": 100, "expression_std": 100}
+_RECONSTRUCT = np.zeros(0).__reduce__()[0]  # numpy's own array rebuilder, whichever module holds it
+_ARRAY_GLOBALS = {("numpy.core.multiarray", "_reconstruct"): _RECONSTRUCT,
+                  ("numpy._core.multiarray", "_reconstruct"): _RECONSTRUCT,
+                  ("numpy", "ndarray"): np.ndarray, ("numpy", "dtype"): np.dtype}
+
+
+class _ArrayUnpickler(pickle.Unpickler):
+    """Unpickles numpy arrays inside plain containers and nothing else: a pickle runs code
+    by naming a callable global, and these three globals only build arrays and dtypes."""
+
+    def find_class(self, module: str, name: str):
+        if (module, name) not in _ARRAY_GLOBALS:
+            raise pickle.UnpicklingError(f"it names the global {module}.{name}, which a statistics file "
+                                         "never needs")
+        return _ARRAY_GLOBALS[module, name]
+
+
+def _stats_vector(values, size: int, where: str) -> np.ndarray:
+    """`values` if it is `size` finite floating-point numbers; else CheckpointError naming `where`."""
+    if not isinstance(values, np.ndarray) or values.dtype.kind != "f" or values.shape != (size,):
+        found = (f"an array of dtype {values.dtype} and shape {values.shape}" if isinstance(values, np.ndarray)
+                 else f"a {type(values).__name__}")
+        raise CheckpointError(f"{where}: expected {size} floating-point statistics, found {found}; {STATS_FIX}")
+    if not np.isfinite(values).all():
+        raise CheckpointError(f"{where}: the statistics hold NaN or infinite values; {STATS_FIX}")
+    return values
+
+
+def _beat_stats(path: Path, size: int) -> np.ndarray:
+    """One BEAT statistics vector: a plain .npy array (never unpickled)."""
+    try:
+        with open(path, "rb") as fh:
+            values = npy_format.read_array(fh, allow_pickle=False)
+    except (ValueError, EOFError) as exc:  # not .npy, an object array, or truncated
+        raise CheckpointError(f"{path}: not a plain array of statistics ({exc}); {STATS_FIX}") from None
+    return _stats_vector(values, size, str(path))
+
+
+def _show_stats(path: Path) -> dict[str, np.ndarray]:
+    """The SHOW statistics: a .npy holding a pickled dict of arrays, unpickled by
+    `_ArrayUnpickler` so that a crafted file cannot run code (np.load(allow_pickle=True) would)."""
+    try:
+        with open(path, "rb") as fh:
+            version = npy_format.read_magic(fh)
+            read_header = {(1, 0): npy_format.read_array_header_1_0,
+                           (2, 0): npy_format.read_array_header_2_0}.get(version)
+            if read_header is None:
+                raise ValueError(f".npy format version {version[0]}.{version[1]} is not the one numpy "
+                                 "writes for pickled data")
+            shape, _, dtype = read_header(fh)
+            if dtype != object or shape != ():
+                raise ValueError(f"it holds an array of dtype {dtype} and shape {shape}, not a pickled dict")
+            stats = _ArrayUnpickler(fh, encoding="latin1").load()
+    except pickle.UnpicklingError as exc:
+        raise CheckpointError(f"{path}: refused to load: {exc}; {STATS_FIX}") from None
+    except Exception as exc:  # a damaged pickle or header raises many types
+        raise CheckpointError(f"{path}: cannot read these statistics ({exc}); {STATS_FIX}") from None
+    stats = stats.item() if isinstance(stats, np.ndarray) and stats.shape == () else stats
+    if not isinstance(stats, dict) or set(stats) != set(SHOW_STATS):
+        found = sorted(map(str, stats)) if isinstance(stats, dict) else type(stats).__name__
+        raise CheckpointError(f"{path}: expected a dict of {', '.join(SHOW_STATS)}, found {found}; {STATS_FIX}")
+    return {key: _stats_vector(stats[key], size, f"{path} ('{key}')") for key, size in SHOW_STATS.items()}
+
+
 def official_stats(dataset: str, stats_dir: Optional[str | Path],
                    beside: Optional[Path] = None) -> tuple[np.ndarray, np.ndarray]:
     """Normalisation statistics the official model was trained with, from `stats_dir`,
@@ -383,11 +452,13 @@ def official_stats(dataset: str, stats_dir: Optional[str | Path],
     if missing:
         raise CheckpointError(f"{folder}: missing {', '.join(missing)}; {help_text}")
     if dataset == "beat":
-        mean = np.concatenate([np.load(folder / "axis_angle_mean.npy"), np.load(folder / "facial51_mean.npy")])
-        std = np.concatenate([np.load(folder / "axis_angle_std.npy"), np.load(folder / "facial51_std.npy")])
+        mean = np.concatenate([_beat_stats(folder / "axis_angle_mean.npy", 141),
+                               _beat_stats(folder / "facial51_mean.npy", 51)])
+        std = np.concatenate([_beat_stats(folder / "axis_angle_std.npy", 141),
+                              _beat_stats(folder / "facial51_std.npy", 51)])
     else:
-        stats = np.load(folder / "talkshow_mean_std.npy", allow_pickle=True).item()
-        pose_mean, pose_std = np.asarray(stats["pose_mean"]), np.asarray(stats["pose_std"])
+        stats = _show_stats(folder / "talkshow_mean_std.npy")
+        pose_mean, pose_std = stats["pose_mean"], stats["pose_std"]
         # pose 165: jaw 3, eyes 6, global 3, body 63 (SMPL-X joints 1..21), hands 90
         body_ids = [j - 1 for j in (3, 6, 9) + tuple(range(12, 22))]
         gesture = np.concatenate([12 + 3 * np.array(body_ids)[:, None] + np.arange(3)]).ravel()
@@ -485,6 +556,22 @@ def stored_style_count(source: str | Path | None = None) -> Optional[int]:
         return cfg.style_dim
     shape = official_shapes(_model_file(source)).get(STYLE_KEY)
     return shape[1] if shape and len(shape) == 2 else None
+
+
+def files_read(source: str | Path | None = None, stats_dir: str | Path | None = None,
+               hubert: str | Path | None = None) -> list[Path]:
+    """Every model file a run with `source` (None: the bundled model) may read, which no
+    output of the run may overwrite: the model file; for an official checkpoint, the
+    statistics it may take from `stats_dir`, $DIFFSHEG_OFFICIAL_STATS or its own folder;
+    the files of the HuBERT folder `hubert`."""
+    path = DEFAULT_WEIGHTS if source is None else Path(source).expanduser()
+    files = [path]
+    if path.is_file() and not is_ours(path):
+        folders = [Path(f).expanduser() for f in (stats_dir, os.environ.get(STATS_ENV)) if f] + [path.parent]
+        files += [folder / name for folder in folders for setup in OFFICIAL.values() for name in setup.stats_files]
+    if hubert is not None:
+        files += [f for f in Path(hubert).expanduser().rglob("*") if f.is_file()]
+    return files
 
 
 def load_model(source: str | Path | None = None, *, dataset: Optional[str] = None,

@@ -45,7 +45,7 @@ def run_generate(args: argparse.Namespace) -> int:
 
     from . import motion as motion_io
     from .audio import SAMPLE_SPEECH
-    from .checkpoints import load_model
+    from .checkpoints import files_read, load_model
     from .files import check_outputs
     from .foppas import PRESETS
     from .pipeline import generate, open_speech
@@ -56,7 +56,7 @@ def run_generate(args: argparse.Namespace) -> int:
     if args.audio is None:
         print(f"no audio given: using the bundled sample speech {SAMPLE_SPEECH}")
     check_outputs([args.output, args.bvh, args.arkit_json, args.csv, args.talkshow],
-                  inputs=[audio_path, args.model])
+                  inputs=[audio_path, *files_read(args.model, args.stats, args.hubert)])
     started = time.perf_counter()
     settings = from_arguments(args)  # every option checked before the model loads
     speech = open_speech(audio_path)  # checked now, read piece by piece while generating

@@ -115,3 +115,21 @@ def test_every_generation_option_of_the_panel_is_a_batch_option(scene_blend, tmp
                  cwd=tmp_path)
     assert bad.returncode == 1 and "gesture energy) must be a number from 0 to 1" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+def test_the_bundled_model_is_an_input_of_a_batch(scene_blend, tmp_path):
+    import hashlib
+
+    from diffsheg_core.checkpoints import DEFAULT_WEIGHTS
+
+    before = hashlib.sha256(DEFAULT_WEIGHTS.read_bytes()).hexdigest()
+    backup = shutil.copy(DEFAULT_WEIGHTS, tmp_path / "backup.safetensors")  # restored if the refusal fails
+    try:
+        proc = _batch("--blend", str(scene_blend), "--audio", str(cut_speech(tmp_path, seconds=1.0)),
+                      "--no-render", "--save", str(DEFAULT_WEIGHTS), cwd=tmp_path)
+    finally:
+        if hashlib.sha256(DEFAULT_WEIGHTS.read_bytes()).hexdigest() != before:
+            shutil.copy(backup, DEFAULT_WEIGHTS)
+            pytest.fail("--save overwrote the bundled model (restored from a copy)")
+    assert proc.returncode == 1 and "is an input of this run" in proc.stderr
+    assert "Traceback" not in proc.stderr

@@ -191,3 +191,87 @@ def test_official_size_beat_end_to_end_with_random_weights(data_dir, tmp_path):
     face = read_arkit_json(write_arkit_json(motion, tmp_path / "out.json"))
     assert face.weights.shape == (150, 51)
     assert json.loads((tmp_path / "out.json").read_text())["names"][0] == "browDownLeft"
+
+
+class _RunsCommand:
+    """What a crafted pickle holds: unpickling it calls os.system."""
+
+    def __init__(self, command: str):
+        self.command = command
+
+    def __reduce__(self):
+        import os
+
+        return os.system, (self.command,)
+
+
+def crafted_npy(path, payload) -> None:
+    """A .npy file as np.save writes a pickled object array, holding `payload`."""
+    import pickle
+
+    with open(path, "wb") as fh:
+        np.lib.format.write_array_header_1_0(fh, {"descr": "|O", "fortran_order": False, "shape": ()})
+        pickle.dump(payload, fh, protocol=3)
+
+
+def test_show_stats_are_read_as_np_load_reads_them(data_dir):
+    from diffsheg_core.checkpoints import _show_stats
+
+    path = data_dir / "show" / "talkshow_mean_std.npy"
+    expected = np.load(path, allow_pickle=True).item()
+    stats = _show_stats(path)
+    assert set(stats) == set(expected)
+    for key, values in expected.items():
+        assert stats[key].dtype == values.dtype and np.array_equal(stats[key], values), key
+
+
+@pytest.mark.parametrize("nested", [False, True])
+def test_a_stats_file_that_would_run_code_is_refused_and_runs_nothing(data_dir, tmp_path, nested):
+    marker = tmp_path / "ran"
+    evil = _RunsCommand(f"touch {marker}")
+    stats = np.load(data_dir / "show" / "talkshow_mean_std.npy", allow_pickle=True).item()
+    crafted_npy(tmp_path / "talkshow_mean_std.npy", {**stats, "pose_std": evil} if nested else evil)
+    # the file is what it claims: numpy's own loader runs its command
+    np.load(tmp_path / "talkshow_mean_std.npy", allow_pickle=True)
+    assert marker.exists()
+    marker.unlink()
+    with pytest.raises(CheckpointError, match="talkshow_mean_std.npy: refused to load: it names the global "
+                                              "(posix|nt).system") as err:
+        official_stats("show", tmp_path)
+    assert "\n" not in str(err.value) and "data.tar.gz" in str(err.value)
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize("change,match", [
+    (lambda s: {k: v for k, v in s.items() if k != "expression_std"}, "expected a dict of pose_mean"),
+    (lambda s: {**s, "pose_std": s["pose_std"][:-1]}, r"\('pose_std'\): expected 165 floating-point "
+                                                      r"statistics, found an array of dtype float64 and shape \(164,\)"),
+    (lambda s: {**s, "expression_mean": s["expression_mean"].astype(object)}, "dtype object"),
+    (lambda s: {**s, "pose_mean": np.full(165, np.nan)}, "NaN or infinite"),
+    (lambda s: [s["pose_mean"]], "found list"),
+    (lambda s: s["pose_mean"], "found ndarray"),
+])
+def test_show_stats_of_the_wrong_form_are_refused(data_dir, tmp_path, change, match):
+    stats = np.load(data_dir / "show" / "talkshow_mean_std.npy", allow_pickle=True).item()
+    crafted_npy(tmp_path / "talkshow_mean_std.npy", change(stats))
+    with pytest.raises(CheckpointError, match=match) as err:
+        official_stats("show", tmp_path)
+    assert str(tmp_path / "talkshow_mean_std.npy") in str(err.value)
+
+
+@pytest.mark.parametrize("name,values,match", [
+    ("axis_angle_std.npy", np.array([{"a": 1}], dtype=object), "not a plain array of statistics"),
+    ("facial51_mean.npy", np.zeros(52), r"expected 51 floating-point statistics, found an array of dtype "
+                                        r"float64 and shape \(52,\)"),
+    ("axis_angle_mean.npy", np.zeros((141, 1)), "expected 141"),
+])
+def test_beat_stats_of_the_wrong_form_are_refused(data_dir, tmp_path, name, values, match):
+    import shutil
+
+    for stats in ("axis_angle_mean.npy", "axis_angle_std.npy", "facial51_mean.npy", "facial51_std.npy"):
+        shutil.copy(data_dir / "beat" / stats, tmp_path / stats)
+    (tmp_path / name).unlink()
+    np.save(tmp_path / name, values, allow_pickle=True)
+    with pytest.raises(CheckpointError, match=match) as err:
+        official_stats("beat", tmp_path)
+    assert str(tmp_path / name) in str(err.value) and "\n" not in str(err.value)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import errno
 import os
+import shutil
 import subprocess
 import sys
 import warnings
@@ -99,6 +100,39 @@ def test_an_output_that_is_an_input_is_refused_and_the_input_kept(speech, tmp_pa
     assert talk.read_bytes() == before
     result = cli(str(talk), "-o", str(tmp_path / "m.npz"), "--bvh", str(tmp_path / "m.npz"))
     assert result.returncode == 2 and "named twice" in result.stderr
+
+
+def test_the_bundled_model_is_an_input_even_when_not_named(speech, tmp_path):
+    import hashlib
+
+    before = hashlib.sha256(DEFAULT_WEIGHTS.read_bytes()).hexdigest()
+    backup = shutil.copy(DEFAULT_WEIGHTS, tmp_path / "backup.safetensors")  # restored if the refusal fails
+    try:
+        result = cli(str(speech), "-o", str(DEFAULT_WEIGHTS))
+    finally:
+        if hashlib.sha256(DEFAULT_WEIGHTS.read_bytes()).hexdigest() != before:
+            shutil.copy(backup, DEFAULT_WEIGHTS)
+            pytest.fail("-o overwrote the bundled model (restored from a copy)")
+    assert result.returncode == 2 and "is an input of this run" in result.stderr
+    assert str(DEFAULT_WEIGHTS) in result.stderr and "Traceback" not in result.stderr
+
+
+def test_statistics_and_hubert_files_are_inputs(speech, data_dir, golden_dir, tmp_path):
+    from test_checkpoints import golden_official_file
+
+    official = golden_official_file(golden_dir, tmp_path)
+    stats = tmp_path / "stats"
+    shutil.copytree(data_dir / "beat", stats)
+    shutil.copy(stats / "facial51_std.npy", tmp_path)  # beside the checkpoint: read when no --stats
+    hubert = tmp_path / "hubert"
+    (hubert / "sub").mkdir(parents=True)
+    (hubert / "sub" / "config.json").write_text("{}")
+    for extra, output in ([], tmp_path / "facial51_std.npy"), (["--stats", str(stats)], stats / "axis_angle_std.npy"), \
+            (["--hubert", str(hubert)], hubert / "sub" / "config.json"):
+        before = output.read_bytes()
+        result = cli(str(speech), "--model", str(official), *extra, "-o", str(output))
+        assert result.returncode == 2 and "is an input of this run" in result.stderr, (extra, result.stderr)
+        assert output.read_bytes() == before
 
 
 def test_a_folder_as_output_is_refused_before_generating(speech, tmp_path):
