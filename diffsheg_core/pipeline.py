@@ -61,15 +61,16 @@ def style_weights(bundle: ModelBundle, style: Optional[StyleSpec]) -> dict[int, 
                                 f"got {key!r}")
         return int(key)
 
-    items = style.items() if isinstance(style, dict) else [(style, 1.0)]
-    weights: dict[int, float] = {}
-    for key, weight in items:
-        weight = check_number(f"style weight of {key!r}", weight, (0.0, math.inf))
-        weights[index(key)] = weights.get(index(key), 0.0) + weight
-    total = sum(weights.values())
-    if total <= 0:
+    items = [(key, check_number(f"style weight of {key!r}", weight, (0.0, math.inf)))
+             for key, weight in (style.items() if isinstance(style, dict) else [(style, 1.0)])]
+    peak = max((weight for _, weight in items), default=0.0)
+    if peak <= 0:
         raise DiffshegError(f"style weights {style!r} do not sum to a positive number: give at least "
                             "one style a weight above 0")
+    weights: dict[int, float] = {}
+    for key, weight in items:  # each over the largest first: weights near the float limit do not overflow
+        weights[index(key)] = weights.get(index(key), 0.0) + weight / peak
+    total = sum(weights.values())
     return {k: w / total for k, w in sorted(weights.items())}
 
 

@@ -148,6 +148,16 @@ def test_a_motion_records_its_style(styled, speech):
     assert single.meta["style"] == 1 and single.meta["style_guidance"] == 1.0
 
 
+def test_weights_near_the_float_limit_are_the_mix_they_describe(styled, speech):
+    """Their sum overflows: normalised by the sum alone they became zeros, the null style."""
+    huge = generate(speech, model=styled, steps=2, device="cpu", style=parse_style("calm=1e308,animated=1e308"))
+    assert huge.meta["style_weights"] == {"calm": 0.5, "animated": 0.5}
+    even = generate(speech, model=styled, steps=2, device="cpu", style={"calm": 1, "animated": 1})
+    np.testing.assert_array_equal(huge.rotations, even.rotations)
+    assert style_weights(styled, {"calm": 1.7e308, 0: 1.7e308, "animated": 1.7e308}) == \
+        pytest.approx({0: 2 / 3, 2: 1 / 3})
+
+
 def test_style_guidance_needs_a_null_style_and_a_scale_in_range(styled, speech):
     plain = replace(styled, info={"style_names": NAMES})
     with pytest.raises(DiffshegError, match="trained without a null style"):
