@@ -283,6 +283,9 @@ def _mixdown(frames: np.ndarray) -> np.ndarray:
 
 def _array_to_mono(array: np.ndarray) -> np.ndarray:
     """(N,), (N, C) or (C, N) numeric array -> (N,) float32 in [-1, 1] for integer PCM."""
+    if array.size == 0:  # before any axis is taken for channels or any mean is computed
+        raise AudioError(f"the audio array has shape {array.shape}: it contains no audio samples; "
+                         "pass the recorded speech")
     if array.ndim not in (1, 2):
         raise AudioError(
             f"the audio array has shape {array.shape}: expected (samples,), (samples, channels) "

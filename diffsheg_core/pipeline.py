@@ -8,6 +8,7 @@ are the same for both.
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass, replace
 from functools import lru_cache
@@ -29,7 +30,8 @@ from .motion import Motion
 from .phonetic import PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel, stack_posteriors
 from .progress import ProgressCallback
 from .runtime.backends import open_network
-from .settings import GUIDANCE, SKIP_GUIDANCE, STYLE_GUIDANCE, GenerateSettings, StyleSpec, check_number
+from .settings import (GUIDANCE, SKIP_GUIDANCE, STYLE_GUIDANCE, GenerateSettings, StyleSpec, check_number,
+                       parse_whole)
 
 AudioInput = Union[str, Path, np.ndarray, Audio]
 
@@ -50,8 +52,8 @@ def style_weights(bundle: ModelBundle, style: Optional[StyleSpec]) -> dict[int, 
         if isinstance(key, str):
             if key in names:
                 return names.index(key)
-            if key.strip().isdigit():
-                return index(int(key))
+            if (number := parse_whole(key)) is not None:
+                return index(number)
             raise DiffshegError(f"model {bundle.model_id} has no style '{key}': choose one of "
                                 f"{', '.join(names) or f'the style indices 0 to {n - 1}'}")
         if isinstance(key, bool) or not isinstance(key, (int, np.integer)) or not 0 <= key < n:
@@ -59,17 +61,16 @@ def style_weights(bundle: ModelBundle, style: Optional[StyleSpec]) -> dict[int, 
                                 f"got {key!r}")
         return int(key)
 
-    items = style.items() if isinstance(style, dict) else [(style, 1.0)]
-    weights: dict[int, float] = {}
-    for key, weight in items:
-        if isinstance(weight, bool) or not isinstance(weight, (int, float, np.floating)) \
-                or not np.isfinite(weight) or weight < 0:
-            raise DiffshegError(f"style weight of {key!r} must be a number >= 0, got {weight!r}")
-        weights[index(key)] = weights.get(index(key), 0.0) + float(weight)
-    total = sum(weights.values())
-    if total <= 0:
+    items = [(key, check_number(f"style weight of {key!r}", weight, (0.0, math.inf)))
+             for key, weight in (style.items() if isinstance(style, dict) else [(style, 1.0)])]
+    peak = max((weight for _, weight in items), default=0.0)
+    if peak <= 0:
         raise DiffshegError(f"style weights {style!r} do not sum to a positive number: give at least "
                             "one style a weight above 0")
+    weights: dict[int, float] = {}
+    for key, weight in items:  # each over the largest first: weights near the float limit do not overflow
+        weights[index(key)] = weights.get(index(key), 0.0) + weight / peak
+    total = sum(weights.values())
     return {k: w / total for k, w in sorted(weights.items())}
 
 

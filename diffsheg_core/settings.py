@@ -13,6 +13,8 @@ import math
 from dataclasses import dataclass, fields
 from typing import Union
 
+import numpy as np
+
 from .errors import DiffshegError
 
 STEPS = (1, 1000)
@@ -31,20 +33,62 @@ StyleSpec = Union[int, str, dict]
 """A style: a class index, a style name, or weights over indices or names."""
 
 
-def check_number(name: str, value, bounds: tuple, whole: bool = False):
-    """`value` if it is a number within `bounds` (a whole number if `whole`), else a DiffshegError."""
+def check_number(name: str, value, bounds: tuple, whole: bool = False) -> int | float:
+    """`value` as a plain int (`whole`) or float if it is a finite number within `bounds`
+    (an upper bound of math.inf: none), else a DiffshegError. numpy numbers count as numbers."""
     lo, hi = bounds
-    kind = "a whole number" if whole else "a number"
-    if (isinstance(value, bool) or not isinstance(value, (int, float) if not whole else int)
-            or (not whole and not math.isfinite(value)) or not lo <= value <= hi):
-        raise DiffshegError(f"{name} must be {kind} from {lo:g} to {hi:g}, got {value!r}")
-    return value
+    number = _plain_number(value, whole)
+    if number is None or not lo <= number <= hi:
+        kind = "a whole number" if whole else "a number"
+        span = f">= {lo:g}" if hi == math.inf else f"from {lo:g} to {hi:g}"
+        raise DiffshegError(f"{name} must be {kind} {span}, got {value!r}")
+    return number
+
+
+def _plain_number(value, whole: bool) -> int | float | None:
+    """`value` as a Python int (`whole`) or finite float; None if it is no such number (a bool is not)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer) if whole
+                                                 else (int, float, np.integer, np.floating)):
+        return None
+    if whole:
+        return int(value)
+    try:
+        number = float(value)
+    except OverflowError:  # an int beyond the floats
+        return None
+    return number if math.isfinite(number) else None
+
+
+def parse_whole(text: str) -> int | None:
+    """The whole number `text` spells in ASCII digits ('12', ' 12 '); None for anything else
+    ('-1', '1.5', and digits str.isdigit takes but int() does not, such as '²')."""
+    text = text.strip()
+    return int(text) if text.isascii() and text.isdigit() else None
 
 
 def _check_choice(name: str, value, choices: tuple) -> str:
     if value not in choices:
         raise DiffshegError(f"{name} must be one of {', '.join(choices)}, got {value!r}")
     return value
+
+
+_NUMBERS = (("steps", "steps", STEPS, True), ("overlap", "overlap", OVERLAP, True),
+            ("candidates", "candidates", CANDIDATES, True), ("threads", "threads", THREADS, True),
+            ("guidance", "guidance", GUIDANCE, False),
+            ("skip_guidance", "skip_guidance (gesture energy)", SKIP_GUIDANCE, False),
+            ("style_guidance", "style_guidance", STYLE_GUIDANCE, False))
+"""The numeric settings: field, the name messages give it, bounds, whether whole."""
+
+
+def _check_style(style) -> StyleSpec:
+    """`style` if it has the form of a style (a numpy integer as an int); which styles a model
+    has is checked against the model (pipeline.style_weights)."""
+    if isinstance(style, np.integer):
+        return int(style)
+    if isinstance(style, bool) or not isinstance(style, (int, str, dict)):
+        raise DiffshegError(f"style must be a style index, a style name or weights over styles "
+                            f"(e.g. {{'calm': 0.7, 'animated': 0.3}}), got {style!r}")
+    return style
 
 
 @dataclass(frozen=True)
@@ -69,24 +113,21 @@ class GenerateSettings:
     def __post_init__(self):
         from .foppas import check_seed
 
-        check_seed(self.seed)
+        self._set("seed", check_seed(self.seed))
         if self.face_seed is not None:
-            check_seed(self.face_seed)
-        for name, bounds in (("steps", STEPS), ("overlap", OVERLAP), ("candidates", CANDIDATES),
-                             ("threads", THREADS)):
+            self._set("face_seed", check_seed(self.face_seed))
+        for name, label, bounds, whole in _NUMBERS:
             if getattr(self, name) is not None:
-                check_number(name, getattr(self, name), bounds, whole=True)
-        if self.style is not None and (not isinstance(self.style, (int, str, dict)) or isinstance(self.style, bool)):
-            raise DiffshegError(f"style must be a style index, a style name or weights over styles "
-                                f"(e.g. {{'calm': 0.7, 'animated': 0.3}}), got {self.style!r}")
-        for name, label, bounds in (("guidance", "guidance", GUIDANCE),
-                                    ("skip_guidance", "skip_guidance (gesture energy)", SKIP_GUIDANCE),
-                                    ("style_guidance", "style_guidance", STYLE_GUIDANCE)):
-            if getattr(self, name) is not None:
-                check_number(label, getattr(self, name), bounds)
+                self._set(name, check_number(label, getattr(self, name), bounds, whole))
+        if self.style is not None:
+            self._set("style", _check_style(self.style))
         _check_choice("device", self.device, DEVICES)
         _check_choice("backend", self.backend, BACKENDS)
         _check_choice("precision", self.precision, PRECISIONS)
+
+    def _set(self, name: str, value) -> None:
+        """Store a checked value (numpy numbers as Python's) in the frozen settings."""
+        object.__setattr__(self, name, value)
 
 
 # ---------------------------------------------------------------- command lines
@@ -118,7 +159,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--backend", default="auto", choices=BACKENDS,
                    help="onnx (onnxruntime, CPU) or torch (CUDA, official checkpoints); default auto")
     g.add_argument("--precision", default="fp32", choices=PRECISIONS, help="bf16 / fp16: autocast on CUDA")
-    g.add_argument("--threads", type=int, help="CPU threads (default 1, or $DIFFSHEG_THREADS)")
+    g.add_argument("--threads", type=int,
+                   help=f"CPU threads, {THREADS[0]}-{THREADS[1]} (default 1, or $DIFFSHEG_THREADS, in the same bounds)")
 
 
 def from_arguments(args: argparse.Namespace) -> GenerateSettings:
@@ -130,12 +172,17 @@ def parse_style(text: str) -> StyleSpec:
     """'2' -> 2, 'calm' -> 'calm', 'calm=0.7,animated=0.3' -> {'calm': 0.7, 'animated': 0.3}."""
     text = text.strip()
     if "=" not in text:
-        return int(text) if text.isdigit() else text
+        index = parse_whole(text)
+        return text if index is None else index
     weights: dict = {}
     for part in text.split(","):
         name, _, value = part.partition("=")
+        name = name.strip()
+        if name in weights:
+            raise argparse.ArgumentTypeError(f"style {name!r} is given twice in {text!r}: give each style "
+                                             "one weight")
         try:
-            weights[name.strip()] = float(value)
+            weights[name] = float(value)
         except ValueError:
             raise argparse.ArgumentTypeError(f"style weight {part!r} is not name=number (e.g. calm=0.7)") from None
     return weights

@@ -7,6 +7,7 @@ import math
 import shutil
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import librosa
@@ -321,6 +322,18 @@ def test_bad_arrays_raise_audio_error_naming_the_problem(case):
     with pytest.raises(AudioError, match="array|list") as error:
         load_audio(source, rate)
     assert problem in str(error.value)
+
+
+@pytest.mark.parametrize("shape", [(0,), (0, 2), (2, 0), (0, 0)])
+def test_an_empty_array_is_refused_before_anything_is_computed(shape):
+    """(0, 2) was taken for 2 samples of no channels: numpy warned of an empty mean, then
+    the message spoke of 0.1 ms of audio."""
+    import diffsheg_core
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(AudioError, match=rf"shape \({shape[0]},.*contains no audio samples; pass the"):
+            diffsheg_core.generate(np.zeros(shape, np.float32), 16000)
 
 
 # --- HuBERT ----------------------------------------------------------------------

@@ -3,7 +3,7 @@
 import subprocess
 import sys
 import threading
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
@@ -16,6 +16,8 @@ from diffsheg_core.foppas import PRESETS
 from diffsheg_core.prior import GesturePrior
 from diffsheg_core.training.data.beat import read_gesture
 from diffsheg_core.rigs import ARKIT51, BEAT_JOINTS, SMPLX_EXPRESSION
+from diffsheg_core.runtime.backends import open_network
+from diffsheg_core.settings import GenerateSettings
 
 
 @pytest.fixture(scope="module")
@@ -92,6 +94,35 @@ def test_cancel_between_steps(speech, model):
 def test_bad_settings_are_refused(speech, model, kwargs, match):
     with pytest.raises(DiffshegError, match=match):
         generate(speech, **{"model": model, "device": "cpu", **kwargs})
+
+
+def test_numpy_numbers_are_taken_as_the_python_numbers_they_are(speech, model):
+    """numpy integers (and floats, for the float options) are accepted by every numeric
+    option, as the seed always took them, and kept as plain Python numbers."""
+    given = GenerateSettings(seed=np.int64(5), face_seed=np.uint8(2), steps=np.int64(2), overlap=np.int32(4),
+                             candidates=np.int64(2), style=np.int64(2), threads=np.int64(1),
+                             guidance=np.float32(1.0), skip_guidance=np.float64(0.0), style_guidance=np.int64(1))
+    plain = GenerateSettings(seed=5, face_seed=2, steps=2, overlap=4, candidates=2, style=2, threads=1,
+                             guidance=1.0, skip_guidance=0.0, style_guidance=1.0)
+    assert [(f.name, type(getattr(given, f.name))) for f in fields(plain)] == \
+        [(f.name, type(getattr(plain, f.name))) for f in fields(plain)]
+    assert given == plain
+    motion = generate(speech, model=model, settings=given, device="cpu")
+    assert (motion.meta["seed"], motion.meta["style"], motion.meta["steps"], motion.meta["candidates"]) == (5, 2, 2, 2)
+
+
+@pytest.mark.parametrize("value", ["²", "2000", "0", "-1", "1.5"])
+def test_threads_from_the_environment_are_checked_as_the_option_is(speech, model, monkeypatch, value):
+    monkeypatch.setenv("DIFFSHEG_THREADS", value)
+    with pytest.raises(DiffshegError, match=r"^\$DIFFSHEG_THREADS must be a whole number from 1 to 256, got"):
+        generate(speech, model=model, device="cpu", steps=2)
+
+
+def test_the_threads_option_has_the_bounds_of_the_environment_variable(model):
+    with pytest.raises(DiffshegError, match="^threads must be a whole number from 1 to 256, got 2000$"):
+        GenerateSettings(threads=2000)
+    with pytest.raises(DiffshegError, match="^threads must be a whole number from 1 to 256, got 2000$"):
+        open_network(model, threads=2000)
 
 
 def test_cuda_request_without_gpu_explains(speech, model):

@@ -4,6 +4,9 @@ official networks' speaker one-hots taking weights too."""
 
 from __future__ import annotations
 
+import argparse
+import subprocess
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -46,6 +49,34 @@ def test_a_style_is_an_index_a_name_or_weights(styled):
 def test_bad_styles_are_refused_by_name(styled, style, match):
     with pytest.raises(DiffshegError, match=match):
         style_weights(styled, style)
+
+
+def test_only_ascii_digits_make_a_style_index(styled):
+    """'²' is a digit to str.isdigit but no number to int(): it is a style name, and no style here."""
+    assert parse_style("²") == "²" and parse_style(" 2 ") == 2
+    assert parse_style("calm=0.5,²=0.5") == {"calm": 0.5, "²": 0.5}
+    assert style_weights(styled, {"calm": 1.0, "2": 1.0}) == {0: 0.5, 2: 0.5}
+    for style in ("²", {"calm": 0.5, "²": 0.5}):
+        with pytest.raises(DiffshegError, match="has no style '²': choose one of calm, conversational, animated"):
+            style_weights(styled, style)
+
+
+def test_numpy_numbers_are_style_indices_and_weights(styled):
+    assert style_weights(styled, {np.int64(0): np.int64(1), "animated": np.float32(3)}) == {0: 0.25, 2: 0.75}
+    assert type(GenerateSettings(style=np.int64(2)).style) is int
+
+
+def test_a_style_named_twice_is_refused():
+    with pytest.raises(argparse.ArgumentTypeError, match="style 'calm' is given twice in 'calm=1, calm =0'"):
+        parse_style("calm=1, calm =0")
+
+
+def test_the_cli_refuses_odd_styles_in_one_line(speech):
+    for style, match in (("calm=0.5,²=0.5", "has no style '²'"), ("calm=1,calm=0", "'calm' is given twice")):
+        result = subprocess.run([sys.executable, "-m", "diffsheg_core", "generate", str(speech), "--style", style,
+                                 "-o", str(speech.with_suffix(".npz"))], capture_output=True, text=True, timeout=300)
+        assert result.returncode == 2 and "error: " in result.stderr and match in result.stderr, result.stderr
+        assert "Traceback" not in result.stderr
 
 
 class Recording:
@@ -115,6 +146,16 @@ def test_a_motion_records_its_style(styled, speech):
     assert motion.meta["style"] is None and motion.meta["style_guidance"] == 1.5
     single = generate(speech, model=styled, steps=3, device="cpu", style="conversational")
     assert single.meta["style"] == 1 and single.meta["style_guidance"] == 1.0
+
+
+def test_weights_near_the_float_limit_are_the_mix_they_describe(styled, speech):
+    """Their sum overflows: normalised by the sum alone they became zeros, the null style."""
+    huge = generate(speech, model=styled, steps=2, device="cpu", style=parse_style("calm=1e308,animated=1e308"))
+    assert huge.meta["style_weights"] == {"calm": 0.5, "animated": 0.5}
+    even = generate(speech, model=styled, steps=2, device="cpu", style={"calm": 1, "animated": 1})
+    np.testing.assert_array_equal(huge.rotations, even.rotations)
+    assert style_weights(styled, {"calm": 1.7e308, 0: 1.7e308, "animated": 1.7e308}) == \
+        pytest.approx({0: 2 / 3, 2: 1 / 3})
 
 
 def test_style_guidance_needs_a_null_style_and_a_scale_in_range(styled, speech):

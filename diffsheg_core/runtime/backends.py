@@ -23,6 +23,7 @@ import numpy as np
 
 from ..checkpoints import TORCH_HOW_TO, ModelBundle
 from ..errors import DiffshegError
+from ..settings import THREADS, check_number, parse_whole
 
 BACKENDS = ("auto", "onnx", "torch")
 DEVICES = ("auto", "cpu", "cuda")
@@ -40,11 +41,10 @@ def default_threads() -> int:
     with one core busy; 1 thread: 8.3 / 8.4 s). See bench/bench_backends.py. onnxruntime's
     threads are also told not to spin when more are asked for."""
     value = os.environ.get(THREADS_ENV)
-    if value:
-        if not value.isdigit() or int(value) < 1:
-            raise DiffshegError(f"${THREADS_ENV} must be a whole number of threads >= 1, got {value!r}")
-        return int(value)
-    return 1
+    if not value:
+        return 1
+    threads = parse_whole(value)
+    return check_number(f"${THREADS_ENV}", value if threads is None else threads, THREADS, whole=True)
 
 
 class OnnxNetwork:
@@ -191,10 +191,8 @@ def open_network(bundle: ModelBundle, backend: str = "auto", device: str = "auto
     """The network that runs `bundle` (cached on it): an OnnxNetwork or a TorchNetwork."""
     if precision not in PRECISIONS:
         raise DiffshegError(f"unknown precision '{precision}': use {', '.join(PRECISIONS)}")
-    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
-        raise DiffshegError(f"threads must be a whole number >= 1, got {threads!r}")
+    threads = default_threads() if threads is None else check_number("threads", threads, THREADS, whole=True)
     backend = choose_backend(bundle, backend, device)
-    threads = threads or default_threads()
     key = (backend, str(device), precision, threads)
     if key not in bundle.networks:
         if backend == "onnx":
