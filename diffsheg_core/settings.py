@@ -10,10 +10,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import numbers
 from dataclasses import dataclass, fields
 from typing import Union
-
-import numpy as np
 
 from .errors import DiffshegError
 
@@ -47,8 +46,8 @@ def check_number(name: str, value, bounds: tuple, whole: bool = False) -> int | 
 
 def _plain_number(value, whole: bool) -> int | float | None:
     """`value` as a Python int (`whole`) or finite float; None if it is no such number (a bool is not)."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer) if whole
-                                                 else (int, float, np.integer, np.floating)):
+    # numbers' ABCs take numpy's scalars too, without importing numpy (the add-on registers without it)
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral if whole else numbers.Real):
         return None
     if whole:
         return int(value)
@@ -83,7 +82,7 @@ _NUMBERS = (("steps", "steps", STEPS, True), ("overlap", "overlap", OVERLAP, Tru
 def _check_style(style) -> StyleSpec:
     """`style` if it has the form of a style (a numpy integer as an int); which styles a model
     has is checked against the model (pipeline.style_weights)."""
-    if isinstance(style, np.integer):
+    if isinstance(style, numbers.Integral) and not isinstance(style, bool):
         return int(style)
     if isinstance(style, bool) or not isinstance(style, (int, str, dict)):
         raise DiffshegError(f"style must be a style index, a style name or weights over styles "
