@@ -116,7 +116,22 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    help="key every frame on every channel instead (baked curves for game export)")
     k.add_argument("--no-sound", action="store_true", help="add no sound strip")
     k.add_argument("--keep-frame-range", action="store_true", help="leave the scene's frame range as it is")
+    r = p.add_argument_group("regenerating a range (of the take the scene's character plays; its audio is used)")
+    r.add_argument("--regenerate", metavar="START-END", type=frame_range,
+                   help="generate scene frames START to END anew as a new take, with the generation options "
+                        "given (another --seed, --style, ...); everything outside stays as it is")
+    r.add_argument("--keep-face", action="store_true", help="with --regenerate: keep the face inside the range too")
     return p.parse_args(argv)
+
+
+def frame_range(text: str) -> tuple[int, int]:
+    """'START-END' scene frames (START <= END; either may be negative: '-10--1')."""
+    import re
+
+    match = re.fullmatch(r"\s*(-?\d+)\s*-\s*(-?\d+)\s*", text)
+    if match is None or int(match.group(1)) > int(match.group(2)):
+        raise argparse.ArgumentTypeError(f"expected START-END frames with START <= END (e.g. 120-240), got {text!r}")
+    return int(match.group(1)), int(match.group(2))
 
 
 def script_args() -> list[str]:
@@ -204,33 +219,62 @@ def bake_options(args, scene, armature, faces):
 
 
 def run_one(args, audio: Path, label: str, several: bool) -> None:
-    import diffsheg_core
-    from diffsheg_core.errors import DiffshegError
+    """Generate the whole clip of `audio` as a new take, then save and render as asked."""
     from diffsheg_core.settings import from_arguments
-
-    bake_motion = addon("bake").bake_motion
-    set_video_output = addon("demo").set_video_output
-    model_label, report = addon("operators").model_label, addon("report")
 
     settings = from_arguments(args)  # every generation option checked before anything else
     scene = bpy.context.scene
+    armature, faces = find_targets(args)
+    check_outputs(args, scene, audio, several)
+    request = addon("job").Request(audio, bake_options(args, scene, armature, faces), settings)
+    generate_and_write(args, scene, request, label, several)
+
+
+def run_regenerate(args) -> None:
+    """Generate scene frames args.regenerate of the take playing anew, as a new take."""
+    from diffsheg_core.audio import check_audio_path
+    from diffsheg_core.errors import DiffshegError
+    from diffsheg_core.settings import from_arguments
+
+    settings = from_arguments(args)
+    scene = bpy.context.scene
+    armature, faces = find_targets(args)
+    options = bake_options(args, scene, armature, faces)
+    first, last = args.regenerate
+    span = addon("regenerate").prepare_range(scene, options, first, last)
+    if not span.source.audio_path:
+        raise DiffshegError(f"take '{span.take}' was made without an audio file: it cannot be regenerated")
+    audio = check_audio_path(span.source.audio_path)
+    check_outputs(args, scene, audio, several=False)
+    request = addon("job").Request(audio, options, settings, keep_face=args.keep_face, range=span)
+    generate_and_write(args, scene, request, f"{span.take} frames {first}-{last}", several=False)
+
+
+def check_outputs(args, scene, audio: Path, several: bool) -> None:
+    """Refuse, before anything runs, outputs that cannot be written or would overwrite an input."""
+    from diffsheg_core.checkpoints import files_read
+    from diffsheg_core.errors import DiffshegError
+    from diffsheg_core.files import check_outputs as check
+
     if not args.no_render and scene.camera is None:
         raise DiffshegError("the scene has no camera to render with: add one, or pass --no-render")
-    armature, faces = find_targets(args)
-    from diffsheg_core.checkpoints import files_read
-    from diffsheg_core.files import check_outputs
+    check([output_for(args, audio, several, ".blend", args.save) if args.save else None,
+           None if args.no_render else output_for(args, audio, several, ".mp4", args.output)],
+          inputs=[audio, *files_read(args.model), bpy.data.filepath or None])
 
-    check_outputs([output_for(args, audio, several, ".blend", args.save) if args.save else None,
-                   None if args.no_render else output_for(args, audio, several, ".mp4", args.output)],
-                  inputs=[audio, *files_read(args.model), bpy.data.filepath or None])
-    options = bake_options(args, scene, armature, faces)
+
+def generate_and_write(args, scene, request, label: str, several: bool) -> None:
+    """Run `request`, key it, report, then save and render as the arguments ask."""
+    model_label, report = addon("operators").model_label, addon("report")
     started = time.perf_counter()
-    motion = diffsheg_core.generate(str(audio), settings=settings, progress=printer(label))
-    result = bake_motion(scene, motion, str(audio), options)
+    motion = request.run(printer(label), None)
+    result = request.apply(scene, motion)
     seconds = time.perf_counter() - started
-    print(f"{label}: {report.report_line(result, seconds)} [model {model_label(motion.meta)}]", flush=True)
+    meta = motion.meta["regenerated"][-1] if request.range is not None else motion.meta
+    print(f"{label}: {report.report_line(result, seconds)} [model {model_label(meta)}]", flush=True)
     for line in report.warning_lines(result):
         print(f"{label}: warning: {line}", flush=True)
+    audio = request.path
     if args.save:
         path = output_for(args, audio, several, ".blend", args.save)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -239,7 +283,7 @@ def run_one(args, audio: Path, label: str, several: bool) -> None:
     if not args.no_render:
         path = output_for(args, audio, several, ".mp4", args.output)
         path.parent.mkdir(parents=True, exist_ok=True)
-        set_video_output(scene)
+        addon("demo").set_video_output(scene)
         scene.render.filepath = str(path)
         print(f"{label}: rendering frames {scene.frame_start}-{scene.frame_end} with "
               f"{scene.render.engine} to {path}", flush=True)
@@ -272,6 +316,15 @@ def main(argv: list[str]) -> int:
     try:
         if args.blend:
             bpy.ops.wm.open_mainfile(filepath=str(Path(args.blend).expanduser().resolve()))
+        if args.keep_face and args.regenerate is None:
+            raise DiffshegError("--keep-face goes with --regenerate START-END (a whole new take has a face of its "
+                                "own: for the same face with other gestures, pass --face-seed)")
+        if args.regenerate is not None:
+            if args.audio is not None or not bpy.data.filepath:
+                raise DiffshegError("--regenerate works on a .blend holding a take (--blend, or blender -b "
+                                    "scene.blend) and uses the take's own audio: leave out --audio")
+            run_regenerate(args)
+            return 0
         if args.audio is None:
             if bpy.data.filepath:
                 raise DiffshegError("no --audio given: pass an audio file or folder")

@@ -10,11 +10,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Callable
 
+import bpy
 import numpy as np
 
 from diffsheg_core.errors import DiffshegError
-from diffsheg_core.keyframes import Keys, fit_keys, rotation_error, value_error
+from diffsheg_core.keyframes import ErrorFn, Keys, fit_keys, rotation_error, value_error
 from diffsheg_core.motion import Motion, resample_motion
 
 from . import takes
@@ -99,16 +101,36 @@ def scene_fps(scene) -> float:
     return scene.render.fps / scene.render.fps_base
 
 
-def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOptions) -> BakeResult:
-    """Key `motion` onto the options' armature and face meshes from `start_frame`.
+@dataclass
+class Group:
+    """Channels keyed on shared frames (one bone's rotation, or one shape key): their dense
+    values, one per scene frame from the start frame, and how far keys may stray from them."""
 
-    Raises DiffshegError (scene unchanged) when nothing can be keyed.
-    """
+    channels: list[Channel]
+    error: Callable[[np.ndarray], ErrorFn]   # the group's (T, C) values -> its ErrorFn
+    bound: float
+
+
+@dataclass
+class Plan:
+    """What keying a motion will write, worked out before any change to Blender data."""
+
+    motion: Motion                     # at the scene's rate
+    options: BakeOptions               # with the preset chosen
+    targets: list[tuple[object, list[Group]]]   # (Object or shape-key Key, its groups)
+    unmatched_bones: list[str]
+    unmatched_shape_keys: dict[str, list[str]]
+    notes: list[str]
+    preset_notes: list[str]
+
+
+def plan_keys(scene, motion: Motion, options: BakeOptions) -> Plan:
+    """The groups of channels `motion` gives the options' armature and face meshes at the
+    scene's rate. Raises DiffshegError (nothing changed) when nothing can be keyed."""
     if options.armature is None and not options.face_meshes:
         raise DiffshegError("no target: choose an armature and/or a face mesh in the panel")
     check_local([options.armature, *options.face_meshes])
-    fps = scene_fps(scene)
-    motion = resample_motion(motion, fps)
+    motion = resample_motion(motion, scene_fps(scene))
     preset_notes: list[str] = []
     if options.preset is None:
         preset, note = auto_preset(motion.rig, options.armature, options.face_meshes)
@@ -116,64 +138,67 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
     if options.armature is not None:
         check_preset_fits(options.preset, motion.rig, options.armature)
     check_frames(options.start_frame, motion.n_frames)
-    audio_name = Path(audio_path or motion.meta.get("audio_file") or "speech").stem
 
-    plans: list[tuple[object, list[Channel]]] = []
+    targets: list[tuple[object, list[Group]]] = []
     unmatched_bones: list[str] = []
     face_maps = [map_shape_keys(mesh, options.preset, motion) for mesh in options.face_meshes]
-    rig_notes: list[str] = []
+    notes: list[str] = []
     if options.armature is not None:
         mapping = map_armature(options.armature, options.preset, motion, jaw_shape_keys=face_maps)
-        unmatched_bones, rig_notes = mapping.unmatched, mapping.notes
-        channels = []
+        unmatched_bones, notes = mapping.unmatched, list(mapping.notes)
+        groups = []
         for bone, quats in bone_quaternions(motion, mapping).items():
             if options.smoothing > 0:
                 quats = smooth(quats, options.smoothing)
                 quats /= np.linalg.norm(quats, axis=1, keepdims=True)
             mode = options.armature.pose.bones[bone].rotation_mode
-            bone_channels = rotation_channels(bone, mode, quats)
-            channels += bone_channels if options.every_frame else \
-                with_keys(bone_channels, lambda v, m=mode: rotation_error(v, m), options.max_error)
-        plans.append((options.armature, channels))
+            groups.append(Group(rotation_channels(bone, mode, quats), lambda v, m=mode: rotation_error(v, m),
+                                options.max_error))
+        targets.append((options.armature, groups))
     unmatched_keys: dict[str, list[str]] = {}
-    face_notes: list[str] = []
     for mesh, keys in zip(options.face_meshes, face_maps):
         unmatched_keys[mesh.name] = keys.unmatched
         if keys.empty:
-            face_notes.append(f"{mesh.name}: shape keys that move no vertex, skipped ({len(keys.empty)}): "
-                              f"{', '.join(keys.empty)}")
+            notes.append(f"{mesh.name}: shape keys that move no vertex, skipped ({len(keys.empty)}): "
+                         f"{', '.join(keys.empty)}")
         if keys.derived:
-            face_notes.append(f"{mesh.name}: {', '.join(k for _, k in keys.derived)} driven from the ARKit weights")
+            notes.append(f"{mesh.name}: {', '.join(k for _, k in keys.derived)} driven from the ARKit weights")
         face = smooth(motion.face, options.smoothing) if options.smoothing > 0 else motion.face
-        channels = []
+        groups = []
         for key_name, weights in keys.curves(face):
             block = mesh.data.shape_keys.key_blocks[key_name]
             channel = shape_key_channel(key_name, np.clip(weights, block.slider_min, block.slider_max))
-            channels += [channel] if options.every_frame else \
-                with_keys([channel], value_error, options.max_face_error)
-        plans.append((mesh.data.shape_keys, channels))
+            groups.append(Group([channel], value_error, options.max_face_error))
+        targets.append((mesh.data.shape_keys, groups))
+    notes += [f"warning: {w}" for w in motion.meta.get("warnings", [])]
+    return Plan(motion, options, targets, unmatched_bones, unmatched_keys, notes, preset_notes)
 
+
+def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOptions) -> BakeResult:
+    """Key `motion` onto the options' armature and face meshes from `start_frame`, as a new
+    take that keeps `motion` as its source (takes.store_source).
+
+    Raises DiffshegError (scene unchanged) when nothing can be keyed.
+    """
+    plan = plan_keys(scene, motion, options)
+    options = plan.options
+    audio_name = Path(audio_path or motion.meta.get("audio_file") or "speech").stem
     undo: list[Undo] = []
     try:
         actions, n_keys = [], 0
         number = takes.next_number(audio_name)
         take = takes.take_name(audio_name, number)
-        for id_data, channels in plans:
+        for id_data, groups in plan.targets:
             action, slot = new_action(id_data, takes.action_name(take, id_data), undo)
             takes.mark(action, take, audio_name, number, id_data)
+            channels = [ch for g in groups for ch in (g.channels if options.every_frame else with_keys(g))]
             n_keys += write_channels(action, slot, channels, options.start_frame)
             actions.append(action.name)
+        takes.store_source(bpy.data.actions[actions[0]],
+                           takes.TakeSource(motion, str(audio_path or ""), options.start_frame))
         if options.armature is not None:
             _set_properties(options.armature, options.preset.properties, undo)
-        strip, notes, replaced = None, [], []
-        if options.add_sound and audio_path:
-            if audio_supported():
-                replaced = strips_added_for(scene, audio_path)  # an earlier run's strip of this audio
-                strip = add_sound_strip(scene, audio_path, options.start_frame, undo).name
-            else:
-                notes.append(NO_AUDIO_NOTE)
-        if options.set_frame_range:
-            _set_frame_range(scene, options.start_frame, options.start_frame + motion.n_frames - 1, undo)
+        strip, notes, replaced = _sound_and_range(scene, audio_path, options, plan.motion.n_frames, undo)
     except Exception as exc:
         for step in reversed(undo):
             step()
@@ -181,19 +206,40 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
             raise
         raise DiffshegError(f"could not write the animation into the scene: {exc}") from exc
     remove_strips(scene, replaced)  # only once everything else has succeeded
-    return BakeResult(take=take, preset=options.preset.name, actions=actions, n_frames=motion.n_frames,
-                      n_keys=n_keys, unmatched_bones=unmatched_bones, unmatched_shape_keys=unmatched_keys,
-                      sound_strip=strip, preset_notes=preset_notes,
-                      notes=notes + rig_notes + face_notes + [f"warning: {w}" for w in motion.meta.get("warnings", [])])
+    return BakeResult(take=take, preset=options.preset.name, actions=actions, n_frames=plan.motion.n_frames,
+                      n_keys=n_keys, unmatched_bones=plan.unmatched_bones,
+                      unmatched_shape_keys=plan.unmatched_shape_keys, sound_strip=strip,
+                      preset_notes=plan.preset_notes, notes=notes + plan.notes)
 
 
-def with_keys(channels: list[Channel], error, bound: float) -> list[Channel]:
-    """`channels` (one bone's rotation, or one shape key) with sparse keys on shared frames,
-    within `bound` by `error(values)` on every frame."""
-    values = np.stack([ch.values for ch in channels], axis=1)
-    keys = fit_keys(values, error(values), bound)
+def _sound_and_range(scene, audio_path: str | None, options: BakeOptions, n_frames: int,
+                     undo: list[Undo]) -> tuple[str | None, list[str], list]:
+    """The sound strip and the frame range, as the options ask; returns the strip's name,
+    notes, and the strips an earlier run added for the same audio, for the caller to
+    remove once everything else has succeeded."""
+    strip, notes, replaced = None, [], []
+    if options.add_sound and audio_path:
+        if audio_supported():
+            replaced = strips_added_for(scene, audio_path)  # an earlier run's strip of this audio
+            strip = add_sound_strip(scene, audio_path, options.start_frame, undo).name
+        else:
+            notes.append(NO_AUDIO_NOTE)
+    if options.set_frame_range:
+        _set_frame_range(scene, options.start_frame, options.start_frame + n_frames - 1, undo)
+    return strip, notes, replaced
+
+
+def with_keys(group: Group) -> list[Channel]:
+    """The group's channels with sparse keys on shared frames, within its bound on every frame."""
+    values = group_values(group)
+    keys = fit_keys(values, group.error(values), group.bound)
     return [replace(ch, keys=Keys(keys.frames, keys.values[:, i:i + 1], keys.slopes[:, i:i + 1]))
-            for i, ch in enumerate(channels)]
+            for i, ch in enumerate(group.channels)]
+
+
+def group_values(group: Group) -> np.ndarray:
+    """(T, C) values of the group's channels."""
+    return np.stack([ch.values for ch in group.channels], axis=1)
 
 
 def auto_preset(layout: str, armature, face_meshes) -> tuple[Preset, str]:

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import importlib
 import random
-import threading
-import time
 from pathlib import Path
 
 import bpy
@@ -19,6 +17,7 @@ import bpy
 from diffsheg_core.errors import DiffshegError
 
 from . import preset
+from .job import GenerationJob, Request
 from .preferences import INSTALL_GPU_HINT, RUNTIME, missing_runtime, runtime_fix, torch_installed
 from .properties import CUSTOM_PRESET, DEFAULT_STYLE, NO_MIX
 from .report import REPORT_TEXT, report_details, report_line, write_report
@@ -153,7 +152,44 @@ def check_ready(settings) -> tuple:
     return path, options
 
 
+def prepare(context) -> Request:
+    """The panel's request, checked before anything runs (main thread)."""
+    settings, scene = context.scene.diffsheg, context.scene
+    path, options = check_ready(settings)
+    generation = generate_settings(settings)
+    if settings.range_mode == "WHOLE":
+        pins = ()
+        if settings.start_from_pose:
+            if options.armature is None:
+                raise DiffshegError("'Start from pose' needs an armature: choose one, or turn it off")
+            from .regenerate import pose_pins
 
+            pins = pose_pins(scene, options, layout_motion(generation))
+        return Request(path, options, generation, pins=pins)
+    from diffsheg_core.audio import check_audio_path
+
+    from .regenerate import prepare_range, scene_range
+
+    first, last = scene_range(settings, scene)
+    request = prepare_range(scene, options, first, last)
+    path = check_audio_path(request.source.audio_path) if request.source.audio_path else None
+    if path is None:
+        raise DiffshegError(f"take '{request.take}' was made without an audio file: it cannot be regenerated")
+    return Request(path, options, generation, keep_face=settings.keep_face, range=request)
+
+
+def layout_motion(generation):
+    """A one-frame Motion of the model's layout (its joint and face names), for mapping a rig."""
+    import numpy as np
+
+    from diffsheg_core.checkpoints import load_model
+    from diffsheg_core.motion import Motion
+
+    bundle = load_model(generation.model)
+    layout = bundle.layout
+    return Motion(fps=bundle.config.fps, rig=layout.name, joint_names=list(layout.joint_names),
+                  rotations=np.zeros((1, len(layout.joint_names), 3)), face_names=list(layout.face_names),
+                  face=np.zeros((1, len(layout.face_names))))
 
 
 def model_label(meta: dict) -> str:
@@ -163,57 +199,16 @@ def model_label(meta: dict) -> str:
     return label
 
 
-def apply_result(context, settings, motion, path: Path, options, seconds: float) -> str:
+def apply_result(context, settings, motion, request: Request, seconds: float) -> str:
     """Key `motion` into the scene (main thread only), write the report's details into the
     "DiffSHEG report" Text; returns the report's one line."""
-    from .bake import bake_motion
-
-    result = bake_motion(context.scene, motion, str(path), options)
-    settings.model_label = model_label(motion.meta)
+    result = request.apply(context.scene, motion)
+    meta = motion.meta["regenerated"][-1] if request.range is not None else motion.meta
+    settings.model_label = model_label(meta)
     line = report_line(result, seconds)
     write_report(report_details(result, seconds, settings.model_label))
     settings.last_report, settings.last_failed = line, False
     return line
-
-
-class GenerationJob:
-    """`diffsheg_core.generate` in a daemon thread; poll `done`, then read `motion`/`error`."""
-
-    def __init__(self, path: Path, settings):
-        self.cancel = threading.Event()
-        self.fraction = 0.0
-        self.motion = None
-        self.started = time.perf_counter()
-        self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, args=(path, settings), daemon=True)
-
-    def start(self) -> "GenerationJob":
-        self._thread.start()
-        return self
-
-    def _run(self, path: Path, settings) -> None:
-        import diffsheg_core
-
-        try:
-            self.motion = diffsheg_core.generate(str(path), settings=settings, progress=self._progress,
-                                                 cancel=self.cancel)
-        except BaseException as exc:  # handed to the main thread, which reports it
-            self.error = exc
-
-    def _progress(self, p) -> None:
-        self.fraction = p.fraction
-
-    @property
-    def elapsed(self) -> float:
-        """Seconds since the job started (generation, then keying)."""
-        return time.perf_counter() - self.started
-
-    @property
-    def done(self) -> bool:
-        return not self._thread.is_alive()
-
-    def wait(self) -> None:
-        self._thread.join()
 
 
 def error_message(exc: BaseException) -> str:
@@ -232,20 +227,15 @@ class DIFFSHEG_OT_generate(bpy.types.Operator):
     _job: GenerationJob | None = None
     _timer = None
 
-    def _prepare(self, context):
-        settings = context.scene.diffsheg
-        path, options = check_ready(settings)
-        return settings, path, options, generate_settings(settings)
-
     def execute(self, context):
         """Blocking run (scripts, batch): generate, then key."""
         try:
-            settings, path, options, generation = self._prepare(context)
-            job = GenerationJob(path, generation).start()
+            request = prepare(context)
+            job = GenerationJob(request).start()
             job.wait()
             if job.error is not None:
                 raise job.error
-            line = apply_result(context, settings, job.motion, path, options, job.elapsed)
+            line = apply_result(context, context.scene.diffsheg, job.motion, request, job.elapsed)
         except Exception as exc:
             return self._failed(context, error_message(exc))
         self.report({"INFO"}, line)
@@ -261,11 +251,10 @@ class DIFFSHEG_OT_generate(bpy.types.Operator):
 
     def invoke(self, context, event):
         try:
-            settings, path, options, generation = self._prepare(context)
+            self._request = prepare(context)
         except Exception as exc:  # a message in the status bar, never a traceback
             return self._failed(context, error_message(exc))
-        self._path, self._options = path, options
-        self._job = GenerationJob(path, generation).start()
+        self._job = GenerationJob(self._request).start()
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.1, window=context.window)
         wm.progress_begin(0, 100)
@@ -291,8 +280,7 @@ class DIFFSHEG_OT_generate(bpy.types.Operator):
                 return self._failed(context, "generation cancelled: the scene is unchanged", "WARNING")
             return self._failed(context, error_message(job.error))
         try:
-            line = apply_result(context, context.scene.diffsheg, job.motion, self._path, self._options,
-                                job.elapsed)
+            line = apply_result(context, context.scene.diffsheg, job.motion, self._request, job.elapsed)
         except Exception as exc:
             return self._failed(context, error_message(exc))
         self.report({"INFO"}, line)

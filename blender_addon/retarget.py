@@ -295,6 +295,29 @@ def bone_quaternions(motion: Motion, mapping: ArmatureMapping) -> dict[str, np.n
     return out
 
 
+def joint_rotation(target: BoneTarget, local: np.ndarray, passed: np.ndarray | None = None) -> np.ndarray:
+    """The inverse of `bone_quaternions` for one bone and one frame: the axis-angle rotation
+    of the target's own joint (its last) that gives the bone the local rotation matrix
+    `local`, the rotations of the joints passed on to it being `passed` (3x3, their product;
+    None: at rest). Raises DiffshegError for a bone no joint drives (a jaw)."""
+    if not target.joints:
+        raise DiffshegError(f"bone {target.bone} follows a face weight, not a joint of the model")
+    rotation = target.left.T @ local @ target.right.T
+    if target.share != 1.0:
+        rotation = axis_angle_to_matrix(convert(rotation, "matrix", "axis_angle") / target.share)
+    if passed is not None:
+        rotation = passed.T @ rotation
+    return convert(rotation, "matrix", "axis_angle")
+
+
+def passed_rotation(target: BoneTarget, motion: Motion, frame: int) -> np.ndarray:
+    """3x3 product of the rotations of the joints passed on to `target` at `frame` of `motion`."""
+    rotation = np.eye(3)
+    for joint in target.joints[:-1]:
+        rotation = rotation @ axis_angle_to_matrix(motion.rotations[frame, motion.joint_names.index(joint)])
+    return rotation
+
+
 # ---------------------------------------------------------------- shape keys
 
 @dataclass

@@ -7,21 +7,33 @@ place of the one playing: no `.001` copies and no NLA track per run. An Action t
 not a take is the animator's: keying never changes it (it is pushed onto the NLA once,
 as before, so it is kept and still plays beneath the take).
 
+The take's first Action also keeps what the take was made from (`store_source`): the
+generated Motion at the model's rate, the audio file and the scene frame of its first
+frame, so that a range of it can be generated anew (regenerate.py) after the file was
+saved and opened again.
+
 Only bpy data are read and written here; call from Blender's main thread.
 """
 
 from __future__ import annotations
 
+import json
 import re
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import bpy
 
 from diffsheg_core.errors import DiffshegError
 
+if TYPE_CHECKING:
+    from diffsheg_core.motion import Motion
+
 TAKE = "diffsheg_take"        # the take's name, on each of its Actions
 AUDIO = "diffsheg_audio"      # the take's audio name (the stem of its file)
 NUMBER = "diffsheg_take_number"
 TARGET = "diffsheg_target"    # the Object or shape-key Key the Action animates
+SOURCE = "diffsheg_source"    # what the take was made from (see TakeSource)
 
 
 def is_take(action) -> bool:
@@ -89,3 +101,55 @@ def assign(id_data, action) -> None:
     anim.action = action
     if hasattr(anim, "action_slot") and len(getattr(action, "slots", ())):
         anim.action_slot = action.slots[0]
+
+
+@dataclass
+class TakeSource:
+    """What a take was made from: the Motion at the model's rate, the audio file, and the
+    scene frame its first frame was keyed on."""
+
+    motion: "Motion"
+    audio_path: str
+    start_frame: int
+
+
+def store_source(action, source: TakeSource) -> None:
+    """Keep `source` in `action` (custom properties: saved with the .blend)."""
+    import numpy as np  # here, not at the top: the panel lists takes also where numpy is missing
+
+    m = source.motion
+    action[SOURCE] = {
+        "fps": float(m.fps), "rig": m.rig, "joint_names": json.dumps(m.joint_names),
+        "face_names": json.dumps(m.face_names), "frames": m.n_frames,
+        "rotations": m.rotations.astype(np.float64).ravel().tolist(),
+        "face": m.face.astype(np.float64).ravel().tolist(),
+        "meta": json.dumps(m.meta, default=str), "audio_path": source.audio_path,
+        "start_frame": int(source.start_frame),
+    }
+
+
+def source_of(take: str) -> TakeSource:
+    """The source of take `take`; DiffshegError if no Action of it keeps one."""
+    for action in bpy.data.actions:
+        if is_take(action) and action[TAKE] == take and SOURCE in action:
+            return _read_source(action)
+    raise DiffshegError(f"take '{take}' keeps no record of the motion it was made from (it was made by an "
+                        "older version of the add-on): generate the whole clip again to regenerate ranges of it")
+
+
+def _read_source(action) -> TakeSource:
+    import numpy as np  # see store_source
+
+    from diffsheg_core.motion import Motion
+
+    rec = action[SOURCE]
+    try:
+        joints, faces, n = json.loads(rec["joint_names"]), json.loads(rec["face_names"]), int(rec["frames"])
+        motion = Motion(fps=float(rec["fps"]), rig=str(rec["rig"]), joint_names=joints,
+                        rotations=np.asarray(rec["rotations"], dtype=np.float64).reshape(n, len(joints), 3),
+                        face_names=faces, face=np.asarray(rec["face"], dtype=np.float64).reshape(n, len(faces)),
+                        meta=json.loads(rec["meta"]))
+        return TakeSource(motion, str(rec["audio_path"]), int(rec["start_frame"]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DiffshegError(f"the record of take '{action[TAKE]}' in Action '{action.name}' is damaged ({exc}): "
+                            "generate the whole clip again") from None

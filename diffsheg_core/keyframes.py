@@ -18,7 +18,7 @@ degrees for a bone (`rotation_error`), the largest difference of weights for a s
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -96,9 +96,16 @@ NON_TURNING_COST = 3.0  # a key off the turning points costs as much as three on
 MAX_GAP = 96  # the longest segment the search tries (4 s at 24 fps); merging keys may join longer ones
 
 
-def fit_keys(values: np.ndarray, error: ErrorFn, bound: float, max_gap: int = MAX_GAP) -> Keys:
+End = tuple[np.ndarray, np.ndarray]
+"""A key that is given: its (C,) values and (C,) slopes per frame."""
+
+
+def fit_keys(values: np.ndarray, error: ErrorFn, bound: float, max_gap: int = MAX_GAP,
+             ends: Optional[tuple[End, End]] = None) -> Keys:
     """The fewest keys of one channel group (values (T, C), one row per frame) whose curve
     stays within `bound` of the motion on every frame, by `error`, preferring turning points.
+    `ends` gives the first and last keys (value and slope) instead of the motion's, as where
+    keys are fitted into a range of curves that go on beyond it: their slopes are kept.
 
     Each key holds the motion's value and its central-difference slope at its frame, so
     whether the curve between two frames keeps the bound depends on those two frames alone:
@@ -116,14 +123,18 @@ def fit_keys(values: np.ndarray, error: ErrorFn, bound: float, max_gap: int = MA
         raise DiffshegError(f"the key error bound must be a number above 0, got {bound!r}")
     n = len(values)
     slopes = np.gradient(values, axis=0) if n > 1 else np.zeros_like(values)
+    key_values = values.copy()  # what a key at each frame holds: the motion's, or a given end's
+    if ends is not None:
+        for i, (value, slope) in zip((0, n - 1), ends):
+            key_values[i], slopes[i] = value, slope
     if n <= 2:
-        return Keys(np.arange(n), values.copy(), slopes)
+        return Keys(np.arange(n), key_values, slopes)
     cost = np.full(n, NON_TURNING_COST)
     cost[turning_points(values)] = 1.0
     best = np.full(n, np.inf)
     best[0] = 1.0
     previous = np.zeros(n, dtype=np.int64)
-    fits = _segments_within(values, slopes, error, bound, min(max_gap, n - 1))
+    fits = _segments_within(key_values, slopes, error, bound, min(max_gap, n - 1))
     for b in range(1, n):
         gaps = np.arange(1, min(b, len(fits)) + 1)
         a = b - gaps
@@ -136,16 +147,37 @@ def fit_keys(values: np.ndarray, error: ErrorFn, bound: float, max_gap: int = MA
     frames = [n - 1]
     while frames[-1] > 0:
         frames.append(int(previous[frames[-1]]))
-    keys = Keys(np.array(frames[::-1]), values[frames[::-1]], slopes[frames[::-1]])
+    keys = Keys(np.array(frames[::-1]), key_values[frames[::-1]], slopes[frames[::-1]])
     turning = cost == 1.0
-    keys = _merge(keys, values, error, bound, lambda f: not turning[f])  # keys off the turning points first
-    return _merge(keys, values, error, bound, lambda f: True)
+    locked = (0, n - 1) if ends is not None else ()
+    keys = _merge(keys, values, error, bound, lambda f: not turning[f], locked)  # keys off the turning points first
+    return _merge(keys, values, error, bound, lambda f: True, locked)
 
 
-def _merge(keys: Keys, values: np.ndarray, error: ErrorFn, bound: float, may_drop) -> Keys:
+def fit_span(values: np.ndarray, error: ErrorFn, bound: float, fixed: dict[int, End]) -> Keys:
+    """Keys for frames 0..T-1 of `values` (T, C) through the keys `fixed` gives ({frame:
+    (values, slopes)}, the first and last frame among them), which stay as given: between
+    each two of them, the fewest keys that keep `bound` by `error` (`fit_keys`)."""
+    values = np.asarray(values, dtype=np.float64)
+    at = sorted(fixed)
+    if not at or at[0] != 0 or at[-1] != len(values) - 1:
+        raise DiffshegError(f"fit_span needs given keys at its first and last frame (0 and {len(values) - 1}), "
+                            f"got {at}")
+    parts = [Keys(np.zeros(1, dtype=np.int64), np.asarray(fixed[0][0], dtype=np.float64)[None],
+                  np.asarray(fixed[0][1], dtype=np.float64)[None])]
+    for a, b in zip(at, at[1:]):
+        keys = fit_keys(values[a: b + 1], lambda v, f, a=a: error(v, f + a), bound, ends=(fixed[a], fixed[b]))
+        parts.append(Keys(keys.frames[1:] + a, keys.values[1:], keys.slopes[1:]))
+    return Keys(np.concatenate([k.frames for k in parts]), np.concatenate([k.values for k in parts]),
+                np.concatenate([k.slopes for k in parts]))
+
+
+def _merge(keys: Keys, values: np.ndarray, error: ErrorFn, bound: float, may_drop,
+           locked: tuple[int, ...] = ()) -> Keys:
     """Drop keys (those `may_drop` allows, left to right) where fitting the slopes of the
     two keys beside one, by least squares over the three segments they shape, keeps every
-    frame there within the bound: the handles are fitted to the motion, not only its slope."""
+    frame there within the bound: the handles are fitted to the motion, not only its slope.
+    Keys at the `locked` frames keep their slopes."""
     frames, vals, slopes = list(keys.frames), keys.values, keys.slopes.copy()
     keep = np.ones(len(frames), dtype=bool)
     i = 1
@@ -158,30 +190,36 @@ def _merge(keys: Keys, values: np.ndarray, error: ErrorFn, bound: float, may_dro
         near = idx[max(k - 2, 0): k + 3]
         near = near[near != i]  # the keys that shape the frames around key i once it is gone
         j = int(np.searchsorted(near, i))  # near[j - 1] and near[j]: the keys beside i
-        fitted = _fit_slopes(np.array(frames)[near], vals[near], slopes[near], (j - 1, j), values, error, bound)
+        free = tuple(m for m in (j - 1, j) if frames[near[m]] not in locked)
+        fitted = _fit_slopes(np.array(frames)[near], vals[near], slopes[near], free, values, error, bound)
         if fitted is not None:
-            slopes[near[j - 1]], slopes[near[j]] = fitted
+            for m, slope in zip(free, fitted):
+                slopes[near[m]] = slope
             keep[i] = False
         i += 1
     idx = np.flatnonzero(keep)
     return Keys(keys.frames[idx], vals[idx], slopes[idx])
 
 
-def _fit_slopes(frames: np.ndarray, vals: np.ndarray, slopes: np.ndarray, free: tuple[int, int],
+def _fit_slopes(frames: np.ndarray, vals: np.ndarray, slopes: np.ndarray, free: tuple[int, ...],
                 values: np.ndarray, error: ErrorFn, bound: float):
-    """Least-squares slopes of keys `free` (indices into these few keys) for the frames the
-    keys span; the two slopes if every frame then keeps the bound, else None."""
+    """Least-squares slopes of keys `free` (indices into these few keys; none: the slopes as
+    they are) for the frames the keys span; those slopes if every frame then keeps the
+    bound, else None."""
     t = np.arange(frames[0], frames[-1] + 1)
     seg, w = _basis(frames, t)
     fixed = slopes.copy()
     fixed[list(free)] = 0.0
     known = (w[0][:, None] * vals[seg] + w[1][:, None] * vals[seg + 1]
              + w[2][:, None] * fixed[seg] + w[3][:, None] * fixed[seg + 1])
-    design = np.stack([w[2] * (seg == f) + w[3] * (seg + 1 == f) for f in free], axis=1)  # a slope moves every channel alike
-    solution = np.linalg.lstsq(design, values[t] - known, rcond=None)[0]  # (2, C)
-    if error(known + design @ solution, t).max() > bound:
+    curve, solution = known, np.zeros((0, vals.shape[1]))
+    if free:
+        design = np.stack([w[2] * (seg == f) + w[3] * (seg + 1 == f) for f in free], axis=1)  # a slope moves every channel alike
+        solution = np.linalg.lstsq(design, values[t] - known, rcond=None)[0]  # (len(free), C)
+        curve = known + design @ solution
+    if error(curve, t).max() > bound:
         return None
-    return solution[0], solution[1]
+    return tuple(solution)
 
 
 PATIENCE = 4  # a start frame whose segments failed this many lengths running is dropped
@@ -189,7 +227,8 @@ PATIENCE = 4  # a start frame whose segments failed this many lengths running is
 
 def _segments_within(values: np.ndarray, slopes: np.ndarray, error: ErrorFn, bound: float,
                      max_gap: int) -> np.ndarray:
-    """fits[d - 1, a]: whether the curve from frame a to a + d keeps the bound (d <= max_gap).
+    """fits[d - 1, a]: whether the curve from frame a to a + d, between keys holding `values`
+    and `slopes` there, keeps the bound by `error` (d <= max_gap).
     Lengths are tried in turn for every start at once; a start whose last PATIENCE lengths
     all broke the bound is not tried further (a longer segment almost never fits again)."""
     n, channels = values.shape

@@ -82,6 +82,30 @@ def style_vector(bundle: ModelBundle, weights: dict[int, float]) -> np.ndarray:
     return vector
 
 
+def style_track(bundle: ModelBundle, style: Optional[StyleSpec], style_at, n_frames: int) -> Optional[np.ndarray]:
+    """(n_frames, style_dim) style input of every frame: `style` until the first change of
+    `style_at` ((seconds, style), ...), then each change's style from its frame on. None
+    when nothing changes over time. A window is sampled with the mean over its frames
+    (`make_eps_fn_factory`), so a change is blended in over about one window."""
+    if not style_at:
+        return None
+    track = np.repeat(style_vector(bundle, style_weights(bundle, style)), n_frames, axis=0)
+    for seconds, spec in style_at:
+        track[int(round(seconds * bundle.config.fps)):] = style_vector(bundle, style_weights(bundle, spec))
+    return track
+
+
+def with_style(chunks: Iterator[np.ndarray], track: Optional[np.ndarray]) -> Iterator[np.ndarray]:
+    """Speech-feature chunks with the style track's frames as their last columns."""
+    done = 0
+    for chunk in chunks:
+        if track is None:
+            yield chunk
+        else:
+            yield np.concatenate([chunk, track[done: done + len(chunk)]], axis=1)
+        done += len(chunk)
+
+
 def style_meta(bundle: ModelBundle, style: Optional[StyleSpec], style_guidance: Optional[float]) -> dict:
     """What a Motion records of its style: the class (single styles), the weights by name
     (or index), the names of the model's styles and the style-guidance scale used."""
@@ -229,9 +253,12 @@ def uses_prior(bundle: ModelBundle, config: FoppasConfig) -> bool:
 
 def build_sampling(bundle: ModelBundle, network, config: FoppasConfig, style: Optional[StyleSpec] = None,
                    guidance: Optional[float] = None, skip_guidance: Optional[float] = None,
-                   style_guidance: Optional[float] = None) -> tuple[Foppas, Callable[[np.ndarray], EpsFn]]:
+                   style_guidance: Optional[float] = None,
+                   tracked: bool = False) -> tuple[Foppas, Callable[[np.ndarray], EpsFn]]:
     """The FOPPAS sampler for `bundle` with `config`, and the factory that binds the network,
-    style and guidance scales to one window's speech features. Bad settings raise DiffshegError."""
+    style and guidance scales to one window's speech features (`tracked`: the features end
+    in a style track, `with_style`, which gives each window its style). Bad settings raise
+    DiffshegError."""
     try:
         sampler = Foppas(Schedule.linear(), config, bundle.config.clip_len, bundle.config.dim,
                          proposal=bundle.prior.propose if uses_prior(bundle, config) else None,
@@ -240,7 +267,7 @@ def build_sampling(bundle: ModelBundle, network, config: FoppasConfig, style: Op
         raise DiffshegError(str(exc)) from None
     scales = Guidance(resolve_guidance(bundle, guidance), resolve_skip_guidance(bundle, skip_guidance),
                       resolve_style_guidance(bundle, style_guidance))
-    vector = style_vector(bundle, style_weights(bundle, style))
+    vector = None if tracked else style_vector(bundle, style_weights(bundle, style))
     return sampler, make_eps_fn_factory(bundle, network, sampler, vector, scales)
 
 
@@ -248,24 +275,27 @@ def _repeat(values: Optional[np.ndarray], rows: int) -> Optional[np.ndarray]:
     return values if values is None or len(values) == rows else np.repeat(values, rows, axis=0)
 
 
-def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas, style: np.ndarray,
+def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas, style: Optional[np.ndarray],
                         guidance: Guidance) -> Callable[[np.ndarray], EpsFn]:
     """Bind network, style and guidance scales; the result binds one window's speech features.
-    The sampler's refining pass steers the gestures with the skip-guidance scale times
-    `refine_skip` of the sampling settings."""
+    `style` None: the features end in a style track (`with_style`) and each window takes
+    the mean of its frames'. The sampler's refining pass steers the gestures with the
+    skip-guidance scale times `refine_skip` of the sampling settings."""
     cfg, sched = bundle.config, sampler.schedule
     refining = guidance if guidance.skip is None else \
         replace(guidance, skip=guidance.skip * sampler.config.refine_skip)
+    end = -cfg.style_dim if style is None else None
 
     def make(cond: np.ndarray) -> EpsFn:
         mel = cond[..., : cfg.mel_dim]
-        speech = cond[..., cfg.mel_dim:] if cfg.has_speech_input else None
+        speech = cond[..., cfg.mel_dim: end] if cfg.has_speech_input else None
+        window_style = style if style is not None else cond[:, :, end:].mean(axis=1)
 
         def eps_fn(x: np.ndarray, index: int, refine: bool = False) -> np.ndarray:
             rows = len(x)  # best-of-N: one window, several candidates
             idx = np.full(rows, index)
             return step_eps(network, cfg.gesture_dim, x, sched.model_timesteps(idx), _repeat(mel, rows),
-                            _repeat(speech, rows), _repeat(style, rows), sched.x0_coefs(idx, x),
+                            _repeat(speech, rows), _repeat(window_style, rows), sched.x0_coefs(idx, x),
                             refining if refine else guidance)
 
         return eps_fn
@@ -276,7 +306,7 @@ def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas, style: np
 def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
              settings: Optional[GenerateSettings] = None, sampling: Optional[FoppasConfig] = None,
              hubert_path: Optional[str] = None, hubert_quirk: bool = False,
-             progress: Optional[ProgressCallback] = None,
+             pins: tuple["Pin", ...] = (), progress: Optional[ProgressCallback] = None,
              cancel: Optional[threading.Event] = None, **options) -> Motion:
     """Generate body, hand, head and face motion for a speech recording.
 
@@ -297,6 +327,8 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     'onnx' (onnxruntime, CPU) or 'torch'; device: 'auto', 'cpu' or 'cuda' (torch).
     precision: 'fp32', or 'bf16' / 'fp16' autocast on CUDA. threads: CPU threads
     (default: `runtime.backends.default_threads`).
+    pins: poses (`Pin`) the motion passes through, such as the character's pose at frame 0
+    so that a take continues the previous shot.
     progress: called after every diffusion step; cancel: checked before every step.
     The result has one frame per 1/fps s of audio (fps of the model, 15 for BEAT).
     """
@@ -305,17 +337,28 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     network = open_network(bundle, s.backend, s.device, s.precision, s.threads)
     speech = open_speech(audio, sample_rate)
     config = with_overrides(sampling or bundle.sampling, steps=s.steps, overlap=s.overlap, candidates=s.candidates)
+    n_frames = n_motion_frames(speech, bundle.config.fps)
+    track = style_track(bundle, s.style, s.style_at, n_frames)
     sampler, make_eps_fn = build_sampling(bundle, network, config, s.style, s.guidance, s.skip_guidance,
-                                          s.style_guidance)
-
-    stream = FoppasStream(sampler, make_eps_fn, s.seed, progress, cancel,
-                          expected_frames=n_motion_frames(speech, bundle.config.fps),
-                          face_seed=s.face_seed)
-    parts = [stream.push(chunk) for chunk in speech_chunks(bundle, network, speech, hubert_path, hubert_quirk)]
-    normalised = np.concatenate(parts + [stream.finish()])
-    del parts  # a long take's motion is held once, not twice
+                                          s.style_guidance, tracked=track is not None)
+    chunks = with_style(speech_chunks(bundle, network, speech, hubert_path, hubert_quirk), track)
+    if pins:  # sampled as one range with the pinned poses held, from the first frame
+        normalised = np.zeros((n_frames, bundle.config.dim), dtype=np.float32)
+        hold = np.zeros(normalised.shape, dtype=bool)
+        _hold_pins(bundle, normalised, hold, pins, 0, n_frames)
+        normalised = inpaint_range(sampler, make_eps_fn, np.concatenate(list(chunks)), normalised, 0, n_frames,
+                                   s.seed, hold, progress, cancel, face_seed=s.face_seed)
+    else:
+        stream = FoppasStream(sampler, make_eps_fn, s.seed, progress, cancel, expected_frames=n_frames,
+                              face_seed=s.face_seed)
+        parts = [stream.push(chunk) for chunk in chunks]
+        normalised = np.concatenate(parts + [stream.finish()])
+        del parts  # a long take's motion is held once, not twice
     check_finite(bundle, normalised)
-    return to_motion(bundle, normalised, meta=generation_meta(bundle, s, config, network, speech))
+    meta = generation_meta(bundle, s, config, network, speech)
+    if pins:
+        meta["pins"] = len(pins)
+    return to_motion(bundle, normalised, meta=meta)
 
 
 def generation_meta(bundle: ModelBundle, s: GenerateSettings, config: FoppasConfig, network,
@@ -325,6 +368,7 @@ def generation_meta(bundle: ModelBundle, s: GenerateSettings, config: FoppasConf
         "model_id": bundle.model_id, "trained": bundle.trained, "seed": s.seed, "face_seed": s.face_seed,
         "audio_file": speech.path, "sample_rate": speech.sample_rate,
         **style_meta(bundle, s.style, s.style_guidance),
+        "style_at": [[t, style_meta(bundle, spec, None)["style_weights"]] for t, spec in s.style_at or ()],
         "guidance": resolve_guidance(bundle, s.guidance),
         "skip_guidance": resolve_skip_guidance(bundle, s.skip_guidance),
         "steps": config.steps, "overlap": config.overlap, "candidates": config.candidates,
@@ -371,18 +415,15 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
         raise DiffshegError(f"the audio gives {n_motion_frames(speech, bundle.config.fps)} frames of motion, the "
                             f"motion has {motion.n_frames}: regenerate with the audio it was made from")
     config = with_overrides(sampling or bundle.sampling, steps=s.steps, overlap=s.overlap, candidates=s.candidates)
+    track = style_track(bundle, s.style, s.style_at, motion.n_frames)
     sampler, make_eps_fn = build_sampling(bundle, network, config, s.style, s.guidance, s.skip_guidance,
-                                          s.style_guidance)
-    cond = np.concatenate(list(speech_chunks(bundle, network, speech)))
+                                          s.style_guidance, tracked=track is not None)
+    cond = np.concatenate(list(with_style(speech_chunks(bundle, network, speech), track)))
     normalised = bundle.normalise(layout.join(motion.rotations, motion.face)).astype(np.float32)
     hold = np.zeros(normalised.shape, dtype=bool)
     if keep_face:
         hold[start:end, layout.gesture_dim:] = True
-    for pin in pins:
-        channels = _pin_channels(layout, pin, start, end)
-        rotation = np.array(pin.rotation, dtype=np.float32)
-        normalised[pin.frame, channels] = (rotation - bundle.mean[channels]) / bundle.std[channels]
-        hold[pin.frame, channels] = True
+    _hold_pins(bundle, normalised, hold, pins, start, end)
     new = inpaint_range(sampler, make_eps_fn, cond, normalised, start, end, s.seed, hold, progress, cancel,
                         face_seed=s.face_seed)
     check_finite(bundle, new)
@@ -395,6 +436,15 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
               **generation_meta(bundle, s, config, network, speech)}
     return replace(motion, rotations=rotations, face=face,
                    meta={**motion.meta, "regenerated": list(motion.meta.get("regenerated", [])) + [record]})
+
+
+def _hold_pins(bundle: ModelBundle, normalised: np.ndarray, hold: np.ndarray, pins, start: int, end: int) -> None:
+    """Write each pin's pose into the (T, D) normalised motion and mark it held."""
+    for pin in pins:
+        channels = _pin_channels(bundle.layout, pin, start, end)
+        rotation = np.array(pin.rotation, dtype=np.float32)
+        normalised[pin.frame, channels] = (rotation - bundle.mean[channels]) / bundle.std[channels]
+        hold[pin.frame, channels] = True
 
 
 def _pin_channels(layout, pin: Pin, start: int, end: int) -> np.ndarray:

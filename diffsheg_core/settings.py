@@ -90,6 +90,21 @@ def _check_style(style) -> StyleSpec:
     return style
 
 
+def _check_style_at(changes) -> tuple[tuple[float, StyleSpec], ...] | None:
+    """Style changes as ((seconds, style), ...) sorted by time, each time a number >= 0 given
+    once; None for none."""
+    try:
+        items = [(check_number("style change time (seconds)", t, (0.0, math.inf)), _check_style(style))
+                 for t, style in (changes.items() if isinstance(changes, dict) else changes)]
+    except (TypeError, ValueError):
+        raise DiffshegError(f"style_at must be (seconds, style) pairs, e.g. ((0, 'calm'), (12.5, 'animated')), "
+                            f"got {changes!r}") from None
+    times = [t for t, _ in items]
+    if len(set(times)) != len(times):
+        raise DiffshegError(f"style_at gives a style twice for the same time: {sorted(times)}")
+    return tuple(sorted(items, key=lambda item: item[0])) or None
+
+
 @dataclass(frozen=True)
 class GenerateSettings:
     """Every option of `diffsheg_core.generate` that a user sets. Checked when made."""
@@ -101,6 +116,7 @@ class GenerateSettings:
     overlap: int | None = None          # frames shared by consecutive windows
     candidates: int | None = None       # best-of-N windows; 1: off
     style: StyleSpec | None = None      # a style index or name, or weights {name or index: weight}; None: the model's default
+    style_at: tuple | None = None       # style changes over time: ((seconds, style), ...); before the first, `style`
     style_guidance: float | None = None  # style strength: eps_null + s (eps_style - eps_null); 1: off
     guidance: float | None = None       # classifier-free guidance scale; 1: off
     skip_guidance: float | None = None  # gesture energy (skip guidance); 0: off
@@ -120,6 +136,8 @@ class GenerateSettings:
                 self._set(name, check_number(label, getattr(self, name), bounds, whole))
         if self.style is not None:
             self._set("style", _check_style(self.style))
+        if self.style_at is not None:
+            self._set("style_at", _check_style_at(self.style_at))
         _check_choice("device", self.device, DEVICES)
         _check_choice("backend", self.backend, BACKENDS)
         _check_choice("precision", self.precision, PRECISIONS)
@@ -147,6 +165,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--style", type=parse_style,
                    help="style: a name or index (--style calm), or weights over styles "
                         "(--style calm=0.7,animated=0.3); default: the model's default style")
+    g.add_argument("--style-at", type=parse_style_at, metavar="SECONDS=STYLE,...",
+                   help="the style from given times on, blended over about one window: "
+                        "--style-at 0=calm,12.5=animated (a mix: 12.5=calm=0.3,animated=0.7)")
     g.add_argument("--style-guidance", type=float,
                    help="style strength: 1 is the style as trained (default), above 1 goes beyond it "
                         "(models trained with a null style)")
@@ -185,3 +206,23 @@ def parse_style(text: str) -> StyleSpec:
         except ValueError:
             raise argparse.ArgumentTypeError(f"style weight {part!r} is not name=number (e.g. calm=0.7)") from None
     return weights
+
+
+def parse_style_at(text: str) -> tuple[tuple[float, StyleSpec], ...]:
+    """'0=calm,12.5=animated' -> ((0.0, 'calm'), (12.5, 'animated')); an item whose key is a
+    name adds to the mix of the time before it: '0=calm,12.5=calm=0.3,animated=0.7'."""
+    entries: list[list] = []
+    for part in text.split(","):
+        key, _, rest = part.strip().partition("=")
+        try:
+            seconds = float(key)
+        except ValueError:
+            seconds = None
+        if seconds is not None and rest:
+            entries.append([seconds, [rest]])
+        elif entries and rest:
+            entries[-1][1].append(part.strip())
+        else:
+            raise argparse.ArgumentTypeError(f"{part.strip()!r} in {text!r} is not SECONDS=STYLE "
+                                             "(e.g. --style-at 0=calm,12.5=animated)")
+    return tuple((seconds, parse_style(",".join(parts))) for seconds, parts in entries)

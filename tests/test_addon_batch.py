@@ -133,3 +133,41 @@ def test_the_bundled_model_is_an_input_of_a_batch(scene_blend, tmp_path):
             pytest.fail("--save overwrote the bundled model (restored from a copy)")
     assert proc.returncode == 1 and "is an input of this run" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_regenerate_a_range_of_a_saved_take_keeping_the_face(scene_blend, tmp_path):
+    """A take saved by one batch, then --regenerate 20-60 --keep-face on that file: a new
+    take plays, the frames outside the range and the whole face evaluate as before."""
+    talk = cut_speech(tmp_path, seconds=8.0, name="talk.wav")
+    first = tmp_path / "first.blend"
+    assert _batch("--blend", str(scene_blend), "--audio", str(talk), "--preset", "beat", "--device", "cpu",
+                  "--no-render", "--save", str(first), cwd=tmp_path).returncode == 0
+    for bad, match in ((["--regenerate", "60-20"], "START <= END"), (["--keep-face"], "goes with --regenerate"),
+                       (["--regenerate", "20-60", "--audio", str(talk)], "leave out --audio"),
+                       (["--regenerate", "90-200"], "within the take's frames 1-96")):
+        proc = _batch("--blend", str(first), "--preset", "beat", "--no-render", *bad, cwd=tmp_path)
+        assert proc.returncode != 0 and match in proc.stderr, (bad, proc.stderr[-500:])
+    second = tmp_path / "second.blend"
+    proc = _batch("--blend", str(first), "--regenerate", "20-60", "--keep-face", "--seed", "4", "--preset", "beat",
+                  "--device", "cpu", "--no-render", "--save", str(second), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "talk take 1 frames 20-60: talk take 2:" in proc.stdout
+
+    def curves(path):
+        bpy.ops.wm.open_mainfile(filepath=str(path))
+        objects = bpy.context.scene.objects
+        body, face = objects["2_scott_0_1_1"], objects["Neutral"].data.shape_keys
+        return body.animation_data.action.name, *[
+            {(fc.data_path, fc.array_index): [fc.evaluate(f) for f in range(1, 97)] for fc in fcurves_of(t)}
+            for t in (body, face)]
+
+    (take1, body1, face1), (take2, body2, face2) = curves(first), curves(second)
+    assert (take1, take2) == ("talk take 1", "talk take 2")
+    for path, values in face1.items():
+        assert max(abs(a - b) for a, b in zip(values, face2[path])) < 1e-5, path
+    outside = [i for i in range(96) if not 19 <= i <= 59]
+    moved = 0.0
+    for path, values in body1.items():
+        assert max(abs(values[i] - body2[path][i]) for i in outside) < 1e-5, path
+        moved = max(moved, max(abs(a - b) for a, b in zip(values, body2[path])))
+    assert moved > 0.05
