@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 import random
+from dataclasses import replace
 from pathlib import Path
 
 import bpy
@@ -133,10 +134,10 @@ def check_model(settings) -> None:
                             "(CUDA build), or choose device Auto or CPU")
 
 
-def check_ready(settings) -> tuple:
-    """Everything checkable before generating: packages, audio file, model, targets, preset."""
+def check_ready(settings):
+    """Everything checkable before generating but the audio: packages, model, targets,
+    preset. Returns the keying options."""
     check_runtime()
-    path = audio_file(settings)
     check_model(settings)
     options = bake_options(settings)
     if options.armature is None and not options.face_meshes:
@@ -149,15 +150,19 @@ def check_ready(settings) -> tuple:
     layout = stored_layout(bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None)
     if options.armature is not None and layout is not None and options.preset is not None:
         options.preset.joint_map(layout)  # names the missing section before generating
-    return path, options
+    return options
 
 
 def prepare(context) -> Request:
-    """The panel's request, checked before anything runs (main thread)."""
+    """The panel's request, checked before anything runs (main thread): the whole clip of
+    the panel's audio, or a range of the take playing (with the take's own audio). Timeline
+    markers named 'style:...' change the style from their frame on."""
     settings, scene = context.scene.diffsheg, context.scene
-    path, options = check_ready(settings)
+    options = check_ready(settings)
     generation = generate_settings(settings)
     if settings.range_mode == "WHOLE":
+        path = audio_file(settings)
+        generation = replace(generation, style_at=marker_styles(scene, options.start_frame))
         pins = ()
         if settings.start_from_pose:
             if options.armature is None:
@@ -175,7 +180,36 @@ def prepare(context) -> Request:
     path = check_audio_path(request.source.audio_path) if request.source.audio_path else None
     if path is None:
         raise DiffshegError(f"take '{request.take}' was made without an audio file: it cannot be regenerated")
+    generation = replace(generation, style_at=marker_styles(scene, request.source.start_frame))
     return Request(path, options, generation, keep_face=settings.keep_face, range=request)
+
+
+STYLE_MARKER = "style:"
+
+
+def marker_styles(scene, start_frame: int) -> tuple | None:
+    """The style changes the scene's timeline markers name ('style:calm',
+    'style:calm=0.7,animated=0.3'), as (seconds from `start_frame`, style); a marker before
+    the start frame applies from the start. None where there are none."""
+    import argparse
+
+    from diffsheg_core.settings import parse_style
+
+    from .bake import scene_fps
+
+    changes = {}
+    for marker in sorted(scene.timeline_markers, key=lambda m: m.frame):
+        if not marker.name.startswith(STYLE_MARKER):
+            continue
+        try:
+            style = parse_style(marker.name[len(STYLE_MARKER):])
+        except argparse.ArgumentTypeError as exc:
+            raise DiffshegError(f"timeline marker '{marker.name}' at frame {marker.frame}: {exc}") from None
+        if style == "":
+            raise DiffshegError(f"timeline marker '{marker.name}' at frame {marker.frame} names no style: "
+                                "rename it like style:calm or style:calm=0.7,animated=0.3")
+        changes[max(0.0, (marker.frame - start_frame) / scene_fps(scene))] = style  # the later of two at one time
+    return tuple(changes.items()) or None
 
 
 def layout_motion(generation):

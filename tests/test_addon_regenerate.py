@@ -226,3 +226,72 @@ def test_a_character_playing_no_take_is_told_to_generate_first(motion, speech):
         target.animation_data.action = None
     with pytest.raises(DiffshegError, match="plays no take"):
         regenerate.prepare_range(scene, options, FIRST, LAST)
+
+
+# ---------------------------------------------------------------- through the panel's Generate
+
+def _panel(scene, speech, armature, face):
+    s = scene.diffsheg
+    s.audio_path = str(speech)
+    s.armature = armature
+    s.face_meshes.add().object = face
+    s.preset = "beat"
+    s.device = "CPU"
+    return s
+
+
+def test_generate_with_the_preview_range_regenerates_it_as_a_new_take(speech):
+    scene = reset_scene(fps=24)
+    armature, face = import_beat_armature(), append_face()
+    s = _panel(scene, speech, armature, face)
+    assert bpy.ops.diffsheg.generate() == {"FINISHED"}
+    frames = np.arange(1, 481)
+    before = _evaluate(armature, frames)
+    s.range_mode = "PREVIEW"
+    scene.use_preview_range = False
+    with pytest.raises(RuntimeError, match="the scene has none"):
+        bpy.ops.diffsheg.generate()
+    scene.use_preview_range = True
+    scene.frame_preview_start, scene.frame_preview_end = FIRST, LAST
+    s.seed = 11
+    s.audio_path = ""  # a range uses the take's own audio
+    assert bpy.ops.diffsheg.generate() == {"FINISHED"}
+    assert takes.playing(armature) == "talk take 2" and s.last_report.startswith("talk take 2: 101 frames")
+    after = _evaluate(armature, frames)
+    outside = (frames < FIRST) | (frames > LAST)
+    for path in before:
+        np.testing.assert_allclose(after[path][outside], before[path][outside], atol=1e-5)
+    assert max(np.abs(after[p] - before[p]).max() for p in before) > 0.1
+    s.range_mode, s.range_start, s.range_end = "FRAMES", 300, 305  # too short, named before generating
+    with pytest.raises(RuntimeError, match="too short"):
+        bpy.ops.diffsheg.generate()
+
+
+def test_style_markers_change_the_style_from_their_frame(speech, monkeypatch):
+    scene = reset_scene(fps=24)
+    armature, face = import_beat_armature(), append_face()
+    _panel(scene, speech, armature, face)
+    scene.timeline_markers.new("style:calm", frame=1)
+    scene.timeline_markers.new("style:animated=0.7,calm=0.3", frame=241)
+    scene.timeline_markers.new("intro", frame=100)  # not a style marker
+    made = []
+    generate = diffsheg_core.generate
+    monkeypatch.setattr(diffsheg_core, "generate", lambda *a, **k: made.append(generate(*a, **k)) or made[-1])
+    assert bpy.ops.diffsheg.generate() == {"FINISHED"}
+    assert made[0].meta["style_at"] == [[0.0, {"calm": 1.0}], [10.0, {"calm": 0.3, "animated": 0.7}]]
+    scene.timeline_markers.new("style:calm=lots", frame=300)
+    with pytest.raises(RuntimeError, match="timeline marker 'style:calm=lots' at frame 300"):
+        bpy.ops.diffsheg.generate()
+
+
+def test_start_from_pose_through_the_panel(speech):
+    scene = reset_scene(fps=24)
+    armature, face = import_beat_armature(), append_face()
+    s = _panel(scene, speech, armature, face)
+    armature.pose.bones[ARM].rotation_euler = (0.5, -0.2, 0.3)
+    wanted = to_quaternions(np.array([[0.5, -0.2, 0.3]]), "XYZ")
+    s.start_from_pose = True
+    assert bpy.ops.diffsheg.generate() == {"FINISHED"}
+    fc = {f.array_index: f for f in fcurves_of(armature) if f.data_path == f'pose.bones["{ARM}"].rotation_euler'}
+    keyed = to_quaternions(np.array([[fc[i].evaluate(1) for i in range(3)]]), "XYZ")
+    assert rotation_angle(keyed, wanted)[0] < 1.5  # the key bound (1 degree) and the pin's
