@@ -36,6 +36,7 @@ from .foppas import PRESETS, FoppasConfig
 from .phonetic import PhoneticConfig
 from .prior import GesturePrior
 from .rigs import Layout, get_layout
+from .runtime.graphs import read_graph
 
 FORMAT = "diffsheg-core/1"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -197,19 +198,96 @@ def _load_ours(path: Path) -> ModelBundle:
     weights = _prefixed(tensors, MODEL_PREFIX)
     if not weights:
         raise CheckpointError(f"{path}: the file holds no network weights (model.*); export it again")
+    phonetic = _stored_phonetic(cfg, meta, tensors, path)
+    graphs = {k: v.tobytes() for k, v in _prefixed(tensors, GRAPH_PREFIX).items()}
+    _check_graphs(graphs, cfg, phonetic.get("phonetic"), path)
     info = _json(meta, "info", "{}", path)
-    names = info.get("style_names", [])
-    if not style_names_fit(names, cfg.style_dim):
-        raise CheckpointError(f"{path}: its style names {names!r} are not {cfg.style_dim} different names "
-                              "(text), one per style of the model: the file was edited or damaged; export "
-                              "it again from its training run")
+    if not isinstance(info, dict):
+        raise CheckpointError(f"{path}: its metadata 'info' is a JSON {type(info).__name__}, not an object: "
+                              f"the file was edited or damaged; export it again from its training run")
+    _check_styles(info, cfg.style_dim, path)
     return ModelBundle(
         config=cfg, weights=weights, mean=mean, std=std, sampling=sampling,
         guidance=_json(meta, "guidance", "null", path),
         skip_guidance=_json(meta, "skip_guidance", "null", path), model_id=meta.get("model_id", path.stem),
         trained=_json(meta, "trained", "true", path), info=info,
-        **_stored_phonetic(cfg, meta, tensors, path), prior=_stored_prior(cfg, tensors, path),
-        graphs={k: v.tobytes() for k, v in _prefixed(tensors, GRAPH_PREFIX).items()}, source=str(path))
+        **phonetic, prior=_stored_prior(cfg, tensors, path), graphs=graphs, source=str(path))
+
+
+def _check_styles(info: dict, style_dim: int, path: Path) -> None:
+    """The style names and default style in `info` fit the model's `style_dim` styles."""
+    names, default = info.get("style_names", []), info.get("default_style", 0)
+    if not style_names_fit(names, style_dim):
+        raise CheckpointError(f"{path}: its style names {names!r} are not {style_dim} different names "
+                              "(text), one per style of the model: the file was edited or damaged; export "
+                              "it again from its training run")
+    if not (default in names if isinstance(default, str) else
+            isinstance(default, int) and not isinstance(default, bool) and 0 <= default < style_dim):
+        raise CheckpointError(f"{path}: its default style {default!r} is not one of its styles "
+                              f"({', '.join(names) or f'indices 0 to {style_dim - 1}'}): the file was edited "
+                              "or damaged; export it again from its training run")
+
+
+def _graph_inputs(cfg: ModelConfig, phonetic: Optional[PhoneticConfig]) -> dict[str, dict[str, tuple]]:
+    """{graph: {input: (element type, shape)}} as export.py writes them; None: an axis that varies."""
+    frames = (None, None)  # batch, frames
+    speech = {"speech": ("float32", (*frames, cfg.speech_dim))} if cfg.has_speech_input else {}
+    null = {"null": ("bool", (None,))} if cfg.classifier_free else {}
+    common = {"timesteps": ("int64", (None,)), **speech, "style": ("float32", (None, cfg.style_dim)), **null}
+    graphs = {"expression": {"expression": ("float32", (*frames, cfg.expression_dim)),
+                             "mel": ("float32", (*frames, cfg.mel_dim)), **common},
+              "gesture": {"gesture": ("float32", (*frames, cfg.gesture_dim)),
+                          "audio": ("float32", (*frames, 2 * cfg.mel_dim)),
+                          "expression_x0": ("float32", (*frames, cfg.expression_dim)), **common,
+                          "attend": ("bool", (None,))}}
+    if phonetic is not None:
+        graphs["phonetic"] = {"mel": ("float32", (1, phonetic.n_mels, None))}
+    return graphs
+
+
+def _fits(found: tuple, wanted: tuple) -> bool:
+    """An input the graph declares as `found` (element type, shape) takes `wanted`."""
+    (found_type, found_shape), (wanted_type, wanted_shape) = found, wanted
+    return found_type == wanted_type and len(found_shape) == len(wanted_shape) and all(
+        w is None or not isinstance(f, int) or f == w for f, w in zip(found_shape, wanted_shape))
+
+
+def _check_graphs(graphs: dict[str, bytes], cfg: ModelConfig, phonetic: Optional[PhoneticConfig],
+                  path: Path) -> None:
+    """Refuse ONNX graphs that refer to external data (onnxruntime would read those files
+    relative to the working directory) or whose inputs disagree with the metadata, naming
+    what disagrees. Read without the onnx package (runtime.graphs)."""
+    expected = _graph_inputs(cfg, phonetic)
+    for name, graph in graphs.items():
+        try:
+            found = read_graph(graph)
+        except ValueError as exc:
+            raise CheckpointError(f"{path}: its ONNX graph '{name}' is damaged ({exc}); download or export "
+                                  "the model again") from None
+        if found.external:
+            raise CheckpointError(
+                f"{path}: refused: its ONNX graph '{name}' refers to external data files (tensor "
+                f"{', '.join(found.external[:3])}); our model files hold all their weights and never use "
+                "external data, so this file was edited or is not one of ours: download or export it again")
+        wanted = expected.get(name)
+        if wanted is None:
+            raise CheckpointError(f"{path}: it holds an ONNX graph '{name}' that no model of ours has "
+                                  f"(expected {', '.join(expected)}): the file was edited; export it again")
+        problems = [f"missing inputs {', '.join(sorted(set(wanted) - set(found.inputs)))}"] \
+            if set(wanted) - set(found.inputs) else []
+        problems += [f"unexpected inputs {', '.join(sorted(set(found.inputs) - set(wanted)))}"] \
+            if set(found.inputs) - set(wanted) else []
+        problems += [f"input '{k}' is {_shown(found.inputs[k])} where the metadata's config gives {_shown(v)}"
+                     for k, v in wanted.items() if k in found.inputs and not _fits(found.inputs[k], v)]
+        if problems:
+            raise CheckpointError(f"{path}: its metadata and its ONNX graph '{name}' disagree: "
+                                  f"{'; '.join(problems)}; the file was edited or mixes two models: export it "
+                                  "again from its training run")
+
+
+def _shown(spec: tuple) -> str:
+    kind, shape = spec
+    return f"{kind} ({', '.join('?' if d is None else str(d) for d in shape)})"
 
 
 def _stored_phonetic(cfg: ModelConfig, meta: dict, tensors: dict, path: Path) -> dict:
@@ -264,17 +342,22 @@ def _read_pickle(path: Path) -> dict:
     except ImportError:
         raise CheckpointError(f"{path}: official DiffSHEG checkpoints are torch pickles and need torch, "
                               f"which this installation lacks: {TORCH_HOW_TO}") from None
+    damaged = (f"{path}: cannot read this torch checkpoint ({{}}); it is truncated, damaged or not a "
+               "checkpoint at all: download it again")
     try:
         return torch.load(str(path), map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
+        if "Unsupported operand" in str(exc):  # torch's word for bytes that are no pickle opcode
+            raise CheckpointError(damaged.format("its pickle is damaged")) from None
         raise CheckpointError(
             f"{path}: refused to load: the file needs arbitrary code to unpickle ({exc}). "
             "Only plain tensors and containers are accepted; re-save the checkpoint's state "
             "dict with torch.save({'encoder': model.state_dict()}, path) in a trusted environment."
         ) from exc
-    except (RuntimeError, EOFError, OSError) as exc:
-        raise CheckpointError(f"{path}: cannot read this torch checkpoint ({exc}); it may be "
-                              "truncated or not a checkpoint at all") from exc
+    except (RuntimeError, OSError) as exc:  # torch's zip reader, the file system
+        raise CheckpointError(damaged.format(exc)) from None
+    except Exception:  # a damaged pickle raises many types (IndexError for 3 bytes, EOFError)
+        raise CheckpointError(damaged.format("its pickle is damaged or cut short")) from None
 
 
 def _encoder_state(raw) -> Optional[dict]:

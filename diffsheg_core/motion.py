@@ -12,16 +12,28 @@ import io
 import json
 import math
 import re
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
+from numpy.lib import format as npy_format
 
 from .errors import DiffshegError
 from .files import atomic_write
 from .rigs import ARKIT51, ARKIT52
 from .rotations import resample_weights, slerp_resample
+
+
+def write_npz(fh, arrays: dict[str, np.ndarray]) -> None:
+    """`arrays` as an .npz archive into the open file `fh`, as np.savez writes it, the
+    archive closed even when a write fails (np.savez leaves it open to the garbage
+    collector, which prints "Exception ignored in ZipFile.__del__" on a full disk)."""
+    with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as archive:
+        for name, value in arrays.items():
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                npy_format.write_array(member, np.asanyarray(value), allow_pickle=False)
 
 
 @dataclass
@@ -91,7 +103,7 @@ class Motion:
         if self.root_translation is not None:
             arrays["root_translation"] = self.root_translation
         with atomic_write(path) as fh:
-            np.savez(fh, **arrays)
+            write_npz(fh, arrays)
         return path
 
     @classmethod
@@ -397,6 +409,6 @@ def write_talkshow_npz(motion: Motion, path: str | Path) -> Path:
     expression[:, :n_exp] = motion.face[:, :n_exp]
     path = Path(path)
     with atomic_write(path) as fh:
-        np.savez(fh, pose=pose.reshape(motion.n_frames, -1), expression=expression,
-                 fps=np.float64(motion.fps))
+        write_npz(fh, {"pose": pose.reshape(motion.n_frames, -1), "expression": expression,
+                       "fps": np.float64(motion.fps)})
     return path

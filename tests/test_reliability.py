@@ -154,11 +154,11 @@ def test_a_failed_save_leaves_the_previous_file_byte_for_byte(motion, tmp_path, 
     path = motion.save_npz(tmp_path / "talk.npz")
     before = path.read_bytes()
 
-    def failing_savez(fh, **arrays):
+    def failing_write(fh, arrays):
         fh.write(b"PK\x03\x04 half an archive")
         raise failure
 
-    monkeypatch.setattr(motion_module.np, "savez", failing_savez)
+    monkeypatch.setattr(motion_module, "write_npz", failing_write)
     expected = DiffshegError if isinstance(failure, OSError) else KeyboardInterrupt
     with pytest.raises(expected) as err:
         motion.save_npz(path)
@@ -166,6 +166,30 @@ def test_a_failed_save_leaves_the_previous_file_byte_for_byte(motion, tmp_path, 
         assert str(path) in str(err.value) and "unchanged" in str(err.value)
     assert path.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["talk.npz"]
+
+
+FILE_LIMIT = """
+import resource, signal, sys
+from diffsheg_core.errors import DiffshegError
+from diffsheg_core.motion import Motion
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # past the limit, a write fails with EFBIG as on a full disk
+resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+try:
+    Motion.load_npz(sys.argv[1]).save_npz(sys.argv[2])
+except DiffshegError as exc:
+    print(exc)
+"""
+
+
+@pytest.mark.skipif(not hasattr(__import__("signal"), "SIGXFSZ"), reason="file size limits are POSIX")
+def test_a_full_disk_while_writing_an_npz_gives_its_message_alone(motion, tmp_path):
+    """The archive is closed when a write fails: no "Exception ignored in ZipFile.__del__"."""
+    source = motion.save_npz(tmp_path / "take.npz")
+    assert source.stat().st_size > 40_000
+    result = subprocess.run([sys.executable, "-c", FILE_LIMIT, str(source), str(tmp_path / "out.npz")],
+                            capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert result.returncode == 0 and "could not be written" in result.stdout, result
+    assert result.stderr == "" and sorted(p.name for p in tmp_path.iterdir()) == ["take.npz"]
 
 
 def test_every_writer_replaces_its_file_only_when_complete(motion, tmp_path):

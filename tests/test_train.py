@@ -441,3 +441,23 @@ def test_a_fine_tuned_run_keeps_its_source_normalisation_on_a_rebuilt_corpus():
     other = NormStats(source.mean + np.array([0.0, 0.0, 0.2], np.float32), source.std)
     with pytest.raises(DiffshegError, match="init_from v7.safetensors: it was trained with other normalisation"):
         fine_tuning_statistics("v7.safetensors", source, other)
+
+
+@pytest.mark.parametrize("over,expected", [
+    ({"steps": -5}, "training setting steps must be a whole number >= 1, got -5"),
+    ({"steps": "many"}, "training setting steps must be a whole number >= 1, got 'many'"),
+    ({"batch_size": 0}, "training setting batch_size must be a whole number >= 1, got 0"),
+    ({"out_dir": "FILE"}, "is a file, not a folder"),
+])
+def test_settings_no_run_can_use_are_refused_before_anything_is_written(small_root, tmp_path, over, expected):
+    """steps = -5 exited 0 naming a checkpoint it never wrote; the others ended in tracebacks."""
+    (tmp_path / "FILE").write_text("a file where the run folder should be")
+    run = tmp_path / "run"
+    settings = config(small_root, run, **{k: str(tmp_path / v) if k == "out_dir" else v for k, v in over.items()})
+    with pytest.raises(DiffshegError, match=expected):
+        train(TrainConfig.from_dict(settings))
+    (tmp_path / "run.json").write_text(json.dumps(settings))
+    result = subprocess.run([sys.executable, "-m", "diffsheg_core", "train", "--config", str(tmp_path / "run.json")],
+                            cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2 and expected in result.stderr and "Traceback" not in result.stderr
+    assert not run.exists() and (tmp_path / "FILE").read_text().startswith("a file")

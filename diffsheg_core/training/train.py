@@ -43,6 +43,7 @@ from ..foppas import PRESETS, FoppasConfig, with_overrides
 from ..export import with_graphs
 from ..model import PhoneticEncoder, UniEG, load_state_strict, state_arrays
 from ..pipeline import check_skip_guidance, hubert_encoding
+from ..settings import check_number
 from .phonetic import load_phonetic, speech_encoding as phonetic_speech
 from ..prior import GesturePrior
 from ..devices import resolve_device
@@ -116,6 +117,26 @@ class TrainConfig:
         if set(data) - data_known:
             raise DiffshegError(f"unknown data settings: {', '.join(sorted(set(data) - data_known))}")
         return cls(data=DataConfig(**data), **values)
+
+    # numeric settings: (bounds, whole); the rest are checked where they are used
+    NUMBERS = {"steps": ((1, math.inf), True), "batch_size": ((1, math.inf), True),
+               "warmup_steps": ((0, math.inf), True), "log_every": ((1, math.inf), True),
+               "checkpoint_every": ((1, math.inf), True), "validate_every": ((1, math.inf), True),
+               "val_clips": ((0, math.inf), True), "seed": ((0, math.inf), True),
+               "lr": ((0, math.inf), False), "lr_min": ((0, math.inf), False),
+               "weight_decay": ((0, math.inf), False), "grad_clip": ((0, math.inf), False),
+               "ema_decay": ((0, 1), False), "cond_drop": ((0, 1), False)}
+
+    def check(self) -> None:
+        """Refuse settings no run can use (DiffshegError naming the setting), before anything
+        is loaded or written: numbers out of range, an out_dir that is a file."""
+        for name, (bounds, whole) in self.NUMBERS.items():
+            setattr(self, name, check_number(f"training setting {name}", getattr(self, name), bounds, whole))
+        if not isinstance(self.out_dir, str) or not self.out_dir:
+            raise DiffshegError(f"training setting out_dir must name a folder, got {self.out_dir!r}")
+        if Path(self.out_dir).exists() and not Path(self.out_dir).is_dir():
+            raise DiffshegError(f"training setting out_dir {self.out_dir} is a file, not a folder: name a "
+                                "folder for the run (it is created if missing)")
 
 
 def read_config_file(path: str | Path, _chain: tuple[Path, ...] = ()) -> dict:
@@ -374,6 +395,7 @@ def fine_tuning_statistics(path: str, source: NormStats, data: NormStats) -> Nor
 class Trainer:
     def __init__(self, cfg: TrainConfig, env: Dist):
         self.cfg, self.env = cfg, env
+        cfg.check()
         if cfg.batch_size % env.world:
             raise DiffshegError(f"batch_size {cfg.batch_size} does not split evenly over {env.world} processes")
         if cfg.x0_weighting not in X0_WEIGHTINGS:

@@ -1,0 +1,121 @@
+"""What a stored ONNX graph declares, read from its protobuf bytes without the onnx package
+(which the runtime does not ship): the inputs it takes, and the tensors whose data live in
+external files, which onnxruntime would open relative to the working directory.
+
+Only the fields of onnx.proto that lead to tensors and inputs are followed; everything else
+(raw weights included) is skipped by its length, so reading a 13 MB graph takes milliseconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+EXTERNAL = 1  # TensorProto.DataLocation.EXTERNAL
+ELEMENT_TYPES = {1: "float32", 7: "int64", 9: "bool", 10: "float16", 11: "float64", 6: "int32"}
+
+# message -> {field number: message it holds}, for the fields through which tensors are reached
+_TENSORS_IN = {
+    "model": {7: "graph", 20: "training", 25: "function"},
+    "training": {1: "graph", 2: "graph"},
+    "graph": {1: "node", 5: "tensor", 15: "sparse"},
+    "function": {7: "node", 11: "attribute"},
+    "node": {5: "attribute"},
+    "attribute": {5: "tensor", 6: "graph", 10: "tensor", 11: "graph", 22: "sparse", 23: "sparse"},
+    "sparse": {1: "tensor", 2: "tensor"},
+}
+
+
+@dataclass
+class GraphInputs:
+    """A graph's inputs {name: (element type, shape)} (a dynamic axis is its name, a str) and
+    the names of its tensors stored as external data."""
+
+    inputs: dict[str, tuple[str, tuple]] = field(default_factory=dict)
+    external: list[str] = field(default_factory=list)
+
+
+def _varint(buf: memoryview, pos: int) -> tuple[int, int]:
+    value = shift = 0
+    while True:
+        byte = buf[pos]
+        value |= (byte & 0x7F) << shift
+        pos += 1
+        if byte < 0x80:
+            return value, pos
+        shift += 7
+        if shift > 63:
+            raise ValueError("a varint runs past 10 bytes")
+
+
+def _fields(buf: memoryview):
+    """(field number, value) of one message: an int for varints, a memoryview for
+    length-delimited fields (fixed-width ones are skipped)."""
+    pos = 0
+    while pos < len(buf):
+        key, pos = _varint(buf, pos)
+        number, wire = key >> 3, key & 7
+        if number == 0:
+            raise ValueError("field number 0 is not protobuf's")
+        if wire == 0:
+            value, pos = _varint(buf, pos)
+        elif wire == 2:
+            size, pos = _varint(buf, pos)
+            value, pos = buf[pos:pos + size], pos + size
+        elif wire in (1, 5):
+            value, pos = None, pos + (8 if wire == 1 else 4)
+        else:
+            raise ValueError(f"wire type {wire} is not protobuf's")
+        if pos > len(buf):
+            raise ValueError("a field runs past the end of its message")
+        if value is not None:
+            yield number, value
+
+
+def _external(buf: memoryview, kind: str, found: list[str]) -> None:
+    """Append to `found` the names of the tensors reached from message `buf` of `kind`
+    that refer to external data."""
+    if kind == "tensor":
+        values = list(_fields(buf))
+        if any(n == 13 or (n == 14 and v == EXTERNAL) for n, v in values):
+            found.append(next((bytes(v).decode("utf-8", "replace") for n, v in values if n == 8), "?"))
+        return
+    holds = _TENSORS_IN[kind]
+    for number, value in _fields(buf):
+        if number in holds and isinstance(value, memoryview):
+            _external(value, holds[number], found)
+
+
+def _input(buf: memoryview) -> tuple[str, tuple[str, tuple]]:
+    """(name, (element type, shape)) of a ValueInfoProto holding a tensor type."""
+    name, elem, dims = "", "?", []
+    for number, value in _fields(buf):
+        if number == 1:
+            name = bytes(value).decode("utf-8", "replace")
+        elif number == 2:  # TypeProto
+            for n, tensor in _fields(value):
+                if n != 1:  # not tensor_type
+                    continue
+                for m, part in _fields(tensor):
+                    if m == 1:
+                        elem = ELEMENT_TYPES.get(part, str(part))
+                    elif m == 2:  # TensorShapeProto: dim
+                        for _, dim in (f for f in _fields(part) if f[0] == 1):
+                            got = dict(_fields(dim))
+                            dims.append(bytes(got[2]).decode() if 2 in got else got.get(1, "?"))
+    return name, (elem, tuple(dims))
+
+
+def read_graph(graph: bytes) -> GraphInputs:
+    """The inputs and external-data tensors of a serialised ONNX ModelProto; ValueError
+    when the bytes are not one."""
+    buf = memoryview(graph)
+    out = GraphInputs()
+    try:
+        _external(buf, "model", out.external)
+        body = [v for n, v in _fields(buf) if n == 7]
+        if not body or not isinstance(body[-1], memoryview):
+            raise ValueError("it holds no graph")
+        out.inputs = dict(_input(v) for n, v in _fields(body[-1]) if n == 11)
+    except (IndexError, UnicodeDecodeError, KeyError, TypeError) as exc:
+        raise ValueError(f"it is not an ONNX model ({exc})") from None
+    return out

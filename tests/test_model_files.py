@@ -1,0 +1,138 @@
+"""Model files that are edited, mixed up or crafted are refused when they load, with one
+line naming the file and what is wrong (issue 26, items 3-5): ONNX graphs that refer to
+external data, metadata that disagrees with the graphs, a few bytes given as a checkpoint.
+Every broken file is made from the real bundled model."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+
+from diffsheg_core import CheckpointError
+from diffsheg_core.checkpoints import DEFAULT_WEIGHTS, load_model, read_safetensors, write_safetensors
+from diffsheg_core.runtime.graphs import read_graph
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def default_file():
+    return read_safetensors(DEFAULT_WEIGHTS, "")
+
+
+def cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "diffsheg_core", "generate", *args], cwd=cwd,
+                          capture_output=True, text=True, timeout=300)
+
+
+def refused_by_the_cli(model: Path, tmp_path: Path, *expected: str) -> None:
+    """`generate --model model` exits 2 with one line naming the file and `expected`, and writes nothing."""
+    out = tmp_path / "motion.npz"
+    result = cli("--model", str(model), "-o", str(out), cwd=tmp_path)
+    error = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 2 and len(error) == 1, result.stderr
+    assert error[0].startswith(f"error: {model}") and all(e in error[0] for e in expected), error
+    assert "Traceback" not in result.stderr and not out.exists()
+
+
+def with_external_data(graph: bytes, location: str) -> bytes:
+    """`graph` with its largest initializer moved to external data at `location`."""
+    proto = onnx.load_from_string(graph)
+    tensor = max(proto.graph.initializer, key=lambda t: len(t.raw_data))
+    tensor.ClearField("raw_data")
+    tensor.data_location = onnx.TensorProto.EXTERNAL
+    entry = tensor.external_data.add()
+    entry.key, entry.value = "location", location
+    return proto.SerializeToString()
+
+
+def test_the_graph_reader_finds_what_onnx_finds(default_file):
+    """Inputs as onnx reads them; external data in initializers and in a subgraph's constant."""
+    _, tensors = default_file
+    for name in ("expression", "gesture", "phonetic"):
+        graph = tensors[f"onnx.{name}"].tobytes()
+        proto = onnx.load_from_string(graph)
+        found = read_graph(graph)
+        assert list(found.inputs) == [i.name for i in proto.graph.input] and found.external == []
+        for value in proto.graph.input:
+            dims = tuple(d.dim_param or d.dim_value for d in value.type.tensor_type.shape.dim)
+            assert found.inputs[value.name][1] == dims
+    assert read_graph(with_external_data(tensors["onnx.phonetic"].tobytes(), "secret.txt")).external
+    constant = onnx.helper.make_node("Constant", [], ["c"], value=onnx.numpy_helper.from_array(
+        np.ones(3, np.float32), "hidden"))
+    constant.attribute[0].t.data_location = onnx.TensorProto.EXTERNAL
+    branch = onnx.helper.make_graph([constant], "branch", [], [onnx.helper.make_tensor_value_info("c", 1, [3])])
+    model = onnx.helper.make_model(onnx.helper.make_graph(
+        [onnx.helper.make_node("If", ["cond"], ["y"], then_branch=branch, else_branch=branch)], "g",
+        [onnx.helper.make_tensor_value_info("cond", onnx.TensorProto.BOOL, [])],
+        [onnx.helper.make_tensor_value_info("y", 1, [3])]))
+    assert read_graph(model.SerializeToString()).external == ["hidden", "hidden"]
+    for junk in (b"abc", b"\x00" * 10, np.random.default_rng(0).bytes(1000)):
+        with pytest.raises(ValueError):
+            read_graph(junk)
+
+
+@pytest.mark.parametrize("graph", ["phonetic", "gesture"])
+def test_a_graph_that_refers_to_external_data_is_refused(default_file, tmp_path, graph):
+    """onnxruntime would read `secret.txt` from the working directory into the weights."""
+    meta, tensors = default_file
+    crafted = with_external_data(tensors[f"onnx.{graph}"].tobytes(), "secret.txt")
+    path = write_safetensors({**tensors, f"onnx.{graph}": np.frombuffer(crafted, np.uint8)}, meta,
+                             tmp_path / "crafted.safetensors")
+    (tmp_path / "secret.txt").write_bytes(b"\x00" * 4 * 1_000_000)
+    with pytest.raises(CheckpointError, match=f"graph '{graph}' refers to external data.*never use external"):
+        load_model(path)
+    refused_by_the_cli(path, tmp_path, "external data")
+
+
+def edited(default_file, path: Path, meta_change=None, tensor_change=None) -> Path:
+    meta, tensors = default_file
+    meta, tensors = dict(meta), dict(tensors)
+    info, config = json.loads(meta["info"]), json.loads(meta["config"])
+    if meta_change:
+        meta_change(meta, info, config)
+    if tensor_change:
+        tensor_change(tensors)
+    meta.setdefault("info", json.dumps(info))
+    return write_safetensors(tensors, {**meta, "config": json.dumps(config)}, path)
+
+
+def swap_graphs(tensors: dict) -> None:
+    tensors["onnx.expression"], tensors["onnx.gesture"] = tensors["onnx.gesture"], tensors["onnx.expression"]
+
+
+@pytest.mark.parametrize("case,meta_change,tensor_change,expected", [
+    ("four style names", lambda m, info, c: m.update(info=json.dumps(
+        {**info, "style_names": info["style_names"] + ["shouty"]})), None, "are not 3 different names"),
+    ("non-string style names", lambda m, info, c: m.update(info=json.dumps({**info, "style_names": [1, 2, 3]})),
+     None, "are not 3 different names"),
+    ("info a list", lambda m, info, c: m.update(info="[1, 2]"), None, "metadata 'info' is a JSON list"),
+    ("style_dim unlike the graph's", lambda m, info, c: c.update(style_dim=4), None,
+     "input 'style' is float32 (batch, 3) where the metadata's config gives float32 (?, 4)"),
+    ("graphs swapped", None, swap_graphs, "missing inputs expression, mel"),
+    ("a default style it lacks", lambda m, info, c: m.update(info=json.dumps({**info, "default_style": "shouty"})),
+     None, "default style 'shouty' is not one of its styles"),
+])
+def test_metadata_that_disagrees_with_the_graphs_is_named_when_the_model_loads(
+        default_file, tmp_path, case, meta_change, tensor_change, expected):
+    path = edited(default_file, tmp_path / "edited.safetensors", meta_change, tensor_change)
+    with pytest.raises(CheckpointError) as err:
+        load_model(path)
+    assert str(path) in str(err.value) and expected in str(err.value) and "again" in str(err.value), case
+    refused_by_the_cli(path, tmp_path, expected)
+
+
+def test_a_few_bytes_given_as_a_checkpoint_are_named_for_what_they_are(tmp_path):
+    pytest.importorskip("torch")
+    for name, data in (("three.pt", b"abc"), ("empty.pt", b""), ("brace.pt", b"{ab")):
+        path = tmp_path / name
+        path.write_bytes(data)
+        with pytest.raises(CheckpointError, match="cannot read this torch checkpoint .*damaged"):
+            load_model(path)
+    refused_by_the_cli(tmp_path / "three.pt", tmp_path, "damaged or cut short", "download it again")
