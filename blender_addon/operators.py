@@ -134,10 +134,11 @@ def check_model(settings) -> None:
                             "(CUDA build), or choose device Auto or CPU")
 
 
-def check_ready(settings):
-    """Everything checkable before generating but the audio: packages, model, targets,
-    preset. Returns the keying options."""
+def check_ready(settings) -> tuple:
+    """Everything checkable before generating: packages, the audio file (the whole clip's;
+    a range uses its take's), model, targets, preset. Returns the audio and keying options."""
     check_runtime()
+    path = audio_file(settings) if settings.range_mode == "WHOLE" else None
     check_model(settings)
     options = bake_options(settings)
     if options.armature is None and not options.face_meshes:
@@ -150,7 +151,7 @@ def check_ready(settings):
     layout = stored_layout(bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None)
     if options.armature is not None and layout is not None and options.preset is not None:
         options.preset.joint_map(layout)  # names the missing section before generating
-    return options
+    return path, options
 
 
 def prepare(context) -> Request:
@@ -158,10 +159,9 @@ def prepare(context) -> Request:
     the panel's audio, or a range of the take playing (with the take's own audio). Timeline
     markers named 'style:...' change the style from their frame on."""
     settings, scene = context.scene.diffsheg, context.scene
-    options = check_ready(settings)
+    path, options = check_ready(settings)
     generation = generate_settings(settings)
     if settings.range_mode == "WHOLE":
-        path = audio_file(settings)
         generation = replace(generation, style_at=marker_styles(scene, options.start_frame))
         pins = ()
         if settings.start_from_pose:
