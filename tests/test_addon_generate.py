@@ -19,7 +19,7 @@ from addon_fixtures import exit_before_blender_teardown, rigify_blend  # noqa: F
 import diffsheg_core
 from blender_addon.bake import BakeOptions, bake_motion
 from blender_addon.keying import action_fcurves, fcurves_of
-from blender_addon.operators import GenerationJob
+from blender_addon.job import GenerationJob, Request
 from blender_addon.preset import load_preset
 from blender_addon.sound import sound_strips
 from diffsheg_core.checkpoints import load_model
@@ -208,7 +208,7 @@ def test_cancel_midway_leaves_the_scene_unchanged(tmp_path):
     speech = cut_speech(tmp_path, seconds=20.0)
     _configure(scene, speech, ob, "beat", face)
     before = scene_state(scene)
-    job = GenerationJob(speech, GenerateSettings(steps=25, device="cpu")).start()
+    job = GenerationJob(Request(speech, None, GenerateSettings(steps=25, device="cpu"))).start()
     while job.fraction == 0.0 and not job.done:
         threading.Event().wait(0.01)
     job.cancel.set()
