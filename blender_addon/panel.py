@@ -1,12 +1,20 @@
-"""The View3D sidebar tab "DiffSHEG" with the panel "Generate from audio"."""
+"""The View3D sidebar tab "DiffSHEG": the panel "Generate from audio" with what most runs
+need (audio, character, style, range, Generate, takes, the report), and two collapsed
+sub-panels, "Sampling" (the model's options) and "Keys" (how the motion is keyed).
+
+Blender's conventions: labels in a column on the left (`use_property_split`), no
+keyframe decorators, labels short enough for the sidebar's default width; texts that
+can be long (the report, the model, where it runs) wrap to the sidebar's width.
+"""
 
 from __future__ import annotations
 
 import sys
+import textwrap
 
 import bpy
 
-from .preferences import draw_problems, runtime_problems, torch_installed
+from .preferences import runtime_problems, torch_installed
 from .properties import CUSTOM_PRESET, NO_MIX
 
 
@@ -26,6 +34,51 @@ def device_label(choice: str) -> str:
     return "GPU (CUDA)" if has_cuda else "CPU (no CUDA GPU found)"
 
 
+def _chars_per_line(context, indent_px: float = 0.0) -> int | None:
+    """About how many characters of the UI font fit on one line of the sidebar; None when
+    no region is drawn (a headless draw)."""
+    region = getattr(context, "region", None)
+    if region is None or region.width <= 1:
+        return None
+    scale = context.preferences.system.ui_scale
+    # panel margins and a label's icon, then Blender's UI font: about 7 px a character (wide letters included)
+    usable = region.width - (44 + indent_px) * scale
+    return max(12, int(usable / (7.0 * scale)))
+
+
+def wrapped_label(layout, context, text: str, icon: str = "NONE", beside_px: float = 0.0) -> None:
+    """`text` as one label per line of the sidebar's width (less `beside_px` taken by buttons
+    beside it), the icon on the first."""
+    width = _chars_per_line(context, indent_px=beside_px + (0 if icon == "NONE" else 20))
+    lines = [text] if width is None else (textwrap.wrap(text, width) or [""])
+    col = layout.column(align=True)
+    for i, line in enumerate(lines):
+        row = col.row()
+        row.scale_y = 0.8 if i else 1.0
+        # later lines indented by the icon's width, so they line up under the first
+        row.label(text=line, icon=icon if i == 0 else ("BLANK1" if icon != "NONE" else "NONE"))
+
+
+def _labelled(layout, text: str):
+    """A row with `text` in the label column, like `use_property_split` draws a property
+    (for a property drawn beside a button)."""
+    split = layout.split(factor=0.4, align=True)
+    left = split.row()
+    left.alignment = "RIGHT"
+    left.label(text=text)
+    return split.row(align=True)
+
+
+def _toggled(layout, settings, toggle: str, value: str, label: str) -> None:
+    """A value the model has a default for: the toggle on, the value is used (greyed out, the
+    model's default)."""
+    row = layout.row(align=True, heading=label)
+    row.prop(settings, toggle, text="")
+    sub = row.row(align=True)
+    sub.active = getattr(settings, toggle)
+    sub.prop(settings, value, text="")
+
+
 def draw_takes(layout, settings) -> None:
     """One button per take of the panel's character; the one playing is pressed."""
     from . import takes
@@ -42,92 +95,150 @@ def draw_takes(layout, settings) -> None:
                      icon="PLAY" if name == current else "ACTION").take = name
 
 
+def draw_report(layout, context, settings) -> None:
+    """The last Generate's one-line report (wrapped to the sidebar), the button that opens the
+    "DiffSHEG report" Text with the details, and the model it used."""
+    if settings.last_report:
+        row = layout.row()
+        wrapped_label(row, context, settings.last_report, icon="ERROR" if settings.last_failed else "INFO",
+                      beside_px=0 if settings.last_failed else 28)
+        if not settings.last_failed:
+            row.operator("diffsheg.show_report", text="", icon="TEXT")
+    if settings.model_label:
+        untrained = "UNTRAINED" in settings.model_label
+        wrapped_label(layout, context, f"Model: {settings.model_label}", icon="ERROR" if untrained else "NONE")
+
+
 class DIFFSHEG_UL_face_meshes(bpy.types.UIList):
     def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index=0):
         layout.prop(item, "object", text="", emboss=False, icon="MESH_DATA")
 
 
-class DIFFSHEG_PT_generate(bpy.types.Panel):
-    bl_label = "Generate from audio"
-    bl_idname = "DIFFSHEG_PT_generate"
+class _Panel:
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "DiffSHEG"
 
+
+def _split(layout):
+    """Blender's layout: labels in a column on the left, no keyframe decorators."""
+    layout.use_property_split = True
+    layout.use_property_decorate = False
+    return layout
+
+
+class DIFFSHEG_PT_generate(_Panel, bpy.types.Panel):
+    bl_label = "Generate from audio"
+    bl_idname = "DIFFSHEG_PT_generate"
+
     def draw(self, context):
-        layout = self.layout
+        layout = _split(self.layout)
         s = context.scene.diffsheg
         problems = runtime_problems()
         if problems:
-            draw_problems(layout.box(), problems)
+            box = layout.box()
+            for i, line in enumerate(problems):
+                wrapped_label(box, context, line, icon="ERROR" if i == 0 else "NONE")
 
         layout.prop(s, "audio_path")
-        layout.prop(s, "armature")
-        layout.label(text="Face meshes:")
-        row = layout.row()
-        row.template_list("DIFFSHEG_UL_face_meshes", "", s, "face_meshes", s, "face_index", rows=2)
-        col = row.column(align=True)
-        col.operator("diffsheg.face_add", text="", icon="ADD")
-        col.operator("diffsheg.face_remove", text="", icon="REMOVE")
-        layout.prop(s, "preset")
-        if s.preset == CUSTOM_PRESET:
-            layout.prop(s, "preset_file")
 
-        col = layout.column(align=True)
-        col.prop(s, "model_path")
-        row = col.row(align=True)
-        row.prop(s, "seed")
+        col = layout.column()
+        col.prop(s, "armature")
+        col.label(text="Face meshes:")
+        row = col.row()  # the whole width: mesh names are long
+        row.template_list("DIFFSHEG_UL_face_meshes", "", s, "face_meshes", s, "face_index", rows=2)
+        ops = row.column(align=True)
+        ops.operator("diffsheg.face_add", text="", icon="ADD")
+        ops.operator("diffsheg.face_remove", text="", icon="REMOVE")
+        col.prop(s, "preset")
+        if s.preset == CUSTOM_PRESET:
+            col.prop(s, "preset_file")
+
+        col = layout.column()
+        col.prop(s, "style")
+        sub = col.column(align=True)
+        sub.prop(s, "mix_style")
+        mix = sub.row(align=True)
+        mix.active = s.mix_style != NO_MIX
+        mix.prop(s, "style_mix")
+
+        col = layout.column()
+        col.prop(s, "range_mode")
+        if s.range_mode == "FRAMES":
+            frames = col.column(align=True)
+            frames.prop(s, "range_start")
+            frames.prop(s, "range_end")
+        if s.range_mode == "WHOLE":  # a range starts from the take's own frames
+            col.row(heading="Start").prop(s, "start_from_pose", text="From pose")
+
+        row = layout.row()
+        row.scale_y = 1.4
+        row.operator("diffsheg.generate", icon="PLAY_SOUND",
+                     text="Generate" if s.range_mode == "WHOLE" else "Regenerate Range")
+        draw_takes(layout, s)
+        draw_report(layout, context, s)
+
+
+class DIFFSHEG_PT_sampling(_Panel, bpy.types.Panel):
+    bl_label = "Sampling"
+    bl_idname = "DIFFSHEG_PT_sampling"
+    bl_parent_id = "DIFFSHEG_PT_generate"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        layout = _split(self.layout)
+        s = context.scene.diffsheg
+        layout.prop(s, "model_path")
+
+        col = layout.column()
+        row = _labelled(col, "Seed")
+        row.prop(s, "seed", text="")
         row.operator("diffsheg.new_seed", text="", icon="FILE_REFRESH")
-        row = col.row(align=True)
-        row.prop(s, "keep_face")
-        sub = row.row(align=True)
+        _toggled(col, s, "set_steps", "steps", "Steps")
+        col.prop(s, "candidates")
+        _toggled(col, s, "set_overlap", "overlap", "Overlap")
+        _toggled(col, s, "set_guidance", "guidance", "Guidance")
+        _toggled(col, s, "set_gesture_energy", "gesture_energy", "Energy")
+        col.prop(s, "style_strength")
+
+        col = layout.column()
+        col.prop(s, "keep_face")
+        sub = col.row()
         sub.active = s.keep_face
         sub.prop(s, "face_seed")
-        col.prop(s, "steps")
-        col.prop(s, "candidates")
-        col.prop(s, "style")
-        row = col.row(align=True)
-        row.prop(s, "mix_style")
-        sub = row.row(align=True)
-        sub.active = s.mix_style != NO_MIX
-        sub.prop(s, "style_mix")
-        col.prop(s, "style_strength")
-        for toggle, value in (("set_overlap", "overlap"), ("set_guidance", "guidance"),
-                              ("set_gesture_energy", "gesture_energy")):
-            row = col.row(align=True)
-            row.prop(s, toggle, text="")
-            sub = row.row(align=True)
-            sub.active = getattr(s, toggle)
-            sub.prop(s, value)
-        col.prop(s, "device")
-        col.label(text=f"Runs on: {device_label(s.device)}")
 
-        col = layout.column(align=True)
-        row = col.row(align=True)
-        row.prop(s, "start_at_scene_start")
-        sub = row.row(align=True)
-        sub.active = not s.start_at_scene_start
-        sub.prop(s, "start_frame")
-        col.prop(s, "smoothing")
+        col = layout.column()
+        col.row().prop(s, "device", expand=True)
+        wrapped_label(col, context, f"Runs on: {device_label(s.device)}")
+
+
+class DIFFSHEG_PT_keys(_Panel, bpy.types.Panel):
+    bl_label = "Keys"
+    bl_idname = "DIFFSHEG_PT_keys"
+    bl_parent_id = "DIFFSHEG_PT_generate"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        layout = _split(self.layout)
+        s = context.scene.diffsheg
+        col = layout.column()
         col.prop(s, "key_mode")
-        if s.key_mode == "POSES":
-            col.prop(s, "max_error")
-            col.prop(s, "max_face_error")
+        errors = col.column(align=True)
+        errors.active = s.key_mode == "POSES"
+        errors.prop(s, "max_error")
+        errors.prop(s, "max_face_error")
+        col.prop(s, "smoothing")
+
+        col = layout.column(heading="Start")
+        col.prop(s, "start_at_scene_start")
+        sub = col.row()
+        sub.active = not s.start_at_scene_start
+        sub.prop(s, "start_frame", text="Frame")
+        col = layout.column(heading="Scene")
         col.prop(s, "add_sound")
-        col.prop(s, "set_frame_range")
-
-        layout.operator("diffsheg.generate", icon="PLAY_SOUND")
-        draw_takes(layout, s)
-        if s.model_label:
-            untrained = "UNTRAINED" in s.model_label
-            layout.label(text=f"Model: {s.model_label}", icon="ERROR" if untrained else "INFO")
-        if s.last_report:
-            row = layout.row()
-            row.label(text=s.last_report, icon="ERROR" if s.last_failed else "NONE")
-            if not s.last_failed:
-                row.operator("diffsheg.show_report", text="", icon="TEXT")
+        col.prop(s, "set_frame_range", text="Frame range")
 
 
-CLASSES = (DIFFSHEG_UL_face_meshes, DIFFSHEG_PT_generate)
+CLASSES = (DIFFSHEG_UL_face_meshes, DIFFSHEG_PT_generate, DIFFSHEG_PT_sampling, DIFFSHEG_PT_keys)
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)

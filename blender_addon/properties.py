@@ -29,10 +29,10 @@ _preset_items_cache: list = []
 
 def _preset_items(_self, _context):
     # Blender keeps only the strings of the last returned list alive: keep a reference.
-    _preset_items_cache[:] = [(preset.AUTO, "Auto", "the preset whose bone names the armature has "
-                                                    "(the report says which it chose)")]
-    _preset_items_cache.extend((n, n, f"rig preset presets/{n}.json") for n in preset.available_presets())
-    _preset_items_cache.append((CUSTOM_PRESET, "Custom file...", "a preset .json file of your own"))
+    _preset_items_cache[:] = [(preset.AUTO, "Auto", "Pick the preset whose bone names the armature has "
+                                                    "(the report says which one)")]
+    _preset_items_cache.extend((n, n, f"Rig preset presets/{n}.json") for n in preset.available_presets())
+    _preset_items_cache.append((CUSTOM_PRESET, "Custom file...", "A preset .json file of your own"))
     return _preset_items_cache
 
 
@@ -84,89 +84,109 @@ def _mix_items(self, context):
 
 class DIFFSHEG_PG_face_mesh(bpy.types.PropertyGroup):
     object: PointerProperty(name="Face mesh", type=bpy.types.Object, poll=_is_mesh,
-                            description="a mesh whose shape keys receive the face weights")
+                            description="A mesh whose shape keys receive the face animation")
 
 
+# Labels (name=) are short enough to be read whole at the sidebar's default width; they
+# follow the add-on's messages ("Range 'Frames'", "'Start from pose'"). Tooltips in plain words.
 class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
     audio_path: StringProperty(name="Audio", subtype="FILE_PATH",
-                               description="speech recording (WAV, FLAC, OGG or MP3)")
+                               description="The speech recording to animate (WAV, FLAC, OGG or MP3)")
     armature: PointerProperty(name="Armature", type=bpy.types.Object, poll=_is_armature,
-                              description="the rig receiving body, hand, head and jaw rotations")
+                              description="The character's rig: it gets the body, hand, head and jaw motion")
     face_meshes: CollectionProperty(type=DIFFSHEG_PG_face_mesh)
     face_index: IntProperty(default=0)
-    preset: EnumProperty(name="Rig preset", items=_preset_items,
-                         description="which bones and shape keys the model's channels go to")
-    preset_file: StringProperty(name="Preset file", subtype="FILE_PATH",
-                                description="your own preset .json (see presets/ for the format)")
+    preset: EnumProperty(name="Preset", items=_preset_items,
+                         description="Which of the rig's bones and shape keys the motion goes to")
+    preset_file: StringProperty(name="File", subtype="FILE_PATH",
+                                description="Your own preset .json file (see presets/ for the format)")
+    range_mode: EnumProperty(name="Range", default="WHOLE", items=[
+        ("WHOLE", "Whole clip", "Generate the whole audio clip as a new take"),
+        ("PREVIEW", "Preview range", "Regenerate the scene's preview range of the take playing"),
+        ("FRAMES", "Frames", "Regenerate the frames from Start to End of the take playing")],
+        description="Generate the whole clip, or only part of the take playing (kept as a new take)")
+    range_start: IntProperty(name="Start", default=1,
+                             description="First frame (scene frame) to generate anew")
+    range_end: IntProperty(name="End", default=100,
+                           description="Last frame (scene frame) to generate anew")
+    start_from_pose: BoolProperty(name="Start from pose", default=False,
+                                  description="Begin the motion from the pose the character has at the "
+                                              "start frame, so a take continues the previous shot")
     model_path: StringProperty(name="Model", subtype="FILE_PATH",
-                               description="a model file (.safetensors); empty = the bundled default model. "
-                                           "Official DiffSHEG checkpoints (.pth) need the GPU support (torch)")
-    seed: IntProperty(name="Seed", default=0, min=0, description="same seed, same motion")
+                               description="A model file (.safetensors); empty uses the model that comes with "
+                                           "the add-on. Official DiffSHEG checkpoints (.pth) need the GPU "
+                                           "support from the add-on's preferences")
+    seed: IntProperty(name="Seed", default=0, min=0,
+                      description="Same seed, same motion; another seed gives other gestures")
     keep_face: BoolProperty(name="Keep face", default=False,
-                            description="keep the face (lip-sync, blinks, brows) of the face seed while the "
-                                        "seed changes the gestures")
+                            description="Keep the face (lip-sync, blinks, brows) of the face seed while "
+                                        "the seed changes the gestures")
     face_seed: IntProperty(name="Face seed", default=0, min=0,
-                           description="the seed the face is sampled with when Keep face is on")
+                           description="The seed of the face when Keep face is on")
     candidates: IntProperty(name="Candidates", default=1, min=CANDIDATES[0], max=CANDIDATES[1],
-                            description="sample every window after the first this many times and keep the one "
-                                        "that best continues the motion (smoother seams; costs that many times "
-                                        "the time)")
+                            description="Try each stretch of motion this many times and keep the one that "
+                                        "joins best: smoother, but that many times slower")
+    set_steps: BoolProperty(name="Set steps", default=False,
+                            description="Use your own number of steps instead of the model's default")
     steps: IntProperty(name="Steps", default=25, min=STEPS[0], max=STEPS[1],
-                       description="diffusion steps: fewer are faster, 25 is the model's default")
+                       description="Denoising steps: fewer are faster, more follow the model more closely")
     set_overlap: BoolProperty(name="Set overlap", default=False,
-                              description="use your own overlap instead of the model's default")
+                              description="Use your own overlap instead of the model's default")
     overlap: IntProperty(name="Overlap", default=4, min=OVERLAP[0], max=OVERLAP[1],
-                         description="frames shared by consecutive windows")
+                         description="Frames each stretch of motion shares with the one before it: "
+                                     "more gives smoother joins")
     style: EnumProperty(name="Style", items=_style_items,
-                        description="the gesture style of the model (its named styles, or speaker indices)")
+                        description="How the character gestures: the model's named styles, or its speakers")
     mix_style: EnumProperty(name="Mix with", items=_mix_items,
-                            description="a second style to blend with the first")
+                            description="A second style to blend with the first")
     style_mix: FloatProperty(name="Mix", default=0.5, min=0.0, max=1.0, subtype="FACTOR",
-                             description="share of the second style: 0 is the first style, 1 the second")
-    style_strength: FloatProperty(name="Style strength", default=1.0, min=STYLE_GUIDANCE[0], max=5.0,
+                             description="How much of the second style: 0 is only the first, 1 only the second")
+    style_strength: FloatProperty(name="Strength", default=1.0, min=STYLE_GUIDANCE[0], max=5.0,
                                   soft_max=3.0,
-                                  description="style guidance: 1 is the style as trained, above 1 goes beyond "
-                                              "it (livelier than animated, calmer than calm); models trained "
-                                              "with a null style")
+                                  description="Style strength: 1 is the style as learned, higher exaggerates it "
+                                              "(livelier than lively, calmer than calm; models trained to "
+                                              "allow it)")
     set_guidance: BoolProperty(name="Set guidance", default=False,
-                               description="use your own guidance scale instead of the model's default")
+                               description="Use your own guidance instead of the model's default")
     guidance: FloatProperty(name="Guidance", default=1.0, min=GUIDANCE[0], max=GUIDANCE[1],
-                            description="classifier-free guidance scale; 1 = off")
-    set_gesture_energy: BoolProperty(name="Set gesture energy", default=False,
-                                     description="use your own gesture energy instead of the model's default")
-    gesture_energy: FloatProperty(name="Gesture energy", default=0.1, min=SKIP_GUIDANCE[0], max=SKIP_GUIDANCE[1],
-                                  description="skip-guidance scale of the gestures: higher gives larger, "
-                                              "livelier gestures; 0 = off")
+                            description="How closely the motion follows the speech; 1 is off")
+    set_gesture_energy: BoolProperty(name="Set energy", default=False,
+                                     description="Use your own gesture energy instead of the model's default")
+    gesture_energy: FloatProperty(name="Energy", default=0.1, min=SKIP_GUIDANCE[0], max=SKIP_GUIDANCE[1],
+                                  description="Gesture energy: higher for livelier, bigger gestures; 0 is off")
     start_at_scene_start: BoolProperty(name="Scene start", default=True,
-                                       description="key from the scene's start frame (1001 in film pipelines); "
-                                                   "off: from the start frame below")
-    start_frame: IntProperty(name="Start frame", default=1, description="frame of the first key and the sound strip")
+                                       description="Put the first key and the sound at the scene's start frame "
+                                                   "(1001 in film pipelines); off: at Start frame")
+    start_frame: IntProperty(name="Start frame", default=1,
+                             description="Frame of the first key and of the sound strip")
 
     def start(self) -> int:
         """The frame of the first key and the sound strip (these settings live on the scene)."""
         return self.id_data.frame_start if self.start_at_scene_start else self.start_frame
     device: EnumProperty(name="Device", default="AUTO", items=[
-        ("AUTO", "Auto", "a CUDA GPU when the GPU support (torch) is installed and finds one, "
-                         "else the CPU (onnxruntime)"),
-        ("CPU", "CPU", "always the CPU"),
-        ("GPU", "GPU", "a CUDA GPU: needs the GPU support (torch with CUDA) from the preferences")])
+        ("AUTO", "Auto", "A CUDA GPU when the GPU support is installed and finds one, else the CPU"),
+        ("CPU", "CPU", "Always the CPU"),
+        ("GPU", "GPU", "A CUDA GPU: needs the GPU support from the add-on's preferences")],
+        description="Where the model runs")
     smoothing: FloatProperty(name="Smoothing", default=0.0, min=0.0, max=10.0,
-                             description="Gaussian smoothing of the keys, sigma in frames; 0 = off")
+                             description="Smooth the motion over this many frames before keying; 0 is off")
     key_mode: EnumProperty(name="Keys", default="POSES", items=[
-        ("POSES", "Poses", "keys on the motion's turning points with smooth handles, within the error "
-                           "bounds on every frame: easy to edit"),
-        ("EVERY_FRAME", "Every frame", "one key per frame on every channel (baked curves for game export)")])
+        ("POSES", "Poses", "Keys on the motion's turning points with smooth handles, within the error "
+                           "below on every frame: easy to edit"),
+        ("EVERY_FRAME", "Every frame", "A key on every frame of every channel (baked, for game export)")],
+        description="Which frames get keys")
     max_error: FloatProperty(name="Max error", default=1.0, min=0.01, max=30.0, precision=2,
-                             description="largest angle in degrees between a bone's keyed rotation and the "
-                                         "generated one, on any frame: higher gives fewer keys")
-    max_face_error: FloatProperty(name="Face max error", default=0.02, min=0.001, max=0.5, precision=3,
-                                  description="largest difference of a shape key's keyed value from the "
-                                              "generated one, on any frame: higher gives fewer keys")
-    add_sound: BoolProperty(name="Add sound strip", default=True)
+                             description="Largest difference, in degrees, between a bone's keyed and "
+                                         "generated rotation on any frame: higher gives fewer keys")
+    max_face_error: FloatProperty(name="Face error", default=0.02, min=0.001, max=0.5, precision=3,
+                                  description="Largest difference between a shape key's keyed and generated "
+                                              "value on any frame: higher gives fewer keys")
+    add_sound: BoolProperty(name="Add sound", default=True,
+                            description="Add the audio as a sound strip and play back in sync with it")
     set_frame_range: BoolProperty(name="Set frame range", default=True,
-                                  description="make the scene's frame range cover the clip")
+                                  description="Make the scene's frame range cover the clip")
     model_label: StringProperty(name="Model used", default="",
-                                description="the model of the last generation")
+                                description="The model of the last generation")
     last_report: StringProperty(default="")
     last_failed: BoolProperty(default=False, description="the last Generate keyed nothing (last_report says why)")
 

@@ -47,7 +47,7 @@ import bpy
 
 import blender_addon
 blender_addon.register()
-from blender_addon.panel import DIFFSHEG_PT_generate
+from blender_addon.panel import DIFFSHEG_PT_generate, DIFFSHEG_PT_keys, DIFFSHEG_PT_sampling
 
 
 class Layout:
@@ -69,8 +69,8 @@ def drawn(cls, **attrs):
     return texts
 
 
-def panel_texts():
-    return drawn(DIFFSHEG_PT_generate)
+def panel_texts():  # the panel and its sub-panels
+    return [t for cls in (DIFFSHEG_PT_generate, DIFFSHEG_PT_sampling, DIFFSHEG_PT_keys) for t in drawn(cls)]
 
 
 def generate_error():

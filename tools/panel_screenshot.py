@@ -1,0 +1,113 @@
+"""Screenshot the sidebar panel "Generate from audio" in a real Blender window.
+
+    python -c "import build_addon, pathlib; build_addon.build_legacy(pathlib.Path('dist'))"
+    xvfb-run -s "-screen 0 1600x1000x24" blender --factory-startup \
+        --python tools/panel_screenshot.py -- dist/diffsheg-0.1.0-legacy.zip OUT.png [--open] [--range]
+
+Installs and enables the add-on zip in that Blender (3.4+; into the user's add-ons folder),
+makes a character (armature, face mesh, two takes, a report), shows the 3D view's sidebar at
+its default width with the panel (before 4.1 on the first tab, see show_tab) and saves the
+3D view area as OUT.png, then quits. With --open the
+sub-panels are registered open (Blender has no Python switch for a panel's open state); with
+--range the other choices are drawn (a range of frames, a custom preset, a style mix, GPU).
+Open sub-panels need a taller screen (1600x1900) to be seen whole.
+"""
+
+import sys
+
+import bpy
+
+argv = sys.argv[sys.argv.index("--") + 1:]
+ZIP, OUT, OPEN, RANGE = argv[0], argv[1], "--open" in argv, "--range" in argv
+
+bpy.ops.preferences.addon_install(filepath=ZIP, overwrite=True)
+bpy.ops.preferences.addon_enable(module="diffsheg")
+addon = sys.modules["diffsheg"]
+
+if OPEN:
+    for cls in (addon.panel.DIFFSHEG_PT_sampling, addon.panel.DIFFSHEG_PT_keys):
+        bpy.utils.unregister_class(cls)
+        cls.bl_options = set()
+        bpy.utils.register_class(cls)
+
+
+def character():
+    scene = bpy.context.scene
+    rig = bpy.data.objects.new("Avatar", bpy.data.armatures.new("Avatar"))
+    face = bpy.data.objects.new("Wolf3D_Head", bpy.data.meshes.new("Wolf3D_Head"))
+    for ob in (rig, face):
+        scene.collection.objects.link(ob)
+    face.shape_key_add(name="Basis")
+    s = scene.diffsheg
+    s.audio_path = "//audio/talk_interview_take3.wav"
+    s.armature = rig
+    s.face_meshes.add().object = face
+    from diffsheg import takes
+    for number in (1, 2):
+        name = takes.take_name("talk", number)
+        action = bpy.data.actions.new(name)
+        takes.mark(action, name, "talk", number, rig)
+    rig.animation_data_create().action = bpy.data.actions["talk take 2"]
+    s.last_report = ("talk take 2: 288 frames, preset readyplayerme, 41/41 joints, 1,204 keys, 3.1 s, "
+                     "4 warnings: see DiffSHEG report")
+    s.model_label = "diffsheg-beat-small 0.1.0 (bundled)"
+    if RANGE:  # the other choices drawn: a range of frames, a custom preset, a style mix
+        s.range_mode, s.range_start, s.range_end = "FRAMES", 1048, 1120
+        s.preset, s.preset_file = "__custom__", "//presets/my_rig.json"
+        s.mix_style, s.style_mix = "0", 0.3
+        s.device, s.key_mode, s.keep_face = "GPU", "EVERY_FRAME", True
+
+
+def sidebar():
+    window = bpy.context.window_manager.windows[0]
+    area = next(a for a in window.screen.areas if a.type == "VIEW_3D")
+    area.spaces[0].show_region_ui = True
+    area.tag_redraw()
+
+
+def show_tab():
+    """Blender before 4.1 has no Python switch for the sidebar's tab (and simulated clicks on a
+    tab did nothing under Xvfb): with no active object the first tab is "Tool", and the add-on's
+    panels are registered on it again, before Blender's own ("Tool" and "View" registered again
+    after them).
+    The tab strip stays, so the panel has the width it has on its own tab."""
+    window = bpy.context.window_manager.windows[0]
+    area = next(a for a in window.screen.areas if a.type == "VIEW_3D")
+    region = next(r for r in area.regions if r.type == "UI")
+    if hasattr(region, "active_panel_category"):  # Blender 4.1+
+        region.active_panel_category = "DiffSHEG"
+    else:
+        bpy.context.view_layer.objects.active = None  # no "Item" tab
+        ours = [addon.panel.DIFFSHEG_PT_generate, addon.panel.DIFFSHEG_PT_sampling, addon.panel.DIFFSHEG_PT_keys]
+        tool = [cls for cls in bpy.types.Panel.__subclasses__()
+                if getattr(cls, "bl_space_type", "") == "VIEW_3D" and getattr(cls, "bl_region_type", "") == "UI"
+                and getattr(cls, "bl_category", "") in ("Tool", "View") and cls.is_registered and cls not in ours]
+        tool.sort(key=lambda cls: (cls.bl_category != "Tool", bool(getattr(cls, "bl_parent_id", ""))))
+        for cls in reversed(ours + tool):
+            bpy.utils.unregister_class(cls)
+        for cls in ours:
+            cls.bl_category = "Tool"
+        for cls in ours + tool:
+            bpy.utils.register_class(cls)
+    area.tag_redraw()
+
+
+def shoot():
+    window = bpy.context.window_manager.windows[0]
+    area = next(a for a in window.screen.areas if a.type == "VIEW_3D")
+    region = next(r for r in area.regions if r.type == "UI")
+    print("sidebar width", region.width, "ui scale", bpy.context.preferences.system.ui_scale, flush=True)
+    with bpy.context.temp_override(window=window, area=area):
+        bpy.ops.screen.screenshot_area(filepath=OUT)
+    print("saved", OUT, flush=True)
+    bpy.ops.wm.quit_blender()
+
+
+def setup():
+    character()
+    sidebar()
+    bpy.app.timers.register(show_tab, first_interval=1.0)
+    bpy.app.timers.register(shoot, first_interval=2.5)
+
+
+bpy.app.timers.register(setup, first_interval=1.0)
