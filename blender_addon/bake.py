@@ -20,7 +20,7 @@ from diffsheg_core.keyframes import ErrorFn, Keys, fit_keys, rotation_error, val
 from diffsheg_core.motion import Motion, resample_motion
 
 from . import takes
-from .keying import Channel, Undo, new_action, rotation_channels, shape_key_channel, write_channels
+from .keying import Channel, Undo, new_action, rotation_channels, shape_key_channel, undone_on_error, write_channels
 from .preset import available_presets, choose_preset, load_preset, preset_fit
 from .retarget import Preset, bone_quaternions, map_armature, map_shape_keys
 from .sound import NO_AUDIO_NOTE, add_sound_strip, audio_supported, remove_strips, strips_added_for
@@ -183,8 +183,7 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
     plan = plan_keys(scene, motion, options)
     options = plan.options
     audio_name = Path(audio_path or motion.meta.get("audio_file") or "speech").stem
-    undo: list[Undo] = []
-    try:
+    with undone_on_error("the animation") as undo:
         actions, n_keys = [], 0
         number = takes.next_number(audio_name)
         take = takes.take_name(audio_name, number)
@@ -199,12 +198,6 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
         if options.armature is not None:
             _set_properties(options.armature, options.preset.properties, undo)
         strip, notes, replaced = _sound_and_range(scene, audio_path, options, plan.motion.n_frames, undo)
-    except Exception as exc:
-        for step in reversed(undo):
-            step()
-        if isinstance(exc, DiffshegError):
-            raise
-        raise DiffshegError(f"could not write the animation into the scene: {exc}") from exc
     remove_strips(scene, replaced)  # only once everything else has succeeded
     return BakeResult(take=take, preset=options.preset.name, actions=actions, n_frames=plan.motion.n_frames,
                       n_keys=n_keys, unmatched_bones=plan.unmatched_bones,

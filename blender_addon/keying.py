@@ -14,8 +14,9 @@ other type is the animator's.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -45,6 +46,22 @@ class Channel:
 
 
 Undo = Callable[[], None]
+
+
+@contextmanager
+def undone_on_error(what: str) -> Iterator[list[Undo]]:
+    """A list for undo steps (callables restoring what a change replaced); if the block
+    raises, they run in reverse, so the scene is as it was, and the error is a
+    DiffshegError ("could not write `what` into the scene: ...")."""
+    undo: list[Undo] = []
+    try:
+        yield undo
+    except Exception as exc:
+        for step in reversed(undo):
+            step()
+        if isinstance(exc, DiffshegError):
+            raise
+        raise DiffshegError(f"could not write {what} into the scene: {exc}") from exc
 
 
 def has_action_slots() -> bool:

@@ -31,7 +31,7 @@ from diffsheg_core.rotations import axis_angle_to_matrix, convert
 
 from . import takes
 from .bake import BakeOptions, BakeResult, Group, auto_preset, group_values, plan_keys, scene_fps
-from .keying import Undo, action_fcurves
+from .keying import Undo, action_fcurves, undone_on_error
 from .retarget import joint_rotation, map_armature, passed_rotation
 
 REACH = 2  # model frames on either side that one scene frame's value depends on (PCHIP face weights)
@@ -212,9 +212,8 @@ def apply_range(scene, request: RangeRequest, motion: Motion, options: BakeOptio
     audio = Path(request.source.audio_path).stem or "speech"
     number = takes.next_number(audio)
     take = takes.take_name(audio, number)
-    undo: list[Undo] = []
     notes = list(request.notes)
-    try:
+    with undone_on_error("the regenerated range") as undo:
         actions, n_keys = [], 0
         for (id_data, groups), (_, old_groups) in zip(plan.targets, was.targets):
             source_action = old.get(id_data)
@@ -233,12 +232,6 @@ def apply_range(scene, request: RangeRequest, motion: Motion, options: BakeOptio
                                                         request.source.start_frame))
         for action in actions:
             takes.assign(action[takes.TARGET], action)
-    except Exception as exc:
-        for step in reversed(undo):
-            step()
-        if isinstance(exc, DiffshegError):
-            raise
-        raise DiffshegError(f"could not write the regenerated range into the scene: {exc}") from exc
     return BakeResult(take=take, preset=plan.options.preset.name, actions=[a.name for a in actions],
                       n_frames=request.last - request.first + 1, n_keys=n_keys,
                       unmatched_bones=plan.unmatched_bones, unmatched_shape_keys=plan.unmatched_shape_keys,
