@@ -53,7 +53,7 @@ def generate_settings(settings):
         model=bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None,
         seed=settings.seed,
         face_seed=settings.face_seed if settings.keep_face else None,
-        steps=settings.steps,
+        steps=settings.steps if settings.set_steps else None,
         candidates=settings.candidates,
         overlap=settings.overlap if settings.set_overlap else None,
         style=panel_style(settings),

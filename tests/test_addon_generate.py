@@ -44,7 +44,7 @@ def _configure(scene, speech, armature, preset, face=None, start=1):
     s.audio_path = str(speech)
     s.armature = armature
     s.preset = preset
-    s.steps = STEPS
+    s.set_steps, s.steps = True, STEPS
     s.device = "CPU"
     s.start_at_scene_start = False
     s.start_frame = start
@@ -276,15 +276,16 @@ def test_panel_options_are_the_models_defaults_until_set(speech):
 
     settings = reset_scene().diffsheg
     plain = generate_settings(settings)
-    assert (plain.overlap, plain.guidance, plain.skip_guidance) == (None, None, None)
+    assert (plain.steps, plain.overlap, plain.guidance, plain.skip_guidance) == (None, None, None, None)
     settings.set_gesture_energy, settings.set_overlap, settings.set_guidance = True, True, True
     settings.gesture_energy, settings.overlap, settings.guidance = 0.0, 6, 1.0
     assert (generate_settings(settings).skip_guidance, generate_settings(settings).overlap) == (0.0, 6)
     settings.gesture_energy = 0.25
     settings.steps, settings.device = STEPS, "CPU"
-    settings.set_guidance = False
+    assert generate_settings(settings).steps is None  # the panel's Steps counts only once ticked
+    settings.set_steps, settings.set_guidance = True, False
     motion = diffsheg_core.generate(str(speech), settings=generate_settings(settings))
-    assert motion.meta["skip_guidance"] == 0.25 and motion.meta["overlap"] == 6
+    assert motion.meta["skip_guidance"] == 0.25 and motion.meta["overlap"] == 6 and motion.meta["steps"] == STEPS
 
 
 def test_keep_face_keys_the_same_face_for_a_new_seed(speech):

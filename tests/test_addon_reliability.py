@@ -31,7 +31,7 @@ def _configure(scene, audio, armature, face, preset="beat", start=1):
     s.audio_path = str(audio)
     s.armature = armature
     s.preset = preset
-    s.steps = 3
+    s.set_steps, s.steps = True, 3
     s.device = "CPU"
     s.start_at_scene_start = False
     s.start_frame = start

@@ -102,7 +102,7 @@ def test_report_line_and_text_and_sync_to_audio(speech):
     scene = reset_scene(fps=24)
     rig, faces = import_readyplayerme()
     s = scene.diffsheg
-    s.audio_path, s.armature, s.steps = str(speech), rig, 5
+    s.audio_path, s.armature, s.set_steps, s.steps = str(speech), rig, True, 5
     for face in faces:
         s.face_meshes.add().object = face
     assert bpy.ops.diffsheg.generate() == {"FINISHED"}

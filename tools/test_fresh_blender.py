@@ -252,7 +252,7 @@ if mode == "install":
     s.armature = rig
     s.face_meshes.add().object = face
     s.preset = "rigify"
-    s.steps = 10
+    s.set_steps, s.steps = True, 10
     status = bpy.ops.diffsheg.generate()
     report = face_and_rig_report(rig, face)
     ort = sys.modules.get("onnxruntime")
