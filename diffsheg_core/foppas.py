@@ -50,10 +50,10 @@ import numpy as np
 from .diffusion import Schedule
 from .errors import DiffshegError
 from .progress import Progress, ProgressCallback, check_cancel
+from .settings import CANDIDATES
 
 PROPOSAL_STREAM = 0x5EED0F9A0D  # the proposal's generator is seeded with (seed, this)
 FACE_STREAM = 0xFACE5EED  # the face's generator is seeded with (face_seed, this)
-MAX_CANDIDATES = 16
 SEAM_FRAMES = 5  # frames either side of a seam that best-of-N selection compares
 HOLD_CARRY = 16  # frames at least that a held value's gap is carried into (a pin flows in and out)
 
@@ -103,8 +103,9 @@ class FoppasConfig:
         if self.jump_length < 1 or self.jump_n_sample < 1:
             raise ValueError("jump_length and jump_n_sample must be at least 1")
         if isinstance(self.candidates, bool) or not isinstance(self.candidates, int) \
-                or not 1 <= self.candidates <= MAX_CANDIDATES:
-            raise ValueError(f"candidates must be a whole number from 1 to {MAX_CANDIDATES}, got {self.candidates!r}")
+                or not CANDIDATES[0] <= self.candidates <= CANDIDATES[1]:
+            raise ValueError(f"candidates must be a whole number from {CANDIDATES[0]} to {CANDIDATES[1]}, "
+                             f"got {self.candidates!r}")
         if isinstance(self.carry, bool) or not isinstance(self.carry, int) or self.carry < 0:
             raise ValueError(f"carry must be a whole number of frames >= 0, got {self.carry!r}")
         if self.refine is not None and (isinstance(self.refine, bool) or not isinstance(self.refine, int)

@@ -23,11 +23,7 @@ import numpy as np
 
 from ..checkpoints import TORCH_HOW_TO, ModelBundle
 from ..errors import DiffshegError
-from ..settings import THREADS, check_number, parse_whole
-
-BACKENDS = ("auto", "onnx", "torch")
-DEVICES = ("auto", "cpu", "cuda")
-PRECISIONS = ("fp32", "bf16", "fp16")
+from ..settings import BACKENDS, DEVICES, PRECISIONS, THREADS, check_number, parse_whole
 THREADS_ENV = "DIFFSHEG_THREADS"
 
 
