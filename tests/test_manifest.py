@@ -1,0 +1,200 @@
+"""The dialogue-line manifest: rows over command-line defaults, one error listing every bad
+row, relative paths, the line key and the ledger of lines done; on real speech files."""
+
+import json
+import os
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from diffsheg_core.manifest import OUTPUTS, Ledger, Line, ManifestError, line_key, read_manifest, with_settings
+from diffsheg_core.settings import GenerateSettings
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+AUDIO = DATA / "audio" / "lang"
+SPEECH = (AUDIO / "ru_golos_1.wav").resolve()
+SPEECH2 = (AUDIO / "zh_aishell_1.wav").resolve()
+PRESETS = ("beat", "rigify", "mixamo")
+STYLES = ("calm", "conversational", "animated")
+HEADER = "id,audio,blend,armature,face,preset,style,seed,steps,gesture_energy,start_frame,every_frame,outputs\n"
+
+
+@pytest.fixture
+def project(tmp_path) -> Path:
+    """A folder with a character .blend (any bytes: the manifest only checks and hashes it)."""
+    (tmp_path / "chars").mkdir()
+    (tmp_path / "chars" / "hero.blend").write_bytes(b"BLENDER-v300 not a real scene\x00" * 10)
+    return tmp_path
+
+
+def write(path: Path, text: str) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def test_a_row_overrides_the_command_line_defaults(project):
+    manifest = write(project / "lines.csv", HEADER +
+                     f"l1,{SPEECH},chars/hero.blend,Rig,Head;Teeth,beat,calm,7,,0.4,101,yes,npz;glb\n"
+                     f"l2,{SPEECH2},,,,,,,,,,,\n")
+    defaults = {"seed": 3, "steps": 5, "outputs": "npz", "style": "animated", "preset": "rigify",
+                "face": ["Face"], "max_error": 2.0, "audio": "ignored.wav", "no_render": True}
+    one, two = read_manifest(manifest, defaults, PRESETS, STYLES)
+    assert one.id == "l1" and one.audio == SPEECH and one.blend == project / "chars" / "hero.blend"
+    assert one.settings == GenerateSettings(seed=7, steps=5, style="calm", skip_guidance=0.4)
+    assert (one.armature, one.face, one.preset) == ("Rig", ("Head", "Teeth"), "beat")
+    assert (one.start_frame, one.every_frame, one.max_error, one.outputs) == (101, True, 2.0, ("glb", "npz"))
+    # the row that gives nothing takes every default
+    assert two.settings == GenerateSettings(seed=3, steps=5, style="animated")
+    assert (two.blend, two.face, two.preset, two.outputs, two.every_frame) == (None, ("Face",), "rigify", ("npz",), False)
+    assert (two.start_frame, two.max_face_error) == (None, 0.02)
+
+
+def test_csv_and_json_lines_read_the_same(project):
+    csv_path = write(project / "lines.csv", HEADER +
+                     f"a,{SPEECH},chars/hero.blend,Rig,Head;Teeth,beat,calm=0.7;x,7,5,0.4,1,0,npz;blend\n"
+                     .replace("calm=0.7;x", '"calm=0.7,animated=0.3"'))
+    rows = [{"id": "a", "audio": str(SPEECH), "blend": "chars/hero.blend", "armature": "Rig",
+             "face": ["Head", "Teeth"], "preset": "beat", "style": {"calm": 0.7, "animated": 0.3}, "seed": 7,
+             "steps": 5, "gesture_energy": 0.4, "start_frame": 1, "every_frame": False, "outputs": ["blend", "npz"]}]
+    jsonl_path = write(project / "lines.jsonl", "\n".join(json.dumps(r) for r in rows) + "\n\n")
+    from_csv = read_manifest(csv_path, {}, PRESETS, STYLES)
+    from_jsonl = read_manifest(jsonl_path, {}, PRESETS, STYLES)
+    assert [replace(line, row=0) for line in from_csv] == [replace(line, row=0) for line in from_jsonl]
+    assert from_csv[0].settings.style == {"calm": 0.7, "animated": 0.3}
+    # JSON Lines may spell a setting as the command line does, too
+    text_style = write(project / "text.jsonl", json.dumps({**rows[0], "style": "calm=0.7,animated=0.3"}) + "\n")
+    assert read_manifest(text_style, {}, PRESETS, STYLES)[0].settings == from_csv[0].settings
+
+
+def test_three_kinds_of_bad_rows_are_listed_in_one_error_before_anything_runs(project):
+    manifest = write(project / "lines.csv", HEADER +
+                     f"ok,{SPEECH},,,,,,,,,,,npz\n"
+                     f"missing,{AUDIO / 'no_such_line.wav'},,,,,,,,,,,npz\n"   # a missing file
+                     f"preset,{SPEECH},chars/hero.blend,,,unreal_mannequin,,,,,,,blend\n"  # an unknown preset
+                     f"ok,{SPEECH2},,,,,,,,,,,npz\n"                       # a duplicate id
+                     f"number,{SPEECH},,,,,,,2000,,,,npz\n")                # a number out of range
+    with pytest.raises(ManifestError) as caught:
+        read_manifest(manifest, {}, PRESETS, STYLES)
+    problems = caught.value.problems
+    assert len(problems) == 4, problems
+    assert problems[0].startswith("row 3, column audio:") and "no_such_line.wav' does not exist" in problems[0]
+    assert problems[1].startswith("row 4, column preset: unknown preset 'unreal_mannequin'")
+    assert problems[2] == "row 5, column id: duplicate id 'ok' (also on row 2)"
+    assert problems[3] == "row 6, column steps: steps must be a whole number from 1 to 1000, got 2000"
+    assert str(caught.value).splitlines()[1:] == problems  # one per line, after the summary
+
+
+def test_every_other_kind_of_bad_row_is_found_too(project):
+    unreadable = project / "empty.wav"
+    unreadable.write_bytes(b"")
+    manifest = write(project / "lines.csv", "id,audio,style,style_at,seed,every_frame,outputs,colour\n"
+                     f",{SPEECH},,,,,npz,\n"                                   # empty id
+                     f"a,{unreadable},,,,,npz,\n"                              # an empty audio file
+                     f"b,{SPEECH},loud,,,,npz,\n"                              # an unknown style
+                     f"c,{SPEECH},,\"0=calm,2=shouty\",,,npz,\n"               # ... and in style_at
+                     f"d,{SPEECH},,,-1,maybe,npz;fbx,\n"                       # seed, flag, output
+                     f"e,{SPEECH},,,,,glb,\n"                                  # glb needs a character
+                     f"f/../g,{SPEECH},,,,,npz,\n")                            # an id that is no file name
+    with pytest.raises(ManifestError) as caught:
+        read_manifest(manifest, {}, PRESETS, STYLES)
+    text = str(caught.value)
+    for expected in ("row 1 (header), column colour: unknown column", "row 2, column id: empty id",
+                     "row 3, column audio:", "is empty (0 bytes)", "row 4, column style: unknown style 'loud'",
+                     "row 5, column style_at: unknown style 'shouty'", "row 6, column seed: seed must be a whole number",
+                     "row 6, column every_frame:", "row 6, column outputs: unknown output 'fbx'",
+                     "row 7, column blend: the outputs glb key the motion onto a character",
+                     "row 8, column id: id 'f/../g' cannot name a file"):
+        assert expected in text, expected
+    # without the model's style names, style names are left to the model
+    ok = write(project / "ok.csv", f"id,audio,style,outputs\nb,{SPEECH},loud,npz\n")
+    assert read_manifest(ok, {}, PRESETS, None)[0].settings.style == "loud"
+
+
+def test_relative_paths_resolve_against_the_manifest_folder(project, monkeypatch):
+    folder = project / "manifests" / "episode1"
+    manifest = write(folder / "lines.csv", "id,audio,blend,preset,outputs\n"
+                     f"a,{os.path.relpath(SPEECH, folder)},../../chars/hero.blend,beat,blend\n")
+    monkeypatch.chdir(DATA)  # not the working folder
+    (line,) = read_manifest(manifest, {}, PRESETS, STYLES)
+    assert line.audio == SPEECH and line.blend == (project / "chars" / "hero.blend").resolve()
+    # a preset may be a .json file, beside the manifest
+    write(folder / "studio_rig.json", "{}")
+    write(folder / "lines.csv", f"id,audio,preset,outputs\na,{os.path.relpath(SPEECH, folder)},studio_rig.json,npz\n")
+    assert read_manifest(manifest, {}, PRESETS, STYLES)[0].preset == str(folder.resolve() / "studio_rig.json")
+
+
+def line_of(project: Path, audio: Path, **fields) -> Line:
+    row = {"id": "l1", "audio": str(audio), "blend": "chars/hero.blend", "preset": "beat", "seed": 2,
+           "steps": 5, "outputs": "blend;npz", **fields}
+    manifest = write(project / "one.jsonl", json.dumps(row) + "\n")
+    (line,) = read_manifest(manifest, {}, PRESETS, STYLES)
+    return line
+
+
+def test_the_key_changes_with_audio_bytes_a_setting_or_an_output_and_not_otherwise(project):
+    audio = project / "line.wav"
+    shutil.copyfile(SPEECH, audio)
+    line = line_of(project, audio)
+    key = line_key(line)
+    assert len(key) == 64 and line_key(line) == key
+    # not otherwise: the same bytes elsewhere, outputs in another order, another id, thread count
+    copy = project / "elsewhere" / "same.wav"
+    copy.parent.mkdir()
+    shutil.copyfile(audio, copy)
+    assert line_key(line_of(project, copy)) == key
+    assert line_key(line_of(project, audio, outputs="npz;blend", id="other")) == key
+    assert line_key(with_settings(line, threads=4)) == key
+    # a setting, an output, a keying option, the character's bytes
+    changed = {line_key(with_settings(line, seed=3)), line_key(with_settings(line, style="calm")),
+               line_key(line_of(project, audio, outputs="blend;npz;glb")),
+               line_key(line_of(project, audio, max_error=0.5)), line_key(replace(line, face=("Head",)))}
+    assert key not in changed and len(changed) == 5
+    (project / "chars" / "hero.blend").write_bytes(b"another character")
+    assert line_key(line) not in changed | {key}
+    (project / "chars" / "hero.blend").write_bytes(b"BLENDER-v300 not a real scene\x00" * 10)
+    assert line_key(line) == key
+    # the audio's bytes: one sample changed
+    data = bytearray(audio.read_bytes())
+    data[-2] ^= 0x01
+    audio.write_bytes(bytes(data))
+    assert line_key(line) != key
+
+
+def test_the_ledger_skips_done_lines_redoes_changed_ones_and_survives_a_torn_last_line(project):
+    out = project / "out"
+    audio = project / "line.wav"
+    shutil.copyfile(SPEECH, audio)
+    first, second = line_of(project, audio), replace(line_of(project, SPEECH2), id="l2")
+    ledger = Ledger(out)
+    assert not ledger.done(first) and not ledger.done(second)
+    ledger.record(first, [out / "l1.npz", out / "l1.blend"])
+    assert ledger.done(first) and not ledger.done(second)
+    entry = json.loads((out / "done.jsonl").read_text().splitlines()[0])
+    assert entry["id"] == "l1" and entry["key"] == line_key(first) and entry["outputs"][0].endswith("l1.npz")
+    assert entry["time"]
+    # a new run reads it back: done stays done; a changed setting or audio is redone
+    ledger = Ledger(out)
+    assert ledger.done(first)
+    assert not ledger.done(with_settings(first, seed=9))
+    assert not ledger.done(replace(first, id="renamed"))
+    # a driver killed while appending leaves half a line: ignored, and the next record stays whole
+    with open(out / "done.jsonl", "ab") as fh:
+        fh.write(b'{"id": "l2", "key": "' + line_key(second)[:20].encode())
+    ledger = Ledger(out)
+    assert ledger.done(first) and not ledger.done(second)
+    ledger.record(second, [out / "l2.npz"])
+    ledger = Ledger(out)
+    assert ledger.done(first) and ledger.done(second)
+    data = bytearray(audio.read_bytes())
+    data[-2] ^= 0x01
+    audio.write_bytes(bytes(data))
+    assert not Ledger(out).done(first)  # its audio changed: redo
+    ledger.record(first, [])
+    assert Ledger(out).done(first)      # the latest record of an id wins
+
+
+def test_the_output_kinds():
+    assert OUTPUTS == ("blend", "fbx_unreal", "fbx_unity", "glb", "npz", "arkit_json", "csv", "mp4")
