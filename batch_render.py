@@ -121,6 +121,17 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    help="generate scene frames START to END anew as a new take, with the generation options "
                         "given (another --seed, --style, ...); everything outside stays as it is")
     r.add_argument("--keep-face", action="store_true", help="with --regenerate: keep the face inside the range too")
+    m = p.add_argument_group("dialogue libraries (a manifest of lines, run on Ray; README: studios)")
+    m.add_argument("--manifest", help="CSV or JSON Lines, one row per line (id, audio, blend, armature, face, "
+                                      "preset, generation settings, outputs); the options above are the "
+                                      "defaults a row overrides; --output is the output folder")
+    m.add_argument("--outputs", default="blend",
+                   help="outputs of a line whose row names none, ';'-separated from blend, fbx_unreal, fbx_unity, "
+                        "glb, npz, arkit_json, csv, mp4 (default %(default)s)")
+    m.add_argument("--ray-address", help="the Ray cluster to run on (default $RAY_ADDRESS, else Ray on this "
+                                         "machine with a worker per core)")
+    m.add_argument("--workers", type=int, help="workers of the Ray started on this machine (default: one per core)")
+    m.add_argument("--check", action="store_true", help="check the manifest, list every bad row, run nothing")
     return p.parse_args(argv)
 
 
@@ -157,28 +168,7 @@ def audio_files(source: str) -> list[Path]:
 
 
 def find_targets(args):
-    from diffsheg_core.errors import DiffshegError
-
-    objects = bpy.context.scene.objects
-    if args.armature:
-        armature = objects.get(args.armature)
-        if armature is None or armature.type != "ARMATURE":
-            raise DiffshegError(f"no armature named '{args.armature}' in the scene")
-    else:
-        armatures = [o for o in objects if o.type == "ARMATURE"]
-        if len(armatures) > 1:
-            raise DiffshegError(f"several armatures ({', '.join(o.name for o in armatures)}): pass --armature NAME")
-        armature = armatures[0] if armatures else None
-    if args.face is not None:
-        faces = []
-        for name in args.face:
-            ob = objects.get(name)
-            if ob is None or ob.type != "MESH":
-                raise DiffshegError(f"no mesh named '{name}' in the scene")
-            faces.append(ob)
-    else:
-        faces = [o for o in objects if o.type == "MESH" and o.data.shape_keys is not None]
-    return armature, faces
+    return addon("studio").find_targets(bpy.context.scene, args.armature, args.face)
 
 
 def printer(label: str):
@@ -291,6 +281,19 @@ def generate_and_write(args, scene, request, label: str, several: bool) -> None:
         print(f"{label}: wrote {path}", flush=True)
 
 
+def run_manifest(args) -> int:
+    """The lines of args.manifest on Ray (blender_addon.studio); the exit code."""
+    from diffsheg_core.errors import DiffshegError
+
+    if args.audio or args.save or args.regenerate or args.keep_face:
+        raise DiffshegError("--manifest names the audio and outputs of every line: leave out --audio, --save, "
+                            "--regenerate and --keep-face (--output is the output folder)")
+    defaults = vars(args)  # the options are the defaults of every row (manifest.read_manifest)
+    out = Path(args.output).expanduser().resolve() if args.output else OUT / Path(args.manifest).stem
+    return addon("studio").run_manifest(Path(args.manifest).expanduser().resolve(), out, defaults,
+                                        address=args.ray_address, workers=args.workers, check_only=args.check)
+
+
 def run_demo(args) -> None:
     from diffsheg_core.audio import SAMPLE_SPEECH
 
@@ -314,6 +317,8 @@ def main(argv: list[str]) -> int:
 
     args = parse_args(argv)
     try:
+        if args.manifest:
+            return run_manifest(args)
         if args.blend:
             bpy.ops.wm.open_mainfile(filepath=str(Path(args.blend).expanduser().resolve()))
         if args.keep_face and args.regenerate is None:

@@ -174,16 +174,19 @@ def plan_keys(scene, motion: Motion, options: BakeOptions) -> Plan:
     return Plan(motion, options, targets, unmatched_bones, unmatched_keys, notes, preset_notes)
 
 
-def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOptions) -> BakeResult:
+def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOptions,
+                undo: list[Undo] | None = None) -> BakeResult:
     """Key `motion` onto the options' armature and face meshes from `start_frame`, as a new
-    take that keeps `motion` as its source (takes.store_source).
+    take that keeps `motion` as its source (takes.store_source). `undo` collects the steps
+    that take the change back (run in reverse: the batch keys one line after another into
+    the same character).
 
     Raises DiffshegError (scene unchanged) when nothing can be keyed.
     """
     plan = plan_keys(scene, motion, options)
     options = plan.options
     audio_name = Path(audio_path or motion.meta.get("audio_file") or "speech").stem
-    with undone_on_error("the animation") as undo:
+    with undone_on_error("the animation", undo) as undo:
         actions, n_keys = [], 0
         number = takes.next_number(audio_name)
         take = takes.take_name(audio_name, number)

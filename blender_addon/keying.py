@@ -49,11 +49,12 @@ Undo = Callable[[], None]
 
 
 @contextmanager
-def undone_on_error(what: str) -> Iterator[list[Undo]]:
-    """A list for undo steps (callables restoring what a change replaced); if the block
-    raises, they run in reverse, so the scene is as it was, and the error is a
-    DiffshegError ("could not write `what` into the scene: ...")."""
-    undo: list[Undo] = []
+def undone_on_error(what: str, undo: list[Undo] | None = None) -> Iterator[list[Undo]]:
+    """A list for undo steps (callables restoring what a change replaced; `undo` where the
+    caller keeps them, to roll a change back later); if the block raises, they run in
+    reverse, so the scene is as it was, and the error is a DiffshegError ("could not write
+    `what` into the scene: ...")."""
+    undo = [] if undo is None else undo
     try:
         yield undo
     except Exception as exc:

@@ -1,0 +1,314 @@
+"""Dialogue libraries at studio scale: the lines of a manifest run as Ray tasks.
+
+`run_manifest` (the driver: batch_render.py --manifest) checks the whole manifest first
+(diffsheg_core.manifest lists every bad row before anything runs), skips the lines its
+ledger records as done with the same inputs and settings, and sends every other line to
+Ray as one task: on a cluster given by address (or $RAY_ADDRESS), else on a Ray started
+here (the embedded default: one worker per core). A task (`process_line`, in a worker
+process with bpy) generates the line, keys it as a take into the character, writes every
+output asked for atomically, and takes the take back out, so the next line on that
+worker starts from the same character: each worker opens a character file and loads a
+model once, not once per line. A worker that dies is retried by Ray and its line redone
+from scratch; a line that fails (bad audio, a character without a camera for a video)
+fails alone. The driver records a line as done only once all its outputs are written, and
+writes the QC report (diffsheg_core.qc) at the end.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from diffsheg_core.errors import DiffshegError
+
+OUTPUT_SUFFIXES = {"blend": ".blend", "fbx_unreal": "_unreal.fbx", "fbx_unity": "_unity.fbx", "glb": ".glb",
+                   "npz": ".npz", "arkit_json": ".json", "csv": ".csv", "mp4": ".mp4"}
+"""Each output kind a manifest asks for -> the end of its file name (out/<id><suffix>)."""
+
+RETRIES = 3  # times Ray runs a line again whose worker died
+
+
+def output_path(out_dir: Path, line_id: str, kind: str) -> Path:
+    return Path(out_dir) / f"{line_id}{OUTPUT_SUFFIXES[kind]}"
+
+
+# ---------------------------------------------------------------- the worker's side
+
+_opened: dict = {"blend": None}   # the character file this worker process has open
+_models: dict = {}                # model path (None: bundled) -> loaded ModelBundle
+
+
+def process_line(line, out_dir: str) -> dict:
+    """Generate, key and export one manifest line in this (bpy) process; returns what the
+    driver records and reports. Raises DiffshegError for a line that cannot be done."""
+    import bpy
+
+    import diffsheg_core
+
+    from .bake import BakeOptions, bake_motion
+    from .preset import AUTO, load_preset
+
+    started = time.perf_counter()
+    _open_character(line.blend)
+    scene = bpy.context.scene
+    armature, faces = find_targets(scene, line.armature, line.face)
+    options = BakeOptions(armature=armature, face_meshes=faces,
+                          preset=None if line.preset == AUTO else load_preset(line.preset),
+                          start_frame=scene.frame_start if line.start_frame is None else line.start_frame,
+                          every_frame=line.every_frame, max_error=line.max_error,
+                          max_face_error=line.max_face_error)
+    motion = diffsheg_core.generate(str(line.audio), settings=replace(line.settings, model=_model(line.settings.model)))
+    undo: list = []
+    try:
+        result = bake_motion(scene, motion, str(line.audio), options, undo)
+        written = write_outputs(line, Path(out_dir), scene, armature, faces, motion)
+    finally:
+        for step in reversed(undo):  # the character as it was, for the next line
+            step()
+    return {"outputs": written, "frames": result.n_frames, "keys": result.n_keys, "worker": os.getpid(),
+            "qc": _measure(line, motion, time.perf_counter() - started)}
+
+
+def _open_character(blend) -> None:
+    """Open the line's character file, unless it is the one this worker has open."""
+    import bpy
+
+    key = str(blend) if blend else None
+    if _opened["blend"] == key and key is not None:
+        return
+    if key is None:
+        raise DiffshegError("the line names no character file (column 'blend', or --blend)")
+    bpy.ops.wm.open_mainfile(filepath=key)
+    _opened["blend"] = key
+
+
+def _model(model):
+    """The loaded model of `model` (a path, or None for the bundled one), once per worker."""
+    from diffsheg_core.checkpoints import ModelBundle, load_model
+
+    if isinstance(model, ModelBundle):
+        return model
+    key = str(model) if model is not None else None
+    if key not in _models:
+        _models[key] = load_model(model)
+    return _models[key]
+
+
+def find_targets(scene, armature_name: str | None, face_names) -> tuple:
+    """The named armature (or the scene's only one) and face meshes (or every mesh with
+    shape keys); DiffshegError naming what is missing."""
+    objects = scene.objects
+    if armature_name:
+        armature = objects.get(armature_name)
+        if armature is None or armature.type != "ARMATURE":
+            raise DiffshegError(f"no armature named '{armature_name}' in the scene")
+    else:
+        armatures = [o for o in objects if o.type == "ARMATURE"]
+        if len(armatures) > 1:
+            raise DiffshegError(f"several armatures ({', '.join(o.name for o in armatures)}): name one "
+                                "(--armature NAME, or the manifest's 'armature' column)")
+        armature = armatures[0] if armatures else None
+    if face_names is None:
+        return armature, [o for o in objects if o.type == "MESH" and o.data.shape_keys is not None]
+    faces = []
+    for name in face_names:
+        ob = objects.get(name)
+        if ob is None or ob.type != "MESH":
+            raise DiffshegError(f"no mesh named '{name}' in the scene")
+        faces.append(ob)
+    return armature, faces
+
+
+def write_outputs(line, out_dir: Path, scene, armature, faces, motion) -> list[str]:
+    """Every output the line asks for, each written whole or not at all; their paths."""
+    from diffsheg_core.motion import write_arkit_json, write_livelink_csv
+
+    def exports():
+        from . import exports
+
+        return exports
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    writers = {
+        "npz": lambda p: motion.save_npz(p),
+        "arkit_json": lambda p: write_arkit_json(motion, p),
+        "csv": lambda p: write_livelink_csv(motion, p),
+        "fbx_unreal": lambda p: exports().export_fbx(p, armature, faces, "unreal"),
+        "fbx_unity": lambda p: exports().export_fbx(p, armature, faces, "unity"),
+        "glb": lambda p: exports().export_glb(p, armature, faces),
+        "blend": lambda p: _save_blend(p),
+        "mp4": lambda p: _render_video(scene, p),
+    }
+    written = []
+    for kind in line.outputs:
+        path = output_path(out_dir, line.id, kind)
+        writers[kind](path)
+        written.append(str(path))
+    return written
+
+
+def _save_blend(path: Path) -> None:
+    import bpy
+
+    _replace_when_written(path, lambda tmp: bpy.ops.wm.save_as_mainfile(filepath=str(tmp), copy=True))
+
+
+def _render_video(scene, path: Path) -> None:
+    import bpy
+
+    from .demo import set_video_output
+
+    if scene.camera is None:
+        raise DiffshegError("the character's scene has no camera to render the video (mp4) with: add one, "
+                            "or leave mp4 out of the line's outputs")
+    old = scene.render.filepath
+
+    def render(tmp: Path) -> None:
+        set_video_output(scene)
+        scene.render.filepath = str(tmp)
+        bpy.ops.render.render(animation=True)
+
+    try:
+        _replace_when_written(path, render)
+    finally:
+        scene.render.filepath = old
+
+
+def _replace_when_written(path: Path, write) -> None:
+    """`write(tmp)` to a temporary name beside `path`, then put it in place; no file at
+    either name if writing fails."""
+    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
+    try:
+        write(tmp)
+        if not tmp.is_file():
+            raise DiffshegError(f"{path}: nothing was written")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _measure(line, motion, seconds: float):
+    """The line's row of the QC report (diffsheg_core.qc)."""
+    from diffsheg_core import qc
+    from diffsheg_core.audio import load_audio
+
+    speech = load_audio(str(line.audio))
+    return qc.measure(line.id, motion, speech.samples, speech.sample_rate, seconds)
+
+
+# ---------------------------------------------------------------- the driver
+
+def run_manifest(manifest: Path, out_dir: Path, defaults: dict, address: str | None = None,
+                 workers: int | None = None, check_only: bool = False, log=print) -> int:
+    """Run every line of `manifest` not done yet on Ray; returns the exit code (0: every
+    line done or skipped as done before, 1: some failed; the report says which)."""
+    from diffsheg_core import qc
+    from diffsheg_core.manifest import Ledger, read_manifest
+
+    from .preset import available_presets
+
+    lines = read_manifest(Path(manifest), defaults, presets=["auto", *available_presets()],
+                          style_names=_style_names(defaults.get("model")))
+    if check_only:
+        log(f"{manifest}: {len(lines)} lines, all good")
+        return 0
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ledger = Ledger(out_dir)
+    rows = [qc.QcRow(id=line.id, status="skipped") for line in lines if ledger.done(line)]
+    todo = [line for line in lines if not ledger.done(line)]
+    log(f"{len(lines)} lines: {len(rows)} done before, {len(todo)} to do")
+    if todo:
+        rows += _run_on_ray(todo, out_dir, ledger, address, workers, log)
+    qc.write_report(rows, out_dir)
+    failed = sum(r.status == "failed" for r in rows)
+    log(f"{sum(r.status == 'done' for r in rows)} done, {sum(r.status == 'skipped' for r in rows)} skipped "
+        f"(done before), {failed} failed; report: {out_dir / 'report.html'}")
+    return 1 if failed else 0
+
+
+def _style_names(model) -> list[str] | None:
+    from diffsheg_core.checkpoints import stored_style_names
+
+    return stored_style_names(model) or None
+
+
+def _run_on_ray(lines: list, out_dir: Path, ledger, address: str | None, workers: int | None, log) -> list:
+    """Run `lines` as Ray tasks; the QC rows of their results, in the order they finish."""
+    from diffsheg_core import qc
+
+    ray = _start_ray(address, workers)
+    task = ray.remote(num_cpus=1, max_retries=RETRIES)(_task)
+    try:
+        pending = {task.remote(line, str(out_dir)): line for line in lines}
+        rows = []
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            line = pending.pop(ready[0])
+            try:
+                result = ray.get(ready[0])
+            except Exception as exc:  # the line's own error, or its worker lost RETRIES times
+                rows.append(qc.QcRow(id=line.id, status="failed", error=_one_line(exc)))
+                log(f"[{len(lines) - len(pending)}/{len(lines)}] {line.id}: failed: {rows[-1].error}")
+                continue
+            ledger.record(line, result["outputs"])
+            rows.append(result["qc"])
+            log(f"[{len(lines) - len(pending)}/{len(lines)}] {line.id}: done, {result['frames']} frames, "
+                f"{result['keys']:,} keys, {rows[-1].seconds:.1f} s")
+        return rows
+    except KeyboardInterrupt:  # the lines under way are cancelled; what is recorded stays
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        raise
+    finally:
+        ray.shutdown()
+
+
+def _task(line, out_dir: str) -> dict:
+    """The Ray task: one line, with the error a user can act on as a plain message."""
+    try:
+        return process_line(line, out_dir)
+    except DiffshegError:
+        raise
+    except Exception as exc:
+        raise DiffshegError(f"unexpected {type(exc).__name__}: {exc}") from None
+
+
+def _start_ray(address: str | None, workers: int | None):
+    """Connect to the cluster at `address` or $RAY_ADDRESS, or start Ray here with a
+    worker per core (`workers` to choose): no usage statistics, no dashboard, the
+    project importable in every worker (the same checkout path on every node)."""
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    try:
+        import ray
+    except ImportError:
+        raise DiffshegError("manifests run on Ray, which is not installed: pip install ray==2.60.0 (in the "
+                            "Python that has the bpy module; see the README's studio section)") from None
+
+    root = str(Path(__file__).resolve().parents[1])
+    paths = [root, os.environ.get("PYTHONPATH", "")]
+    runtime_env = {"env_vars": {"PYTHONPATH": os.pathsep.join(p for p in paths if p),
+                                "RAY_USAGE_STATS_ENABLED": "0"}}
+    address = address or os.environ.get("RAY_ADDRESS") or None
+    if address:
+        try:
+            ray.init(address=address, runtime_env=runtime_env, log_to_driver=False)
+        except ConnectionError as exc:
+            raise DiffshegError(f"could not join the Ray cluster at {address} ({exc}): is it running (ray status "
+                                "on the head)? A cluster with token authentication needs its token here: "
+                                "RAY_AUTH_MODE=token RAY_AUTH_TOKEN=$(ray get-auth-token) on the head's "
+                                "machine, or the token copied over") from None
+    else:
+        ray.init(address="local", num_cpus=workers or os.cpu_count(), include_dashboard=False,
+                 runtime_env=runtime_env, log_to_driver=False)  # "local": a new Ray, not one `ray start` left
+    return ray
+
+
+def _one_line(exc: BaseException) -> str:
+    """The message a failed line reports: its DiffshegError's, without Ray's traceback."""
+    cause = getattr(exc, "cause", None) or exc
+    text = str(cause).strip().splitlines()
+    return text[-1] if text else type(cause).__name__
+

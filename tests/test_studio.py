@@ -1,0 +1,176 @@
+"""Dialogue libraries on Ray (issue 28): batch_render.py --manifest, end to end on a real
+Ray cluster started by the test and stopped after.
+
+Ray's processes talk to each other over the node's address; the test runs them in a
+network namespace of its own that has only the loopback interface (`unshare -n`), so
+every connection stays on 127.0.0.1. Six short lines of real speech, one of them a
+corrupt audio file: five done with every output asked for, the sixth failed by name,
+exit code 1; a rerun skips the five and rewrites nothing; a worker killed in the middle
+of a line is retried and the batch ends with the outputs of a one-worker run."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from addon_fixtures import REPO, SPEECH, SPEECH_2, append_face, bpy, cut_speech, import_beat_armature, reset_scene
+from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
+
+from diffsheg_core.manifest import ManifestError, read_manifest
+from diffsheg_core.motion import Motion
+
+pytest.importorskip("ray")
+pytestmark = pytest.mark.skipif(shutil.which("unshare") is None or not sys.platform.startswith("linux"),
+                                reason="the Ray test runs in a network namespace of its own (Linux, unshare)")
+
+OUTPUTS = "blend;npz;arkit_json;csv"
+PORT = 6391
+
+# Runs in the namespace: a cluster, three batches, a worker killed during the third, a
+# one-worker batch on the embedded default, the cluster stopped. argv: the manifest.
+SCENARIO = r"""
+set -u
+ip link set lo up
+export RAY_USAGE_STATS_ENABLED=0 RAY_AUTH_MODE=token RAY_AUTH_TOKEN=$(head -c 24 /dev/urandom | od -An -tx1 | tr -d ' \n')
+batch() { "$PYTHON" "$REPO/batch_render.py" --manifest "$1" --output "$2" "${@:3}"; }
+ray start --head --port=$PORT --num-cpus=2 --include-dashboard=false --disable-usage-stats > ray_start.log 2>&1
+batch lines.csv first --ray-address 127.0.0.1:$PORT > first.log 2>&1; echo $? > first.rc
+stamps() { find first -name 'line*' -printf '%p %T@\n' | sort; }
+stamps > first.stamps
+batch lines.csv first --ray-address 127.0.0.1:$PORT > again.log 2>&1; echo $? > again.rc
+stamps > again.stamps
+"$PYTHON" kill_one_worker.py > killed.log 2>&1 &
+batch slow.csv killed --ray-address 127.0.0.1:$PORT > killed_run.log 2>&1; echo $? > killed.rc
+wait
+batch slow.csv one --workers 1 > one.log 2>&1; echo $? > one.rc
+ray stop --force > ray_stop.log 2>&1
+"""
+
+# Kills the first worker seen running a line, once it has run for a second.
+KILLER = r"""
+import os, signal, time
+deadline = time.time() + 120
+while time.time() < deadline:
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit():
+            continue
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as fh:
+                title = fh.read().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if title.startswith("ray::_task"):
+            time.sleep(1.0)
+            os.kill(int(pid), signal.SIGKILL)
+            print("killed", pid, flush=True)
+            raise SystemExit(0)
+    time.sleep(0.05)
+print("no worker found", flush=True)
+"""
+
+
+@pytest.fixture(scope="module")
+def studio(tmp_path_factory):
+    """The scene, six lines (the third's audio corrupt), a slow two-line manifest, and the
+    scenario's results."""
+    work = tmp_path_factory.mktemp("studio")
+    reset_scene(fps=24)
+    import_beat_armature()
+    append_face()
+    bpy.ops.wm.save_as_mainfile(filepath=str(work / "character.blend"))
+    audio = work / "audio"
+    audio.mkdir()
+    for i in range(6):
+        cut_speech(audio, seconds=2.0, source=SPEECH if i % 2 else SPEECH_2, offset=3.0 + 2 * i, name=f"l{i}.wav")
+    (audio / "l2.wav").write_bytes(b"RIFF\x00\x00\x00\x00WAVEfmt " + bytes(range(64)))  # corrupt
+    character = f"character.blend,beat,{OUTPUTS}"
+    rows = [f"line{i},audio/l{i}.wav,{i},{'calm' if i == 4 else ''},{character}" for i in range(6)]
+    (work / "lines.csv").write_text("\n".join(["id,audio,seed,style,blend,preset,outputs", *rows]) + "\n")
+    cut_speech(audio, seconds=8.0, source=SPEECH, offset=4.0, name="long1.wav")
+    cut_speech(audio, seconds=8.0, source=SPEECH_2, offset=4.0, name="long2.wav")
+    (work / "slow.csv").write_text("id,audio,seed,blend,preset,outputs\n"
+                                   f"slow1,audio/long1.wav,7,{character}\nslow2,audio/long2.wav,8,{character}\n")
+    (work / "kill_one_worker.py").write_text(KILLER)
+    (work / "scenario.sh").write_text(SCENARIO)
+    env = {**os.environ, "PYTHON": sys.executable, "REPO": str(REPO), "PORT": str(PORT)}
+    proc = subprocess.run(["unshare", "-n", "bash", "scenario.sh"], cwd=work, env=env, capture_output=True,
+                          text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return work
+
+
+def _log(work, name: str) -> str:
+    return (work / f"{name}.log").read_text()
+
+
+def _rc(work, name: str) -> int:
+    return int((work / f"{name}.rc").read_text())
+
+
+def test_five_lines_done_one_failed_by_name(studio):
+    log = _log(studio, "first")
+    assert _rc(studio, "first") == 1, log
+    assert log.strip().splitlines()[-1].startswith("5 done, 0 skipped (done before), 1 failed"), log[-1500:]
+    out = studio / "first"
+    for i in (0, 1, 3, 4, 5):
+        for suffix in (".blend", ".npz", ".json", ".csv"):
+            assert (out / f"line{i}{suffix}").is_file(), (i, suffix)
+        motion = Motion.load_npz(out / f"line{i}.npz")
+        assert motion.meta["seed"] == i and motion.n_frames == 30
+    assert Motion.load_npz(out / "line4.npz").meta["style_weights"] == {"calm": 1.0}
+    assert not list(out.glob("line2*")) and not list(out.glob(".*partial*"))
+    report = (out / "report.csv").read_text().splitlines()
+    assert report[1].startswith("line2,failed") and "line2" in report[1]
+    assert "decoded" in report[1] or "audio" in report[1], report[1]
+    assert "line2" in (out / "report.html").read_text()
+    done = [json.loads(l)["id"] for l in (out / "done.jsonl").read_text().splitlines()]
+    assert sorted(done) == ["line0", "line1", "line3", "line4", "line5"]
+
+
+def test_a_rerun_skips_the_done_lines_and_rewrites_nothing(studio):
+    log = _log(studio, "again")
+    assert _rc(studio, "again") == 1  # line2 is still bad
+    assert "6 lines: 5 done before, 1 to do" in log
+    assert log.strip().splitlines()[-1].startswith("0 done, 5 skipped (done before), 1 failed"), log[-800:]
+    stamps = (studio / "first.stamps").read_text()
+    assert stamps == (studio / "again.stamps").read_text()  # no output written again
+    assert stamps.count(".blend ") == 5
+
+
+def test_a_killed_worker_is_retried_and_the_result_is_a_one_worker_runs(studio):
+    assert _log(studio, "killed").startswith("killed"), _log(studio, "killed")
+    assert _rc(studio, "killed") == 0, _log(studio, "killed_run")[-2000:]
+    assert _rc(studio, "one") == 0, _log(studio, "one")[-2000:]
+    for line in ("slow1", "slow2"):
+        a = Motion.load_npz(studio / "killed" / f"{line}.npz")
+        b = Motion.load_npz(studio / "one" / f"{line}.npz")
+        np.testing.assert_array_equal(a.rotations, b.rotations)
+        np.testing.assert_array_equal(a.face, b.face)
+    assert not list((studio / "killed").glob(".*partial*"))
+
+
+def test_the_check_pass_lists_every_bad_row_before_anything_runs(studio, tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("id,audio,blend,preset,seed,outputs\n"
+                   f"a,{studio}/audio/l0.wav,{studio}/character.blend,beat,1,blend\n"
+                   f"b,{studio}/audio/missing.wav,{studio}/character.blend,beat,1,blend\n"
+                   f"c,{studio}/audio/l1.wav,{studio}/character.blend,no_such_preset,1,blend\n"
+                   f"a,{studio}/audio/l3.wav,{studio}/character.blend,beat,-4,blend\n")
+    proc = subprocess.run([sys.executable, str(REPO / "batch_render.py"), "--manifest", str(bad), "--check",
+                           "--output", str(tmp_path / "out")], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 1 and not (tmp_path / "out").exists()
+    for row, what in ((3, "missing.wav"), (4, "no_such_preset"), (5, "duplicate id")):
+        assert f"row {row}" in proc.stderr and what in proc.stderr, proc.stderr
+    with pytest.raises(ManifestError):
+        read_manifest(bad, presets=["beat"])
+    good = tmp_path / "good.csv"
+    good.write_text("\n".join(bad.read_text().splitlines()[:2]) + "\n")
+    proc = subprocess.run([sys.executable, str(REPO / "batch_render.py"), "--manifest", str(good), "--check"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and "1 lines, all good" in proc.stdout, proc.stderr
