@@ -4,7 +4,8 @@ A `Request` is resolved on the main thread: what to generate (the whole clip, fr
 character's pose where asked, or a range of the take playing) and how to key it. Its
 `run` makes the Motion and touches no Blender data, so `GenerationJob` runs it in a
 daemon thread, with progress and a cancel event; `apply` keys the result on the main
-thread.
+thread. `RequestQueue` runs several requests (one per sound strip) one after another,
+under one cancel event, for the main thread to key each as it finishes.
 """
 
 from __future__ import annotations
@@ -53,8 +54,8 @@ class Request:
 class GenerationJob:
     """A request's generation in a daemon thread; poll `done`, then read `motion`/`error`."""
 
-    def __init__(self, request: Request):
-        self.cancel = threading.Event()
+    def __init__(self, request: Request, cancel: threading.Event | None = None):
+        self.cancel = cancel if cancel is not None else threading.Event()
         self.fraction = 0.0
         self.motion = None
         self.started = time.perf_counter()
@@ -85,3 +86,37 @@ class GenerationJob:
 
     def wait(self) -> None:
         self._thread.join()
+
+
+class RequestQueue:
+    """Requests generated one after another, each in its own `GenerationJob`, all under one
+    cancel event. The main thread calls `advance` to start the next request once it has
+    keyed the previous one's Motion (Blender data are written on the main thread only)."""
+
+    def __init__(self, requests: list[Request]):
+        self.requests = list(requests)
+        self.cancel = threading.Event()
+        self.index = -1                          # the request under way (or last run)
+        self.job: GenerationJob | None = None
+        self.started = time.perf_counter()
+
+    def advance(self) -> GenerationJob | None:
+        """Start the next request's job; None when all have run or the queue was cancelled."""
+        if self.cancel.is_set() or self.index + 1 >= len(self.requests):
+            self.job = None
+            return None
+        self.index += 1
+        self.job = GenerationJob(self.requests[self.index], self.cancel).start()
+        return self.job
+
+    @property
+    def fraction(self) -> float:
+        """How far the whole queue is (each request an equal share)."""
+        if not self.requests:
+            return 1.0
+        current = self.job.fraction if self.job is not None else 0.0
+        return min(1.0, (max(self.index, 0) + current) / len(self.requests))
+
+    @property
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.started

@@ -1,4 +1,5 @@
-"""Operators: Generate (modal, generation in a worker thread), new seed, face mesh list.
+"""Operators: Generate (modal, generation in a worker thread), Generate for Sound Strips
+(the same, one take per sound strip of the Video Sequencer), new seed, face mesh list.
 
 Generation never touches Blender data: it runs `diffsheg_core.generate` off the main
 thread, reports progress through a `threading.Event`-cancellable job, and only when it
@@ -10,7 +11,7 @@ from __future__ import annotations
 
 import importlib
 import random
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import bpy
@@ -18,10 +19,10 @@ import bpy
 from diffsheg_core.errors import DiffshegError
 
 from . import preset
-from .job import GenerationJob, Request
+from .job import GenerationJob, Request, RequestQueue
 from .preferences import INSTALL_GPU_HINT, RUNTIME, missing_runtime, runtime_fix, torch_installed
-from .properties import CUSTOM_PRESET, DEFAULT_STYLE, NO_MIX
-from .report import REPORT_TEXT, report_details, report_line, write_report
+from .properties import CUSTOM_PRESET, DEFAULT_STYLE, NO_MIX, DIFFSHEG_PG_settings
+from .report import MAX_LINE, REPORT_TEXT, report_details, report_line, warning_lines, write_report
 
 
 def audio_file(settings) -> Path:
@@ -139,6 +140,12 @@ def check_ready(settings) -> tuple:
     a range uses its take's), model, targets, preset. Returns the audio and keying options."""
     check_runtime()
     path = audio_file(settings) if settings.range_mode == "WHOLE" else None
+    return path, check_targets(settings)
+
+
+def check_targets(settings):
+    """What `check_ready` checks besides the packages and the audio: model, targets, preset,
+    start frame. Returns the keying options."""
     check_model(settings)
     options = bake_options(settings)
     if options.armature is None and not options.face_meshes:
@@ -151,7 +158,7 @@ def check_ready(settings) -> tuple:
     layout = stored_layout(bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None)
     if options.armature is not None and layout is not None and options.preset is not None:
         options.preset.joint_map(layout)  # names the missing section before generating
-    return path, options
+    return options
 
 
 def prepare(context) -> Request:
@@ -332,6 +339,256 @@ class DIFFSHEG_OT_generate(bpy.types.Operator):
             context.workspace.status_text_set(text)
 
 
+# --- Generate for Sound Strips --------------------------------------------------------------
+
+def strip_audio(strip) -> Path:
+    """The audio file a sound strip plays; DiffshegError when there is none to read (no sound,
+    packed into the .blend, file missing or unreadable). The report names the strip."""
+    from diffsheg_core.audio import check_audio_path
+
+    sound = strip.sound
+    if sound is None or not sound.filepath:
+        raise DiffshegError("it plays no sound file")
+    if sound.packed_file is not None:
+        raise DiffshegError("its sound is packed into the .blend: unpack it (File > External Data > "
+                            "Unpack Resources) to generate from it")
+    path = Path(bpy.path.abspath(sound.filepath, library=sound.library))
+    if not path.is_file():
+        raise DiffshegError(f"its file {path.name} is missing: restore it to {path.parent} or relink "
+                            "the strip")
+    return check_audio_path(path)
+
+
+@dataclass
+class StripTake:
+    """One sound strip of a Generate for Sound Strips: its request, or why it has none, and
+    what keying it gave."""
+
+    name: str
+    start: int
+    request: Request | None = None
+    error: str | None = None         # refused before generating, or failed generating or keying
+    result: object | None = None     # the BakeResult, once keyed
+    cancelled: bool = False          # under way when Esc was pressed: nothing keyed
+    seconds: float = 0.0
+
+
+class StripsRun:
+    """One Generate for Sound Strips: every sound strip of the scene's Video Sequencer (or
+    the selected ones) generated from its own sound file and keyed onto the panel's
+    character from the strip's start frame, one take per strip. The strips' requests are
+    made here on the main thread; a `RequestQueue` generates them one after another off it,
+    and `step` (main thread) keys each as soon as it is made. A strip that cannot be
+    generated or keyed fails alone, with its own message; the others go on.
+
+    Kept simple: every strip uses the panel's style (timeline markers 'style:...' are not
+    read), the whole sound file from the strip's start (a trimmed strip's hidden part too,
+    so the keys stay in step with the sound), never 'Start from pose', and adds no sound
+    strip (the strip is there). The frame range covers all keyed strips, where the panel's
+    'Set frame range' asks for it, once all have run."""
+
+    def __init__(self, context, selected_only: bool = False):
+        from .bake import check_frames
+        from .sound import sound_strips
+
+        scene, settings = context.scene, context.scene.diffsheg
+        strips = [s for s in sound_strips(scene) if s.select or not selected_only]
+        if not strips:
+            raise DiffshegError("no selected sound strips in the Video Sequencer: select some, or untick "
+                                "'Selected only'" if selected_only else
+                                "no sound strips in the Video Sequencer: add the speech there first")
+        check_runtime()
+        options = replace(check_targets(settings), add_sound=False, set_frame_range=False)
+        generation = generate_settings(settings)
+        self.set_frame_range = settings.set_frame_range
+        self.takes: list[StripTake] = []
+        for strip in sorted(strips, key=lambda s: (s.frame_start, s.channel, s.name)):
+            take = StripTake(strip.name, int(round(strip.frame_start)))
+            try:
+                path = strip_audio(strip)
+                check_frames(take.start)
+                take.request = Request(path, replace(options, start_frame=take.start), generation)
+            except Exception as exc:
+                take.error = error_message(exc)
+            self.takes.append(take)
+        self.queued = [t for t in self.takes if t.request is not None]
+        self.queue = RequestQueue([t.request for t in self.queued])
+        self.cancelled = False
+
+    @property
+    def current(self) -> StripTake | None:
+        return self.queued[self.queue.index] if 0 <= self.queue.index < len(self.queued) else None
+
+    def status(self) -> str:
+        if self.queue.cancel.is_set():
+            return "Cancelling..."
+        job = self.queue.job
+        percent = int(100 * job.fraction) if job is not None else 0
+        return f"Strip {self.queue.index + 1}/{len(self.queued)}: generating {percent}% - Esc to cancel"
+
+    def step(self, context) -> bool:
+        """Key the strip just generated and start the next (main thread); True once all have
+        run or the run was cancelled. Call again only after the job under way is done."""
+        job = self.queue.job
+        if job is not None:
+            if not job.done:
+                return False
+            self._key(context, self.current, job)
+        return self.queue.advance() is None
+
+    def _key(self, context, take: StripTake, job) -> None:
+        if job.error is not None:
+            if self.queue.cancel.is_set():
+                self.cancelled = take.cancelled = True
+            else:
+                take.error = error_message(job.error)
+            return
+        try:
+            take.result = take.request.apply(context.scene, job.motion)
+        except Exception as exc:  # this strip only: bake_motion left the scene as it was
+            take.error = error_message(exc)
+            return
+        take.seconds = job.elapsed
+        context.scene.diffsheg.model_label = model_label(job.motion.meta)
+
+    def run(self, context) -> None:
+        """All strips, blocking (scripts, batch)."""
+        while not self.step(context):
+            self.queue.job.wait()
+
+    def finish(self, context) -> tuple[str, bool]:
+        """After the last strip (main thread): the frame range, the report in the panel and the
+        "DiffSHEG report" Text. Returns the report's line and whether any strip was keyed."""
+        scene, settings = context.scene, context.scene.diffsheg
+        if self.queue.cancel.is_set():
+            self.cancelled = True
+        keyed = [t for t in self.takes if t.result is not None]
+        if keyed and self.set_frame_range:
+            scene.frame_start = min(t.start for t in keyed)
+            scene.frame_end = max(t.start + t.result.n_frames - 1 for t in keyed)
+        line = self.report_line(keyed)
+        write_report(self.report_details(line, settings.model_label if keyed else "none (nothing keyed)"))
+        settings.last_report, settings.last_failed = line, not keyed
+        return line, bool(keyed)
+
+    def failed(self) -> list[StripTake]:
+        return [t for t in self.takes if t.error is not None]
+
+    def report_line(self, keyed: list[StripTake]) -> str:
+        """How many strips were keyed, which failed and why (short: the Text has the rest)."""
+        line = f"{len(keyed)} of {len(self.takes)} sound strips keyed"
+        if keyed:
+            line += f" ({', '.join(t.result.take for t in keyed)}), {self.queue.elapsed:.1f} s"
+        if self.cancelled:
+            line = "cancelled: " + line
+        failed = self.failed()
+        if failed:
+            line += f"; {len(failed)} failed: " + ", ".join(f"'{t.name}' ({short_reason(t.error)})" for t in failed)
+            line += f"; see {REPORT_TEXT}"
+        if len(line) > 2 * MAX_LINE:
+            line = line[:2 * MAX_LINE - 23].rstrip() + f"... see {REPORT_TEXT}"
+        return line
+
+    def report_details(self, line: str, model: str) -> str:
+        lines = [line, "", f"model: {model}", "style: the panel's for every strip (timeline style markers "
+                 "are not read for strips)", ""]
+        for t in self.takes:
+            head = f"strip '{t.name}' at frame {t.start}: "
+            if t.result is not None:
+                lines.append(head + report_line(t.result, t.seconds))
+                lines += [f"  - {w}" for w in warning_lines(t.result)]
+            elif t.error is not None:
+                lines.append(head + "FAILED: " + t.error)
+            elif t.cancelled:
+                lines.append(head + "cancelled while generating: nothing keyed")
+            else:
+                lines.append(head + "not generated (cancelled)")
+        return "\n".join(lines) + "\n"
+
+
+def short_reason(message: str, limit: int = 80) -> str:
+    """A message's first clause (up to its first ': '), for a one-line report."""
+    first = message.split(": ")[0]
+    return first if len(first) <= limit else first[:limit - 3] + "..."
+
+
+class DIFFSHEG_OT_generate_strips(bpy.types.Operator):
+    """Generate animation for every sound strip of the Video Sequencer (or the selected ones),
+    each keyed from its strip's frame as a take of its own"""
+
+    bl_idname = "diffsheg.generate_strips"
+    bl_label = "Generate for Sound Strips"
+    bl_options = {"REGISTER", "UNDO"}
+
+    selected_only: bpy.props.BoolProperty(name="Selected only", default=False,
+                                          description="Only the selected sound strips")
+
+    _run: StripsRun | None = None
+    _timer = None
+
+    def execute(self, context):
+        """Blocking run (scripts, batch): generate and key each strip in turn."""
+        try:
+            run = StripsRun(context, self.selected_only)
+            run.run(context)
+            line, keyed = run.finish(context)
+        except Exception as exc:
+            return self._failed(context, error_message(exc))
+        return self._done(run, line, keyed)
+
+    def _failed(self, context, message: str, level: str = "ERROR") -> set[str]:
+        settings = context.scene.diffsheg
+        settings.last_report, settings.last_failed = message, True
+        self.report({level}, message)
+        return {"CANCELLED"}
+
+    def _done(self, run: StripsRun, line: str, keyed: bool) -> set[str]:
+        """FINISHED (one undo step) when any strip was keyed, though others failed."""
+        if not keyed:
+            self.report({"WARNING" if run.cancelled else "ERROR"}, line)
+            return {"CANCELLED"}
+        self.report({"WARNING"} if run.failed() or run.cancelled else {"INFO"}, line)
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        try:
+            self._run = StripsRun(context, self.selected_only)
+            self._run.step(context)  # starts the first strip
+        except Exception as exc:  # a message in the status bar, never a traceback
+            return self._failed(context, error_message(exc))
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.progress_begin(0, 100)
+        wm.modal_handler_add(self)
+        DIFFSHEG_OT_generate._status(context, self._run.status())
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        run = self._run
+        if event.type == "ESC" and event.value == "PRESS":
+            run.queue.cancel.set()
+        if event.type != "TIMER":
+            return {"RUNNING_MODAL"}
+        try:
+            done = run.step(context)
+        except Exception as exc:  # keying errors are the strip's; this is unexpected
+            self._end(context)
+            return self._failed(context, error_message(exc))
+        if not done:
+            context.window_manager.progress_update(int(100 * run.queue.fraction))
+            DIFFSHEG_OT_generate._status(context, run.status())
+            return {"RUNNING_MODAL"}
+        self._end(context)
+        line, keyed = run.finish(context)
+        return self._done(run, line, keyed)
+
+    def _end(self, context) -> None:
+        wm = context.window_manager
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        DIFFSHEG_OT_generate._status(context, None)
+
+
 class DIFFSHEG_OT_new_seed(bpy.types.Operator):
     """Pick a new random seed (a different motion for the same audio)"""
 
@@ -427,7 +684,20 @@ class DIFFSHEG_OT_use_take(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (DIFFSHEG_OT_generate, DIFFSHEG_OT_new_seed, DIFFSHEG_OT_face_add, DIFFSHEG_OT_face_remove,
+CLASSES = (DIFFSHEG_OT_generate, DIFFSHEG_OT_generate_strips, DIFFSHEG_OT_new_seed, DIFFSHEG_OT_face_add, DIFFSHEG_OT_face_remove,
            DIFFSHEG_OT_use_take, DIFFSHEG_OT_show_report)
 
-register, unregister = bpy.utils.register_classes_factory(CLASSES)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)
+
+
+def register() -> None:
+    _register_classes()
+    # The panel's 'Selected only' for Generate for Sound Strips, kept with the panel's settings.
+    DIFFSHEG_PG_settings.strips_selected_only = bpy.props.BoolProperty(
+        name="Selected only", default=False,
+        description="Generate for Sound Strips: only the selected sound strips")
+
+
+def unregister() -> None:
+    del DIFFSHEG_PG_settings.strips_selected_only
+    _unregister_classes()

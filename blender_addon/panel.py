@@ -1,6 +1,7 @@
 """The View3D sidebar tab "DiffSHEG": the panel "Generate from audio" with what most runs
-need (audio, character, style, range, Generate, takes, the report), and two collapsed
-sub-panels, "Sampling" (the model's options) and "Keys" (how the motion is keyed).
+need (audio, character, style, range, Generate, Generate for Strips where the scene has
+sound strips, takes, the report), and two collapsed sub-panels, "Sampling" (the model's
+options) and "Keys" (how the motion is keyed).
 
 Blender's conventions: labels in a column on the left (`use_property_split`), no
 keyframe decorators, labels short enough for the sidebar's default width; texts that
@@ -95,6 +96,26 @@ def draw_takes(layout, settings) -> None:
                      icon="PLAY" if name == current else "ACTION").take = name
 
 
+def has_sound_strips(scene) -> bool:
+    """Whether the scene's Video Sequencer holds a sound strip (no numpy needed: the panel draws
+    where the runtime is missing; sound.py's helpers import keying)."""
+    editor = scene.sequence_editor
+    if editor is None:
+        return False
+    strips = editor.strips if hasattr(editor, "strips") else editor.sequences  # 5.0, 4.x
+    return any(s.type == "SOUND" for s in strips)
+
+
+def draw_strips(layout, context, settings) -> None:
+    """Generate for Sound Strips and its 'Selected only', where the scene has sound strips."""
+    if not hasattr(settings, "strips_selected_only") or not has_sound_strips(context.scene):
+        return
+    col = layout.column()
+    col.operator("diffsheg.generate_strips", text="Generate for Strips",
+                 icon="SEQUENCE").selected_only = settings.strips_selected_only
+    col.row(heading="Strips").prop(settings, "strips_selected_only", text="Selected only")
+
+
 def draw_report(layout, context, settings) -> None:
     """The last Generate's one-line report (wrapped to the sidebar), the button that opens the
     "DiffSHEG report" Text with the details, and the model it used."""
@@ -175,6 +196,7 @@ class DIFFSHEG_PT_generate(_Panel, bpy.types.Panel):
         row.scale_y = 1.4
         row.operator("diffsheg.generate", icon="PLAY_SOUND",
                      text="Generate" if s.range_mode == "WHOLE" else "Regenerate Range")
+        draw_strips(layout, context, s)
         draw_takes(layout, s)
         draw_report(layout, context, s)
 
