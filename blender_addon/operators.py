@@ -21,7 +21,7 @@ from diffsheg_core.errors import DiffshegError
 from . import preset
 from .job import GenerationJob, Request, RequestQueue
 from .preferences import INSTALL_GPU_HINT, RUNTIME, missing_runtime, runtime_fix, torch_installed
-from .properties import CUSTOM_PRESET, DEFAULT_STYLE, NO_MIX, DIFFSHEG_PG_settings
+from .properties import CUSTOM_PRESET, DEFAULT_STYLE, NO_MIX
 from .report import MAX_LINE, REPORT_TEXT, report_details, report_line, warning_lines, write_report
 
 
@@ -684,20 +684,7 @@ class DIFFSHEG_OT_use_take(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (DIFFSHEG_OT_generate, DIFFSHEG_OT_generate_strips, DIFFSHEG_OT_new_seed, DIFFSHEG_OT_face_add, DIFFSHEG_OT_face_remove,
-           DIFFSHEG_OT_use_take, DIFFSHEG_OT_show_report)
+CLASSES = (DIFFSHEG_OT_generate, DIFFSHEG_OT_generate_strips, DIFFSHEG_OT_new_seed, DIFFSHEG_OT_face_add,
+           DIFFSHEG_OT_face_remove, DIFFSHEG_OT_use_take, DIFFSHEG_OT_show_report)
 
-_register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)
-
-
-def register() -> None:
-    _register_classes()
-    # The panel's 'Selected only' for Generate for Sound Strips, kept with the panel's settings.
-    DIFFSHEG_PG_settings.strips_selected_only = bpy.props.BoolProperty(
-        name="Selected only", default=False,
-        description="Generate for Sound Strips: only the selected sound strips")
-
-
-def unregister() -> None:
-    del DIFFSHEG_PG_settings.strips_selected_only
-    _unregister_classes()
+register, unregister = bpy.utils.register_classes_factory(CLASSES)

@@ -108,7 +108,7 @@ def has_sound_strips(scene) -> bool:
 
 def draw_strips(layout, context, settings) -> None:
     """Generate for Sound Strips and its 'Selected only', where the scene has sound strips."""
-    if not hasattr(settings, "strips_selected_only") or not has_sound_strips(context.scene):
+    if not has_sound_strips(context.scene):
         return
     col = layout.column()
     col.operator("diffsheg.generate_strips", text="Generate for Strips",

@@ -185,6 +185,8 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
                             description="Add the audio as a sound strip and play back in sync with it")
     set_frame_range: BoolProperty(name="Set frame range", default=True,
                                   description="Make the scene's frame range cover the clip")
+    strips_selected_only: BoolProperty(name="Selected only", default=False,
+                                       description="Generate for Sound Strips: only the selected sound strips")
     model_label: StringProperty(name="Model used", default="",
                                 description="The model of the last generation")
     last_report: StringProperty(default="")

@@ -125,19 +125,16 @@ def write_outputs(line, out_dir: Path, scene, armature, faces, motion) -> list[s
     """Every output the line asks for, each written whole or not at all; their paths."""
     from diffsheg_core.motion import write_arkit_json, write_livelink_csv
 
-    def exports():
-        from . import exports
-
-        return exports
+    from .exports import export_fbx, export_glb
 
     out_dir.mkdir(parents=True, exist_ok=True)
     writers = {
         "npz": lambda p: motion.save_npz(p),
         "arkit_json": lambda p: write_arkit_json(motion, p),
         "csv": lambda p: write_livelink_csv(motion, p),
-        "fbx_unreal": lambda p: exports().export_fbx(p, armature, faces, "unreal"),
-        "fbx_unity": lambda p: exports().export_fbx(p, armature, faces, "unity"),
-        "glb": lambda p: exports().export_glb(p, armature, faces),
+        "fbx_unreal": lambda p: export_fbx(p, armature, faces, "unreal"),
+        "fbx_unity": lambda p: export_fbx(p, armature, faces, "unity"),
+        "glb": lambda p: export_glb(p, armature, faces),
         "blend": lambda p: _save_blend(p),
         "mp4": lambda p: _render_video(scene, p),
     }

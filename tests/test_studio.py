@@ -29,7 +29,7 @@ pytest.importorskip("ray")
 pytestmark = pytest.mark.skipif(shutil.which("unshare") is None or not sys.platform.startswith("linux"),
                                 reason="the Ray test runs in a network namespace of its own (Linux, unshare)")
 
-OUTPUTS = "blend;npz;arkit_json;csv"
+OUTPUTS = "blend;npz;arkit_json;csv;glb;fbx_unreal"
 PORT = 6391
 
 # Runs in the namespace: a cluster, three batches, a worker killed during the third, a
@@ -119,7 +119,7 @@ def test_five_lines_done_one_failed_by_name(studio):
     assert log.strip().splitlines()[-1].startswith("5 done, 0 skipped (done before), 1 failed"), log[-1500:]
     out = studio / "first"
     for i in (0, 1, 3, 4, 5):
-        for suffix in (".blend", ".npz", ".json", ".csv"):
+        for suffix in (".blend", ".npz", ".json", ".csv", ".glb", "_unreal.fbx"):
             assert (out / f"line{i}{suffix}").is_file(), (i, suffix)
         motion = Motion.load_npz(out / f"line{i}.npz")
         assert motion.meta["seed"] == i and motion.n_frames == 30
