@@ -18,7 +18,7 @@ from typing import Callable
 
 import numpy as np
 
-from .audio import MEL_RATE, Audio, SpeechEncoding, mel_hop, mel_spectrogram, resample
+from .audio import MEL_RATE, Audio, SpeechEncoding, mel_hop, mel_spectrogram, resample, resampled_length
 from .errors import CheckpointError, DiffshegError
 
 # One phone alphabet for the whole project: ARPAbet without stress digits, SIL for pauses.
@@ -34,6 +34,17 @@ ARPABET = VOWELS | CONSONANTS | {SILENCE}
 PHONES: tuple[str, ...] = (SILENCE,) + tuple(sorted(ARPABET - {SILENCE}))
 BILABIALS = ("P", "B", "M")
 NORMALISATIONS = ("utterance", "none")
+
+ENCODER_RATE = 16000
+"""The encoder hears speech band-limited to this rate (0-8 kHz), whatever the recording's rate.
+
+Its corpus is 16 kHz (`training.corpus.augment.SAMPLE_RATE`), so in training the mel bands
+above 8 kHz (the top two of 64 at 18 kHz) only ever held the 1e-5 floor: the stored input
+statistics divide them by a standard deviation of 0.004-0.005. Speech at 22.05 or 44.1 kHz
+has energy there, which that scaling turned into inputs hundreds of times too large: the
+phone picked per frame agreed with the same speech at 16 kHz on 5 % of frames, and the
+bundled model's lips moved against the voice (mouth-voice correlation -0.44 on
+fr_css10_1 at 22.05 kHz, 0.52 at 16 kHz). 16 kHz audio and slower are heard as they are."""
 
 Posteriors = Callable[[np.ndarray], np.ndarray]
 """(n_mels, N) log-mel -> (N, len(PHONES)) phone probabilities: the encoder on some backend."""
@@ -91,9 +102,23 @@ class PhoneticConfig:
         return cls(**values)
 
 
+def encoder_speech(audio: Audio) -> Audio:
+    """`audio` as the recogniser hears it: taken down to ENCODER_RATE when faster (soxr HQ,
+    which band-limits it to the encoder's 8 kHz), then to MEL_RATE. Every path to the encoder
+    (whole recordings, pieces of long ones, their level, training) goes through here."""
+    return resample(resample(audio, min(audio.sample_rate, ENCODER_RATE)), MEL_RATE)
+
+
+def recogniser_frames(n_samples: int, sample_rate: int, cfg: PhoneticConfig) -> int:
+    """Recogniser frames `raw_log_mel` gives for `n_samples` at `sample_rate` (centred frames)."""
+    rate = min(sample_rate, ENCODER_RATE)
+    return 1 + resampled_length(resampled_length(n_samples, sample_rate, rate), rate, MEL_RATE) // cfg.hop
+
+
 def raw_log_mel(audio: Audio, cfg: PhoneticConfig) -> np.ndarray:
-    """(n_mels, N) log10 power mel at the recogniser rate, before any level normalisation."""
-    speech = resample(audio, MEL_RATE)
+    """(n_mels, N) log10 power mel at the recogniser rate, before any level normalisation,
+    of `encoder_speech(audio)`."""
+    speech = encoder_speech(audio)
     return np.log10(mel_spectrogram(speech.samples, cfg.n_fft, cfg.hop, cfg.n_mels) + 1e-5)
 
 

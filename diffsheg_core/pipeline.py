@@ -18,16 +18,16 @@ from typing import Callable, Iterator, Optional, Union
 import numpy as np
 
 from . import __version__
-from .audio import (MEL_RATE, PIECE_SECONDS, Audio, AudioFile, SpeechEncoding, resampled_length,
-                    hubert_features, load_audio, load_hubert, mel_features, mel_frames, n_motion_frames,
-                    open_audio_file)
+from .audio import (PIECE_SECONDS, Audio, AudioFile, SpeechEncoding, hubert_features, load_audio, load_hubert,
+                    mel_features, mel_frames, n_motion_frames, open_audio_file)
 from .checkpoints import ModelBundle, load_model
 from .diffusion import Schedule
 from .errors import DiffshegError
 from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, inpaint_range, with_overrides
 from .guidance import Guidance, step_eps
 from .motion import Motion
-from .phonetic import PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel, stack_posteriors
+from .phonetic import (PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel, recogniser_frames,
+                       stack_posteriors)
 from .progress import ProgressCallback
 from .runtime.backends import open_network
 from .settings import (GUIDANCE, SKIP_GUIDANCE, STYLE_GUIDANCE, GenerateSettings, StyleSpec, check_number,
@@ -228,7 +228,7 @@ def _pieces(speech: Union[Audio, AudioFile]) -> Iterator[tuple[int, int, Audio]]
 
 def _posterior_count(speech, phonetic: PhoneticConfig) -> int:
     """Recogniser frames of the whole recording (centred frames at 18 kHz)."""
-    return 1 + resampled_length(speech.n_samples, speech.sample_rate, MEL_RATE) // phonetic.hop
+    return recogniser_frames(speech.n_samples, speech.sample_rate, phonetic)
 
 
 def _phonetic_level(speech: AudioFile, phonetic: PhoneticConfig, n_post: int) -> Optional[np.ndarray]:

@@ -17,7 +17,8 @@ from diffsheg_core.errors import CheckpointError, DiffshegError
 from diffsheg_core.export import with_graphs
 from diffsheg_core.foppas import PRESETS
 from diffsheg_core.model import PhoneticEncoder, state_arrays
-from diffsheg_core.phonetic import PHONES, PhoneticConfig, log_mel, stack_posteriors
+from diffsheg_core.phonetic import (ENCODER_RATE, PHONES, PhoneticConfig, encoder_speech, log_mel, raw_log_mel,
+                                   recogniser_frames, stack_posteriors)
 from diffsheg_core.pipeline import generate, speech_features
 from diffsheg_core.runtime.backends import open_network
 from diffsheg_core.training.corpus.build import BuildConfig, build
@@ -75,6 +76,28 @@ def test_features_stack_four_recogniser_frames_per_motion_frame():
     np.testing.assert_allclose(feats.reshape(n, 4, -1).sum(-1), 1.0, atol=1e-5)
     i = n // 2  # motion frame i (at i / 15 s) holds recogniser frames 4i-2 .. 4i+1
     np.testing.assert_allclose(feats[i].reshape(4, -1), post[4 * i - 2: 4 * i + 2], atol=1e-6)
+
+
+def test_the_encoder_hears_what_its_corpus_holds_at_any_rate(data_dir):
+    """Speech faster than the corpus's 16 kHz is band-limited to 8 kHz before the log-mel, the
+    same however it arrives; 16 kHz and slower is heard as it is (bit for bit as before)."""
+    from diffsheg_core.audio import resample
+    from diffsheg_core.training.corpus.augment import SAMPLE_RATE
+
+    assert ENCODER_RATE == SAMPLE_RATE
+    cfg = PhoneticConfig()
+    speech = load_audio(data_dir / "audio" / "lang" / "fr_css10_1.wav")  # 22.05 kHz, energy up to 11 kHz
+    speech = speech.read(0, 3 * speech.sample_rate)
+    at_16k = resample(speech, 16000)
+    assert np.array_equal(encoder_speech(at_16k).samples, resample(at_16k, 18000).samples)
+    reference = raw_log_mel(at_16k, cfg)
+    for rate in (22050, 44100, 48000):
+        mel = raw_log_mel(resample(speech, rate), cfg)
+        assert mel.shape == reference.shape
+        assert np.abs(mel - reference).max() < 1e-2, rate  # before: up to 2 in the bands above 8 kHz
+        assert mel[-1].max() < -4.5, rate  # the top band (above 8 kHz) stays at the floor
+    for n, rate in ((48000, 16000), (66150, 22050), (132301, 44100), (8001, 8000), (1234567, 48000)):
+        assert recogniser_frames(n, rate, cfg) == raw_log_mel(Audio(np.zeros(n, np.float32), rate), cfg).shape[1]
 
 
 @pytest.fixture(scope="module")
