@@ -255,13 +255,13 @@ def check_outputs(args, scene, audio: Path, several: bool) -> None:
 
 def generate_and_write(args, scene, request, label: str, several: bool) -> None:
     """Run `request`, key it, report, then save and render as the arguments ask."""
-    model_label, report = addon("operators").model_label, addon("report")
+    report = addon("report")
     started = time.perf_counter()
     motion = request.run(printer(label), None)
     result = request.apply(scene, motion)
     seconds = time.perf_counter() - started
     meta = motion.meta["regenerated"][-1] if request.range is not None else motion.meta
-    print(f"{label}: {report.report_line(result, seconds)} [model {model_label(meta)}]", flush=True)
+    print(f"{label}: {report.report_line(result, seconds)} [model {report.model_label(meta)}]", flush=True)
     for line in report.warning_lines(result):
         print(f"{label}: warning: {line}", flush=True)
     audio = request.path

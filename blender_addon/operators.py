@@ -22,7 +22,7 @@ from . import preset
 from .job import GenerationJob, Request, RequestQueue
 from .preferences import INSTALL_GPU_HINT, RUNTIME, missing_runtime, runtime_fix, torch_installed
 from .properties import CUSTOM_PRESET, DEFAULT_STYLE, NO_MIX
-from .report import MAX_LINE, REPORT_TEXT, report_details, report_line, warning_lines, write_report
+from .report import MAX_LINE, REPORT_TEXT, model_label, report_details, report_line, warning_lines, write_report
 
 
 def audio_file(settings) -> Path:
@@ -231,13 +231,6 @@ def layout_motion(generation):
     return Motion(fps=bundle.config.fps, rig=layout.name, joint_names=list(layout.joint_names),
                   rotations=np.zeros((1, len(layout.joint_names), 3)), face_names=list(layout.face_names),
                   face=np.zeros((1, len(layout.face_names))))
-
-
-def model_label(meta: dict) -> str:
-    label = str(meta.get("model_id", "unknown model"))
-    if meta.get("trained") is False or meta.get("untrained"):
-        label += " - UNTRAINED (random weights, no learned motion)"
-    return label
 
 
 def apply_result(context, settings, motion, request: Request, seconds: float) -> str:

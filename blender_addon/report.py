@@ -27,6 +27,14 @@ def warning_lines(result) -> list[str]:
     return lines + list(result.notes)
 
 
+def model_label(meta: dict) -> str:
+    """The model a take was made with, from its metadata: its id, marked when untrained."""
+    label = str(meta.get("model_id", "unknown model"))
+    if meta.get("trained") is False or meta.get("untrained"):
+        label += " - UNTRAINED (random weights, no learned motion)"
+    return label
+
+
 def report_details(result, seconds: float, model: str) -> str:
     lines = [report_line(result, seconds), "", f"model: {model}", f"actions: {', '.join(result.actions)}",
              f"sound strip: {result.sound_strip or 'none'}", *result.preset_notes]
