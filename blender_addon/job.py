@@ -6,6 +6,9 @@ character's pose where asked, or a range of the take playing) and how to key it.
 daemon thread, with progress and a cancel event; `apply` keys the result on the main
 thread. `RequestQueue` runs several requests (one per sound strip) one after another,
 under one cancel event, for the main thread to key each as it finishes.
+
+`BackgroundJob` is the daemon thread a modal operator polls: `GenerationJob` here, the
+pip install of the preferences (preferences.InstallJob) too.
 """
 
 from __future__ import annotations
@@ -51,33 +54,23 @@ class Request:
         return apply_range(scene, self.range, motion, self.options)
 
 
-class GenerationJob:
-    """A request's generation in a daemon thread; poll `done`, then read `motion`/`error`."""
+class BackgroundJob:
+    """`work` in a daemon thread: `start` it, poll `done` (or `wait`), then read what it left."""
 
-    def __init__(self, request: Request, cancel: threading.Event | None = None):
-        self.cancel = cancel if cancel is not None else threading.Event()
-        self.fraction = 0.0
-        self.motion = None
+    def __init__(self):
         self.started = time.perf_counter()
-        self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, args=(request,), daemon=True)
+        self._thread = threading.Thread(target=self.work, daemon=True)
 
-    def start(self) -> "GenerationJob":
+    def work(self) -> None:
+        raise NotImplementedError
+
+    def start(self):
         self._thread.start()
         return self
 
-    def _run(self, request: Request) -> None:
-        try:
-            self.motion = request.run(self._progress, self.cancel)
-        except BaseException as exc:  # handed to the main thread, which reports it
-            self.error = exc
-
-    def _progress(self, p) -> None:
-        self.fraction = p.fraction
-
     @property
     def elapsed(self) -> float:
-        """Seconds since the job started (generation, then keying)."""
+        """Seconds since the job was made."""
         return time.perf_counter() - self.started
 
     @property
@@ -86,6 +79,28 @@ class GenerationJob:
 
     def wait(self) -> None:
         self._thread.join()
+
+
+class GenerationJob(BackgroundJob):
+    """A request's generation in a daemon thread; poll `done`, then read `motion`/`error`.
+    `elapsed` counts generation, then keying."""
+
+    def __init__(self, request: Request, cancel: threading.Event | None = None):
+        super().__init__()
+        self.request = request
+        self.cancel = cancel if cancel is not None else threading.Event()
+        self.fraction = 0.0
+        self.motion = None
+        self.error: BaseException | None = None
+
+    def work(self) -> None:
+        try:
+            self.motion = self.request.run(self._progress, self.cancel)
+        except BaseException as exc:  # handed to the main thread, which reports it
+            self.error = exc
+
+    def _progress(self, p) -> None:
+        self.fraction = p.fraction
 
 
 class RequestQueue:

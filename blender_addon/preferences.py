@@ -24,11 +24,12 @@ import importlib.util
 import platform
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import bpy
 from bpy.props import EnumProperty, StringProperty
+
+from .job import BackgroundJob
 
 ADDON_PACKAGE = __package__
 
@@ -145,22 +146,21 @@ def torch_pip_commands(build: str, target: Path) -> list[list[str]]:
     return [_pip_base(target) + (["--index-url", index] if index else []) + [TORCH_REQUIREMENT, _numpy_pin()]]
 
 
-class InstallJob:
+class InstallJob(BackgroundJob):
     """Run pip commands one after another in a thread; `lines` holds the output so far."""
 
     def __init__(self, commands: list[list[str]]):
+        super().__init__()
         self.commands = commands
         self.lines: list[str] = []
         self.returncode: int | None = None
-        self._thread = threading.Thread(target=self._run, daemon=True)
 
     def start(self) -> "InstallJob":
         if importlib.util.find_spec("pip") is None:
             self.commands.insert(0, [sys.executable, "-m", "ensurepip", "--upgrade"])
-        self._thread.start()
-        return self
+        return super().start()
 
-    def _run(self) -> None:
+    def work(self) -> None:
         for command in self.commands:
             try:
                 proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -173,13 +173,6 @@ class InstallJob:
             self.returncode = proc.wait()
             if self.returncode != 0:
                 return
-
-    @property
-    def done(self) -> bool:
-        return not self._thread.is_alive()
-
-    def wait(self) -> None:
-        self._thread.join()
 
     @property
     def status(self) -> str:
