@@ -218,28 +218,28 @@ class Foppas:
         The proposal draws from its own generator, so the noise of every channel it does not
         cover is the same as without it. A later window is sampled `candidates` times in one
         batch and the one that best continues `known` is kept (see `seam_scores`)."""
-        cfg, sched = self.config, self.schedule
+        config, sched = self.config, self.schedule
         randn = noise.draw
-        batch = cfg.candidates if known is not None else 1
+        batch = config.candidates if known is not None else 1
 
         x = randn(batch, length, self.dim)
         if known is not None and self.proposal is not None:
             draw = np.stack([self.proposal(known[0], length, noise.proposal) for _ in range(batch)])
             c = draw.shape[-1]
-            x[..., :c] = sched.q_sample(draw.astype(np.float32), cfg.start_index, x[..., :c])
+            x[..., :c] = sched.q_sample(draw.astype(np.float32), config.start_index, x[..., :c])
         times = self.times(known is not None)
-        n_calls, call = model_calls(times) + (cfg.refine is not None), 0
+        n_calls, call = model_calls(times) + (config.refine is not None), 0
         for t_now, t_next in zip(times, times[1:]):
             if t_next > t_now:
-                beta_index = t_now if cfg.reference_renoise else t_next
+                beta_index = t_now if config.reference_renoise else t_next
                 x = sched.renoise(x, beta_index, randn(*x.shape))
                 continue
             eps = eps_fn(x, t_now)
-            if known is not None and cfg.carry > 0:
-                eps = carry_overlap(sched, x, t_now, eps, known, cfg.carry, self.gestures)
+            if known is not None and config.carry > 0:
+                eps = carry_overlap(sched, x, t_now, eps, known, config.carry, self.gestures)
             if fixed is not None:
-                eps = carry_fixed(sched, x, t_now, eps, fixed, max(cfg.carry, HOLD_CARRY), self.gestures)
-            x, _ = sched.ddim_step(x, t_now, eps, cfg.eta, randn(*x.shape) if cfg.eta > 0 else None)
+                eps = carry_fixed(sched, x, t_now, eps, fixed, max(config.carry, HOLD_CARRY), self.gestures)
+            x, _ = sched.ddim_step(x, t_now, eps, config.eta, randn(*x.shape) if config.eta > 0 else None)
             if known is not None:
                 level = sched.noise_level_prev(t_now)
                 noisy_known = float((1 - level ** 2) ** 0.5) * known + level * randn(batch, *known.shape[1:])
@@ -251,7 +251,7 @@ class Foppas:
         if batch > 1:
             best = int(np.argmin(seam_scores(x[..., : self.gestures], known[..., : self.gestures])))
             x = x[best: best + 1]
-        if cfg.refine is not None:
+        if config.refine is not None:
             x = self.refine_window(eps_fn, x, known, fixed)
             on_step(call, n_calls)
         return x if fixed is None else fixed.paint(x, 0.0, x)
@@ -274,12 +274,12 @@ class Foppas:
         best-of-N has chosen and draws no noise, so the face, the choice and every later
         window's noise are the same as without it. Held frames (`fixed`) are carried into
         their neighbours as in the sampling steps."""
-        cfg, sched, g = self.config, self.schedule, self.gestures
-        eps = eps_fn(x, cfg.refine, refine=True)
+        config, sched, g = self.config, self.schedule, self.gestures
+        eps = eps_fn(x, config.refine, refine=True)
         if fixed is not None:
-            eps = carry_fixed(sched, x, cfg.refine, eps, fixed, max(cfg.carry, HOLD_CARRY), g)
+            eps = carry_fixed(sched, x, config.refine, eps, fixed, max(config.carry, HOLD_CARRY), g)
         out = x.copy()
-        out[..., :g] = sched.predict_x0(x[..., :g], np.full(len(x), cfg.refine), eps[..., :g])
+        out[..., :g] = sched.predict_x0(x[..., :g], np.full(len(x), config.refine), eps[..., :g])
         if known is not None:
             out[..., :g] = self.paint_overlap(out[..., :g], known[..., :g], level=0.0)
         return out

@@ -86,19 +86,19 @@ def step_eps(net: Network, gesture_dim: int, x: np.ndarray, timesteps: np.ndarra
     """
     b = x.shape[0]
     gesture, expression = x[..., :gesture_dim], x[..., gesture_dim:]
-    cfg = guidance.scale is not None
-    n = 2 if cfg else 1
-    null = np.repeat([True, False], b) if cfg else None
+    with_null_rows = guidance.scale is not None  # classifier-free guidance: a null-condition row per row
+    n = 2 if with_null_rows else 1
+    null = np.repeat([True, False], b) if with_null_rows else None
     eps_exp, audio = net.expression(_rows(expression, n), _rows(timesteps, n), _rows(mel, n),
                                     _rows(speech, n), _rows(style, n), null)
-    if cfg:
+    if with_null_rows:
         eps_exp, audio = classifier_free(eps_exp, guidance.scale), audio[b:]
     a, c = x0_coefs
     expression_x0 = (a * expression - c * eps_exp).astype(np.float32)
 
     if guidance.skip is not None:   # [conditioned | without self-attention]
         null, attend, mix = None, np.repeat([True, False], b), skip_guided
-    elif cfg:                       # [null | conditioned]
+    elif with_null_rows:            # [null | conditioned]
         null, attend, mix = np.repeat([True, False], b), None, classifier_free
     else:
         null, attend, mix = None, None, None
