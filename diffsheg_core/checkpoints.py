@@ -445,7 +445,7 @@ def config_from_state(state: dict[str, np.ndarray], dataset: Optional[str], path
     if name not in OFFICIAL:
         raise CheckpointError(
             f"{path}: cannot tell the dataset from gesture/expression sizes {gesture_dim}/"
-            f"{expression_dim}; pass --config beat or --config show")
+            f"{expression_dim}; pass --dataset beat or --dataset show")
     setup = OFFICIAL[name]
     return ModelConfig(**cfg, clip_len=setup.clip_len, layout=setup.layout)
 
@@ -561,7 +561,7 @@ def _load_official(path: Path, dataset: Optional[str], stats_dir) -> ModelBundle
     cfg = config_from_state(state, dataset, path)
     name = "beat" if cfg.layout == "beat" else "show"
     load_state_strict(UniEG(cfg), state, str(path),
-                      hint=f"the checkpoint is not the official {name.upper()} model: try --config "
+                      hint=f"the checkpoint is not the official {name.upper()} model: try --dataset "
                            f"{'show' if name == 'beat' else 'beat'}, or the file is truncated")
     mean, std = official_stats(name, stats_dir, beside=path.parent)
     setup = OFFICIAL[name]

@@ -26,7 +26,10 @@ def _generate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--csv", help="also write face weights as a Live Link Face CSV")
     p.add_argument("--talkshow", help="also write SMPL-X motion as a TalkSHOW-layout .npz")
     add_arguments(p)
-    p.add_argument("--config", choices=["beat", "show"], help="force the official configuration")
+    p.add_argument("--dataset", choices=["beat", "show"],
+                   help="official checkpoints: the dataset whose configuration to use (default: told from the "
+                        "tensor shapes)")
+    p.add_argument("--config", dest="dataset", choices=["beat", "show"], help=argparse.SUPPRESS)  # its old name
     p.add_argument("--stats", help="folder of the official normalisation statistics (official checkpoints)")
     p.add_argument("--preset", choices=sorted(PRESETS), help="FOPPAS settings preset")
     p.add_argument("--no-prior", action="store_true",
@@ -60,7 +63,7 @@ def run_generate(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     settings = from_arguments(args)  # every option checked before the model loads
     speech = open_speech(audio_path)  # checked now, read piece by piece while generating
-    bundle = load_model(settings.model, dataset=args.config, stats_dir=args.stats)
+    bundle = load_model(settings.model, dataset=args.dataset, stats_dir=args.stats)
     network = open_network(bundle, settings.backend, settings.device, settings.precision, settings.threads)
     if not bundle.trained:
         print(f"warning: model '{bundle.model_id}' is UNTRAINED (random weights): "
