@@ -272,7 +272,7 @@ def test_panel_options_are_the_models_defaults_until_set(speech):
     """Overlap, guidance and gesture energy: a switched-off "Set ..." toggle is the model's
     default (None), switched on the value means what it means everywhere (guidance 1 and
     gesture energy 0 are off)."""
-    from blender_addon.operators import generate_settings
+    from blender_addon.panel_settings import generate_settings
 
     settings = reset_scene().diffsheg
     plain = generate_settings(settings)
@@ -379,7 +379,7 @@ def test_ready_player_me_avatar_through_the_panel(speech):
     with the same motion, and jawOpen opens the mouth at its peak."""
     from addon_fixtures import angle_between, head_direction, import_readyplayerme
 
-    from blender_addon.operators import generate_settings
+    from blender_addon.panel_settings import generate_settings
 
     scene = reset_scene(fps=29.97)
     scene.frame_start = 1001
@@ -461,7 +461,7 @@ def test_the_demo_character_shows_its_face(speech_motion, tmp_path):
 def test_panel_styles_come_from_the_model_and_mix(tmp_path):
     """The style menu lists the model's style names (indices for a model without any);
     a second style with the mix slider gives weights, the strength the style guidance."""
-    from blender_addon.operators import generate_settings
+    from blender_addon.panel_settings import generate_settings
     from blender_addon.properties import style_names
     from diffsheg_core.checkpoints import load_model, save_checkpoint
 

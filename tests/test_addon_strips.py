@@ -18,7 +18,7 @@ from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 
 from blender_addon import takes
 from blender_addon.keying import action_fcurves
-from blender_addon.operators import StripsRun
+from blender_addon.strips import StripsRun
 from blender_addon.panel import DIFFSHEG_PT_generate
 from blender_addon.sound import sound_strips
 
