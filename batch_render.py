@@ -260,7 +260,7 @@ def generate_and_write(args, scene, request, label: str, several: bool) -> None:
     motion = request.run(printer(label), None)
     result = request.apply(scene, motion)
     seconds = time.perf_counter() - started
-    meta = motion.meta["regenerated"][-1] if request.range is not None else motion.meta
+    meta = request.made_with(motion)
     print(f"{label}: {report.report_line(result, seconds)} [model {report.model_label(meta)}]", flush=True)
     for line in report.warning_lines(result):
         print(f"{label}: warning: {line}", flush=True)

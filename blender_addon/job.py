@@ -43,6 +43,10 @@ class Request:
                                         settings=self.generation, keep_face=self.keep_face, pins=r.pins,
                                         progress=progress, cancel=cancel)
 
+    def made_with(self, motion) -> dict:
+        """What the result was made with (model, seed, ...): a range's own record."""
+        return motion.meta["regenerated"][-1] if self.range is not None else motion.meta
+
     def apply(self, scene, motion):
         """Key `motion` (main thread): a new take of the whole clip, or of the range."""
         if self.range is None:

@@ -88,7 +88,7 @@ def draw_takes(layout, settings) -> None:
     names = takes.takes_of(targets)
     if not names:
         return
-    current = next((t for t in map(takes.playing, targets) if t is not None), None)
+    current = takes.first_playing(targets)
     col = layout.column(align=True)
     col.label(text="Takes:")
     for name in names:

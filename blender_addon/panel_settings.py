@@ -233,7 +233,7 @@ def apply_result(context, settings, motion, request: Request, seconds: float) ->
     """Key `motion` into the scene (main thread only), write the report's details into the
     "DiffSHEG report" Text; returns the report's one line."""
     result = request.apply(context.scene, motion)
-    meta = motion.meta["regenerated"][-1] if request.range is not None else motion.meta
+    meta = request.made_with(motion)
     settings.model_label = model_label(meta)
     line = report_line(result, seconds)
     write_report(report_details(result, seconds, settings.model_label))

@@ -31,7 +31,7 @@ from diffsheg_core.rotations import axis_angle_to_matrix, convert
 
 from . import takes
 from .bake import BakeOptions, BakeResult, Group, auto_preset, group_values, plan_keys, scene_fps
-from .keying import Undo, action_fcurves, undone_on_error
+from .keying import Undo, action_fcurves, fcurves_of, undone_on_error
 from .retarget import joint_rotation, map_armature, passed_rotation
 
 REACH = 2  # model frames on either side that one scene frame's value depends on (PCHIP face weights)
@@ -64,10 +64,9 @@ def scene_range(settings, scene) -> tuple[int, int]:
 
 def playing_take(targets) -> str:
     """The take the character plays (its armature, else a face)."""
-    for target in targets:
-        name = takes.playing(target) if target is not None else None
-        if name is not None:
-            return name
+    name = takes.first_playing(targets)
+    if name is not None:
+        return name
     raise DiffshegError("the character plays no take: generate the whole clip first (Range 'Whole clip'), "
                         "or pick a take in the panel's take list")
 
@@ -109,9 +108,7 @@ def animator_pins(scene, options: BakeOptions, request: RangeRequest) -> tuple[t
     """Pins from the animator's keys on the armature inside the range; notes on keys that
     cannot be pins (a bone the model does not drive, a key too near the range's edge)."""
     armature, source = options.armature, request.source
-    preset = options.preset or auto_preset(source.motion.rig, armature, options.face_meshes)[0]
-    mapping = map_armature(armature, preset, source.motion)
-    by_bone = {t.bone: t for t in mapping.targets}
+    by_bone = {t.bone: t for t in _mapping(options, source.motion).targets}
     keyed = _animator_keys(armature, request.first, request.last)
     ratio = source.motion.fps / scene_fps(scene)
     pins, notes = [], []
@@ -135,10 +132,16 @@ def animator_pins(scene, options: BakeOptions, request: RangeRequest) -> tuple[t
     return tuple(pins), notes
 
 
+def _mapping(options: BakeOptions, motion: Motion):
+    """The options' armature matched to the model's joints (Auto: the preset its names fit)."""
+    preset = options.preset or auto_preset(motion.rig, options.armature, options.face_meshes)[0]
+    return map_armature(options.armature, preset, motion)
+
+
 def _animator_keys(armature, first: int, last: int) -> list[tuple[str, float]]:
     """(bone, frame) of every key not typed GENERATED on a bone's rotation inside [first, last]."""
     found = set()
-    for fc in _playing_fcurves(armature):
+    for fc in fcurves_of(armature):
         if not fc.data_path.startswith("pose.bones[") or ".rotation_" not in fc.data_path:
             continue
         bone = fc.data_path.split('"')[1].replace('\\"', '"')
@@ -149,13 +152,6 @@ def _animator_keys(armature, first: int, last: int) -> list[tuple[str, float]]:
     return sorted(found, key=lambda item: (item[1], item[0]))
 
 
-def _playing_fcurves(id_data) -> list:
-    anim = id_data.animation_data
-    if anim is None or anim.action is None:
-        return []
-    return action_fcurves(anim.action, getattr(anim, "action_slot", None))
-
-
 def _bone_quaternion(armature, bone: str, frame: float) -> np.ndarray:
     """(4,) the bone's rotation at `frame` as its playing F-curves give it (rest where unkeyed)."""
     pose_bone = armature.pose.bones[bone]
@@ -163,7 +159,7 @@ def _bone_quaternion(armature, bone: str, frame: float) -> np.ndarray:
     attr = {"QUATERNION": "rotation_quaternion", "AXIS_ANGLE": "rotation_axis_angle"}.get(mode, "rotation_euler")
     values = np.array(getattr(pose_bone, attr), dtype=np.float64)
     path = f'pose.bones["{bone}"].{attr}'
-    for fc in _playing_fcurves(armature):
+    for fc in fcurves_of(armature):
         if fc.data_path == path and fc.array_index < len(values):
             values[fc.array_index] = fc.evaluate(frame)
     return to_quaternions(values[None], mode)[0]
@@ -188,10 +184,8 @@ def pose_pins(scene, options: BakeOptions, motion_layout: Motion) -> tuple[Pin, 
     """Pins at the first frame holding the armature's pose at the start frame ("start from
     the pose"): every driven joint as the character stands there now."""
     armature = options.armature
-    preset = options.preset or auto_preset(motion_layout.rig, armature, options.face_meshes)[0]
-    mapping = map_armature(armature, preset, motion_layout)
     pins = []
-    for target in mapping.targets:
+    for target in _mapping(options, motion_layout).targets:
         if not target.joints:
             continue
         local = convert(_bone_quaternion(armature, target.bone, options.start_frame), "quaternion", "matrix")

@@ -82,6 +82,11 @@ def playing(id_data) -> str | None:
     return action[TAKE] if is_take(action) else None
 
 
+def first_playing(targets) -> str | None:
+    """The take the first of `targets` (Objects or Keys; None skipped) that plays one plays."""
+    return next((t for t in (playing(x) for x in targets if x is not None) if t is not None), None)
+
+
 def use_take(take: str) -> list[str]:
     """Assign every Action of take `take` to the datablock it animates; returns their names."""
     actions = [a for a in bpy.data.actions if is_take(a) and a[TAKE] == take]

@@ -336,11 +336,8 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     bundle = s.model if isinstance(s.model, ModelBundle) else load_model(s.model)
     network = open_network(bundle, s.backend, s.device, s.precision, s.threads)
     speech = open_speech(audio, sample_rate)
-    config = with_overrides(sampling or bundle.sampling, steps=s.steps, overlap=s.overlap, candidates=s.candidates)
     n_frames = n_motion_frames(speech, bundle.config.fps)
-    track = style_track(bundle, s.style, s.style_at, n_frames)
-    sampler, make_eps_fn = build_sampling(bundle, network, config, s.style, s.guidance, s.skip_guidance,
-                                          s.style_guidance, tracked=track is not None)
+    config, sampler, make_eps_fn, track = _sampling(bundle, network, s, sampling, n_frames)
     chunks = with_style(speech_chunks(bundle, network, speech, hubert_path, hubert_quirk), track)
     if pins:  # sampled as one range with the pinned poses held, from the first frame
         normalised = np.zeros((n_frames, bundle.config.dim), dtype=np.float32)
@@ -359,6 +356,17 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     if pins:
         meta["pins"] = len(pins)
     return to_motion(bundle, normalised, meta=meta)
+
+
+def _sampling(bundle: ModelBundle, network, s: GenerateSettings, sampling: Optional[FoppasConfig],
+              n_frames: int) -> tuple[FoppasConfig, Foppas, Callable[[np.ndarray], EpsFn], Optional[np.ndarray]]:
+    """The sampling settings `s` asks for over the model's (or `sampling`), the sampler and
+    its eps factory, and the style track of `n_frames` frames (None: one style throughout)."""
+    config = with_overrides(sampling or bundle.sampling, steps=s.steps, overlap=s.overlap, candidates=s.candidates)
+    track = style_track(bundle, s.style, s.style_at, n_frames)
+    sampler, make_eps_fn = build_sampling(bundle, network, config, s.style, s.guidance, s.skip_guidance,
+                                          s.style_guidance, tracked=track is not None)
+    return config, sampler, make_eps_fn, track
 
 
 def generation_meta(bundle: ModelBundle, s: GenerateSettings, config: FoppasConfig, network,
@@ -414,10 +422,7 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     if n_motion_frames(speech, bundle.config.fps) != motion.n_frames:
         raise DiffshegError(f"the audio gives {n_motion_frames(speech, bundle.config.fps)} frames of motion, the "
                             f"motion has {motion.n_frames}: regenerate with the audio it was made from")
-    config = with_overrides(sampling or bundle.sampling, steps=s.steps, overlap=s.overlap, candidates=s.candidates)
-    track = style_track(bundle, s.style, s.style_at, motion.n_frames)
-    sampler, make_eps_fn = build_sampling(bundle, network, config, s.style, s.guidance, s.skip_guidance,
-                                          s.style_guidance, tracked=track is not None)
+    config, sampler, make_eps_fn, track = _sampling(bundle, network, s, sampling, motion.n_frames)
     cond = np.concatenate(list(with_style(speech_chunks(bundle, network, speech), track)))
     normalised = bundle.normalise(layout.join(motion.rotations, motion.face)).astype(np.float32)
     hold = np.zeros(normalised.shape, dtype=bool)
