@@ -14,8 +14,11 @@ Open sub-panels need a taller screen (1600x1900) to be seen whole.
 """
 
 import sys
+from pathlib import Path
 
 import bpy
+
+SAMPLE = Path(__file__).resolve().parents[1] / "diffsheg_core" / "samples" / "sample_speech.wav"
 
 argv = sys.argv[sys.argv.index("--") + 1:]
 ZIP, OUT, OPEN, RANGE = argv[0], argv[1], "--open" in argv, "--range" in argv
@@ -48,6 +51,9 @@ def character():
         action = bpy.data.actions.new(name)
         takes.mark(action, name, "talk", number, rig)
     rig.animation_data_create().action = bpy.data.actions["talk take 2"]
+    editor = scene.sequence_editor_create()  # a sound strip: the panel offers Generate for Strips
+    strips = editor.strips if hasattr(editor, "strips") else editor.sequences
+    strips.new_sound("talk", str(SAMPLE), channel=1, frame_start=1)
     s.last_report = ("talk take 2: 288 frames, preset readyplayerme, 41/41 joints, 1,204 keys, 3.1 s, "
                      "4 warnings: see DiffSHEG report")
     s.model_label = "diffsheg-beat-small 0.1.0 (bundled)"
