@@ -1,4 +1,4 @@
-"""Command line: `python -m diffsheg_core generate|train|evaluate ...`."""
+"""Command line: `python -m diffsheg_core generate|live|train|evaluate ...`."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from dataclasses import replace
 from typing import Optional, Sequence
 
 from .errors import DiffshegError
+from .live import cli as live_cli
 
 
 def _generate_parser(sub: argparse._SubParsersAction) -> None:
@@ -140,9 +141,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m diffsheg_core",
                                      description="Speech-driven gesture and expression generation (DiffSHEG).")
     sub = parser.add_subparsers(dest="command", required=True,
-                                metavar="{generate,train,evaluate,train-autoencoder,train-phonetic,"
+                                metavar="{generate,live,train,evaluate,train-autoencoder,train-phonetic,"
                                         "export-onnx}")
     _generate_parser(sub)
+    live_cli.add_parser(sub)
     sub.add_parser("train", help="train a model (see: train --help)")
     sub.add_parser("evaluate", help="evaluate motion against references (see: evaluate --help)")
     sub.add_parser("train-autoencoder", help="train the motion autoencoder for Fréchet distances")
@@ -150,7 +152,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     sub.add_parser("export-onnx", help="add ONNX graphs (the torch-free runtime's) to a model file")
     args = parser.parse_args(argv)
     try:
-        return run_generate(args)
+        return live_cli.run(args) if args.command == "live" else run_generate(args)
     except DiffshegError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -1,0 +1,173 @@
+"""Live generation: latency, compute and what the hop costs against offline generation.
+
+For each hop H tried (and the diffusion steps), on one real take with its phone timings
+(../shared/data/beat2/2_scott_0_1_1.wav and .TextGrid):
+
+- quality against offline `generate` of the same speech and seeds: wrist speed and
+  jitter, acceleration at the joins (the first frame of every hop; offline, every FOPPAS
+  seam) over that elsewhere, lip-sync (mouth-to-voice envelope correlation; jawOpen at
+  open vowels over bilabials);
+- compute per second of speech (the audio fed as fast as the engine takes it);
+- with --realtime: latency p50/p95/max from the audio arriving to the frame being shown,
+  the file played at real time through a `LiveSession` (as `diffsheg live` runs it), idle
+  and with another process keeping one core busy (--busy).
+
+    python bench/bench_live.py                         # quality and compute, hops 2 3 4 6 8
+    python bench/bench_live.py --realtime --seconds 20 --busy
+
+One thread (DIFFSHEG_THREADS=1, the default). Say which machine the figures came from.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from diffsheg_core.audio import Audio, read_audio_file  # noqa: E402
+from diffsheg_core.checkpoints import load_model  # noqa: E402
+from diffsheg_core.live.engine import LiveConfig, LiveEngine  # noqa: E402
+from diffsheg_core.motion import Motion  # noqa: E402
+from diffsheg_core.pipeline import generate  # noqa: E402
+from diffsheg_core.runtime.backends import open_network  # noqa: E402
+from diffsheg_core.settings import GenerateSettings  # noqa: E402
+from diffsheg_core.training.metrics.channels import face_channel, mouth_opening  # noqa: E402
+from diffsheg_core.training.metrics.lipsync import envelope_correlation, phoneme_contrast  # noqa: E402
+from diffsheg_core.training.metrics.posture import naturalness  # noqa: E402
+from diffsheg_core.training.metrics.smoothness import acceleration_per_frame, foppas_seams  # noqa: E402
+from diffsheg_core.training.metrics.textgrid import phone_tier, read_textgrid  # noqa: E402
+
+TAKE = ROOT.parent / "shared" / "data" / "beat2" / "2_scott_0_1_1"
+
+
+def quality(motion: Motion, audio: Audio, joins: list[int], phones) -> dict:
+    """The figures compared between live and offline."""
+    nat = naturalness(motion)
+    gestures = motion.rotations.reshape(motion.n_frames, -1)
+    acc = acceleration_per_frame(gestures, motion.fps)
+    at = np.zeros(len(acc), bool)
+    for j in joins:
+        at[max(j - 1, 0): j + 1] = True
+    corr, _ = envelope_correlation(mouth_opening(motion), motion.fps, audio.samples, audio.sample_rate)
+    contrast = phoneme_contrast(face_channel(motion, "jawOpen"), motion.fps, phones)
+    return {"wrist speed": nat["wrist speed (arm lengths/s)"], "wrist jitter": nat["wrist jitter (arm lengths/s^2)"],
+            "join acc": float(acc[at].mean() / acc[~at].mean()), "mouth-voice r": corr,
+            "jaw open/bilabial": contrast["ratio"]}
+
+
+def run_live(bundle, network, audio: Audio, live: LiveConfig, settings: GenerateSettings) -> tuple[Motion, float]:
+    """The engine fed 20 ms chunks as fast as it takes them: (motion, compute seconds)."""
+    engine = LiveEngine(bundle, network, settings, audio.sample_rate, live)
+    chunk, compute = audio.sample_rate // 50, 0.0
+    for i in range(0, audio.n_samples, chunk):
+        engine.push(audio.samples[i: i + chunk])
+        while engine.ready():
+            t0 = time.perf_counter()
+            engine.step()
+            compute += time.perf_counter() - t0
+    t0 = time.perf_counter()
+    engine.finish()
+    compute += time.perf_counter() - t0
+    return engine.motion(), compute
+
+
+def mean_of(rows: list[dict]) -> dict:
+    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+
+
+def bench_quality(args, bundle, network, audio: Audio, phones) -> None:
+    seeds = range(args.seeds)
+    offline = []
+    for seed in seeds:
+        m = generate(audio, settings=GenerateSettings(model=bundle, seed=seed, threads=1))
+        offline.append(quality(m, audio, foppas_seams(m.n_frames, bundle.config.clip_len, 4), phones))
+    base = mean_of(offline)
+    print(f"\n{audio.duration:.1f} s of speech, seeds {list(seeds)}; ratios are live / offline")
+    print(f"{'setting':<22}" + "".join(f"{k:>19}" for k in base) + f"{'compute/s':>11}")
+    print(f"{'offline':<22}" + "".join(f"{v:>19.3f}" for v in base.values()))
+    for steps in args.steps:
+        for hop in args.hops:
+            rows, compute = [], 0.0
+            for seed in seeds:
+                settings = GenerateSettings(model=bundle, seed=seed, steps=steps, threads=1)
+                m, c = run_live(bundle, network, audio, LiveConfig(hop=hop, lookahead=args.lookahead), settings)
+                compute += c / audio.duration / len(seeds)
+                rows.append(quality(m, audio, list(range(hop, m.n_frames, hop)), phones))
+            q = mean_of(rows)
+            cells = "".join(f"{v:>11.3f} ({v / base[k]:4.2f}x)" for k, v in q.items())
+            print(f"{f'H={hop} steps={steps or 25}':<22}{cells}{compute:>10.3f}s", flush=True)
+
+
+def busy_loop() -> None:
+    while True:
+        pass
+
+
+def bench_latency(args, audio_path: Path) -> None:
+    from diffsheg_core.live.session import LiveSession, latency_summary
+    from diffsheg_core.live.sources import FileSource
+
+    print(f"\nreal time: the first {args.seconds:g} s of {audio_path.name} played at 1x, latency from the "
+          "audio arriving to the frame being shown (s)")
+    print(f"{'setting':<28}{'p50':>8}{'p95':>8}{'max':>8}{'compute/s':>11}{'underrun s':>12}")
+    clip = Path(args.out) / "live_clip.wav"
+    import soundfile as sf
+    full = read_audio_file(audio_path)
+    sf.write(clip, full.samples[: int(args.seconds * full.sample_rate)], full.sample_rate)
+    for load in (["idle", "busy"] if args.busy else ["idle"]):
+        hog = None
+        if load == "busy":
+            hog = multiprocessing.Process(target=busy_loop, daemon=True)
+            hog.start()
+        try:
+            for steps in args.steps:
+                for hop in args.hops:
+                    settings = GenerateSettings(seed=0, steps=steps, threads=1)
+                    session = LiveSession(FileSource(str(clip)), settings, LiveConfig(hop=hop, lookahead=args.lookahead))
+                    result = session.run_to_end()
+                    s = latency_summary(result.latencies)
+                    print(f"{f'H={hop} steps={steps or 25} {load}':<28}{s['p50']:>8.3f}{s['p95']:>8.3f}{s['max']:>8.3f}"
+                          f"{result.compute / result.audio.duration:>10.3f}s{result.underrun_seconds:>12.2f}", flush=True)
+        finally:
+            if hog is not None:
+                hog.terminate()
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--hops", type=int, nargs="+", default=[2, 3, 4, 6, 8])
+    p.add_argument("--steps", type=int, nargs="+", default=[0], help="diffusion steps (0: the model's)")
+    p.add_argument("--lookahead", type=int, default=0)
+    p.add_argument("--seeds", type=int, default=2)
+    p.add_argument("--seconds", type=float, default=20.0, help="audio played in the real-time runs")
+    p.add_argument("--realtime", action="store_true", help="also measure latency at real time")
+    p.add_argument("--busy", action="store_true", help="real time also with one core kept busy")
+    p.add_argument("--no-quality", action="store_true")
+    p.add_argument("--out", default="/tmp")
+    args = p.parse_args()
+    args.steps = [s or None for s in args.steps]
+    os.environ.setdefault("DIFFSHEG_THREADS", "1")
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
+    bundle = load_model()
+    network = open_network(bundle, "auto", "auto", "fp32", 1)
+    audio = read_audio_file(TAKE.with_suffix(".wav"))
+    phones = phone_tier(read_textgrid(TAKE.with_suffix(".TextGrid")))
+    if not args.no_quality:
+        bench_quality(args, bundle, network, audio, phones)
+    if args.realtime:
+        bench_latency(args, TAKE.with_suffix(".wav"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,118 @@
+"""`python -m diffsheg_core live`: speech from a microphone, a file at real time or a socket,
+motion out over VMC as it is made, the performance recorded on Ctrl-C or at the end."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from ..errors import DiffshegError
+
+DEFAULT_OSC_PORT = 39539  # VMC's marionette port
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    from ..settings import add_arguments
+    from .engine import HOPS, LOOKAHEADS, LiveConfig
+
+    p = sub.add_parser("live", help="generate live from a microphone, a file played at real time or a socket",
+                       description="Live: speech in as it arrives, motion out within a fraction of a second. "
+                                   "Ctrl-C ends the session and writes the recording.")
+    p.add_argument("--source", default="mic",
+                   help="mic, mic:DEVICE (name or index), a speech file played at real time, or "
+                        "tcp://HOST:PORT[?rate=16000] taking raw 16-bit mono PCM (default: mic)")
+    p.add_argument("--speed", type=float, default=1.0, help="play a file source this many times real time (demos)")
+    p.add_argument("--osc", metavar="HOST:PORT",
+                   help=f"send the motion over the VMC protocol (OSC/UDP) to HOST:PORT (VSeeFace, Warudo, VNyan "
+                        f"listen on {DEFAULT_OSC_PORT})")
+    p.add_argument("--record", metavar="OUT.npz",
+                   help="write the performance as a Motion .npz, with the audio beside it as OUT.wav")
+    p.add_argument("--latency-log", metavar="LOG.json",
+                   help="write each shown frame's time in the audio and its latency (s) as JSON")
+    p.add_argument("--hop", type=int, default=LiveConfig.hop,
+                   help=f"new frames per window, {HOPS[0]}-{HOPS[1]}: fewer, lower latency and more compute "
+                        f"(default %(default)s)")
+    p.add_argument("--lookahead", type=int, default=LiveConfig.lookahead,
+                   help=f"frames of audio a window waits for past its new frames, {LOOKAHEADS[0]}-{LOOKAHEADS[1]} "
+                        "(default %(default)s)")
+    add_arguments(p)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..checkpoints import files_read
+    from ..files import check_outputs
+    from ..settings import from_arguments
+    from .engine import LiveConfig
+    from .session import LiveSession, latency_summary
+    from .sources import open_source
+
+    record = Path(args.record) if args.record else None
+    audio_out = record.with_suffix(".wav") if record else None
+    if record is not None and record.suffix != ".npz":
+        raise DiffshegError(f"--record {record}: the recording is a Motion .npz; name it e.g. take.npz")
+    source_file = None if args.source == "mic" or args.source.startswith(("mic:", "tcp://")) else args.source
+    check_outputs([record, audio_out, args.latency_log], inputs=[source_file, *files_read(args.model)])
+    settings = from_arguments(args)
+    live = LiveConfig(hop=args.hop, lookahead=args.lookahead)
+    source = open_source(args.source, speed=args.speed)
+    session = LiveSession(source, settings, live)
+    sender = _vmc_sender(args.osc, session.bundle) if args.osc else None
+    print(f"live from {source.description}, model {session.bundle.model_id}, hop {live.hop} frames"
+          f"{f', VMC to {args.osc}' if sender else ''}; Ctrl-C ends", file=sys.stderr)
+
+    def show(frame) -> None:
+        if sender is not None:
+            sender.send(frame.rotations, frame.face, frame.time)
+
+    try:
+        result = session.run_to_end(show, on_status=lambda line: print(f"\r{line:<90}", end="", file=sys.stderr))
+    finally:
+        if sender is not None:
+            sender.close()
+    print(file=sys.stderr)
+    summary = latency_summary(result.latencies)
+    print(f"{result.motion.n_frames} frames ({result.audio.duration:.1f} s of audio); latency p50 {summary['p50']:.3f} s, "
+          f"p95 {summary['p95']:.3f} s, max {summary['max']:.3f} s; compute {result.compute / max(result.audio.duration, 1e-9):.2f} s "
+          f"per s of speech" + (f"; {result.underrun_seconds:.1f} s without audio filled with silence"
+                                if result.underrun_seconds else "")
+          + (f"; {result.dropped_seconds:.1f} s of audio dropped (it came faster than real time)"
+             if result.dropped_seconds else ""))
+    if record is not None and result.motion.n_frames:
+        _write_recording(result, record, audio_out)
+    if args.latency_log:
+        _write_latency_log(result.latencies, summary, Path(args.latency_log))
+    if result.error:
+        print(f"error: {result.error}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _vmc_sender(address: str, bundle):
+    from .vmc import VmcSender, parse_address
+
+    host, port = parse_address(address)
+    return VmcSender(host, port, bundle.layout)
+
+
+def _write_recording(result, record: Path, audio_out: Path) -> None:
+    import soundfile as sf
+    from dataclasses import replace
+
+    from ..files import atomic_write
+
+    with atomic_write(audio_out) as fh:
+        sf.write(fh, result.audio.samples, result.audio.sample_rate, format="WAV", subtype="FLOAT")
+    motion = replace(result.motion, meta={**result.motion.meta, "audio_file": str(audio_out)})
+    motion.save_npz(record)
+    print(f"wrote {record} and {audio_out}")
+
+
+def _write_latency_log(latencies, summary: dict, path: Path) -> None:
+    from ..files import atomic_write
+
+    with atomic_write(path, "w", encoding="utf-8") as fh:
+        json.dump({"frames": [{"t": round(t, 6), "latency": round(lat, 6)} for t, lat in latencies],
+                   "summary": summary}, fh)
+    print(f"wrote {path}")

@@ -1,0 +1,203 @@
+"""The low-latency streaming sampler: FOPPAS with a hop of a few frames.
+
+Offline FOPPAS adds `clip_len - overlap` frames per window (30 of 34 for the bundled
+model, 2 s): a frame waits up to that long for its window. Here every window adds only
+`hop` new frames at its end; the `clip_len - hop` frames before them are the motion
+already emitted, held as FOPPAS holds its overlap (painted in at every step, the gap at
+the seam carried into the new frames' x0). A window is sampled as soon as the audio of its
+new frames (and `lookahead` frames past them) has arrived, over speech features computed
+from the last `context` seconds of audio. So a frame is emitted at most about
+hop / fps + lookahead / fps + one window's compute after its audio arrived, and the
+compute per second of speech is fps / hop windows' worth. bench/bench_live.py measures
+both, and the cost in quality against offline generation, for each hop tried.
+
+The first window has nothing to continue and is sampled in full from noise; the ones
+after it run FOPPAS's shorter later-window schedule. Each window's known frames stay
+exactly as emitted (no cross-fade, `blend` off): they are on screen already. The
+refining pass is off: run on every hop it left the wrists at 0.65x offline's speed and
+1.6x its jitter (bundled model, 30 s of real speech, hop 4); without it 0.87x and 1.08x,
+for a third less compute.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Optional
+
+import numpy as np
+
+from ..audio import MIN_SAMPLE_RATE, Audio, mel_frames
+from ..checkpoints import ModelBundle
+from ..errors import DiffshegError
+from ..foppas import Foppas, FoppasConfig, Noise, with_overrides
+from ..phonetic import log_mel, receptive_field, stack_posteriors
+from ..pipeline import build_sampling, check_finite, generation_meta, to_motion
+from ..motion import Motion
+from ..settings import GenerateSettings
+
+HOPS = (1, 16)  # new frames per window: below 1 nothing moves, above 16 (>1 s at 15 fps) it is not live
+LOOKAHEADS = (0, 15)
+
+
+@dataclass(frozen=True)
+class LiveConfig:
+    """How the stream is sampled. hop 4 and lookahead 0 on the bundled model: see
+    bench/bench_live.py and the README's Live section for the figures behind them."""
+
+    hop: int = 4             # new frames per window
+    lookahead: int = 0       # frames of audio a window waits for past its new frames
+    context: float = 3.0     # seconds of audio the speech features of a window are computed over
+
+    def check(self, clip_len: int) -> None:
+        for name, value, (lo, hi) in (("hop", self.hop, HOPS), ("lookahead", self.lookahead, LOOKAHEADS)):
+            if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+                raise DiffshegError(f"live {name} must be a whole number of frames from {lo} to {hi}, "
+                                    f"got {value!r}")
+        if self.hop >= clip_len:
+            raise DiffshegError(f"live hop must be shorter than the model's {clip_len}-frame window, "
+                                f"got {self.hop}")
+        if not isinstance(self.context, (int, float)) or not 0 < self.context <= 60:
+            raise DiffshegError(f"live context must be a number of seconds above 0 and at most 60, "
+                                f"got {self.context!r}")
+
+
+class LiveEngine:
+    """Audio in, as it arrives; final motion frames out, a hop at a time.
+
+    `push(samples)` adds mono float32 samples at `sample_rate`; `ready()` says whether the
+    next hop can be sampled; `step()` samples it and returns its (hop, D) normalised
+    frames; `finish()` samples what is left after the last audio. `motion()` is
+    everything emitted so far as a Motion, `audio()` everything heard."""
+
+    def __init__(self, bundle: ModelBundle, network, settings: GenerateSettings, sample_rate: int,
+                 live: LiveConfig = LiveConfig()):
+        cfg = bundle.config
+        if not float(cfg.fps).is_integer():
+            raise DiffshegError(f"live generation needs a whole motion frame rate, model {bundle.model_id} "
+                                f"runs at {cfg.fps:g} fps")
+        if cfg.has_speech_input and not cfg.phonetic_input:
+            raise DiffshegError(f"model {bundle.model_id} takes HuBERT features, which need the whole "
+                                "recording: live generation runs models with the phonetic encoder (the "
+                                "bundled model) or mel only")
+        if settings.style_at:
+            raise DiffshegError("a style over time (style_at) needs the whole recording: live, choose one "
+                                "style (style=...)")
+        if isinstance(sample_rate, bool) or not isinstance(sample_rate, int) or sample_rate < MIN_SAMPLE_RATE:
+            raise DiffshegError(f"live audio must come at {MIN_SAMPLE_RATE} Hz or more, got {sample_rate!r}")
+        live.check(cfg.clip_len)
+        self.bundle, self.network, self.settings, self.live = bundle, network, settings, live
+        self.sample_rate = sample_rate
+        self.fps = int(cfg.fps)
+        self.config: FoppasConfig = replace(
+            with_overrides(bundle.sampling, steps=settings.steps, candidates=settings.candidates), blend=False, refine=None)
+        self.sampler: Foppas
+        self.sampler, self._make_eps_fn = build_sampling(
+            bundle, network, self.config, settings.style, settings.guidance, settings.skip_guidance,
+            settings.style_guidance)
+        self.noise = Noise(settings.seed, settings.face_seed, self.sampler.gestures)
+        self._align = _alignment(sample_rate, self.fps)
+        self._margin = _margin_frames(bundle, self.fps)
+        self._context = max(int(math.ceil(live.context * self.fps)), cfg.clip_len + self._margin)
+        self._samples = np.zeros(0, np.float32)
+        self._frames: list[np.ndarray] = []  # emitted (k, D) normalised frames, in order
+        self.emitted = 0
+
+    # --- audio in --------------------------------------------------------------------
+    def push(self, samples: np.ndarray) -> None:
+        self._samples = np.concatenate([self._samples, np.asarray(samples, np.float32)])
+
+    @property
+    def n_samples(self) -> int:
+        """Samples heard so far."""
+        return len(self._samples)
+
+    @property
+    def heard_frames(self) -> int:
+        """Motion frames whose audio (a whole 1/fps period) has arrived."""
+        return len(self._samples) * self.fps // self.sample_rate
+
+    def ready(self) -> bool:
+        """Whether the audio of the next hop and its lookahead has arrived."""
+        return self.heard_frames >= self.emitted + self.live.hop + self.live.lookahead
+
+    # --- frames out ------------------------------------------------------------------
+    def step(self) -> np.ndarray:
+        """Sample the next hop; (hop, D) normalised frames, final."""
+        if not self.ready():
+            raise DiffshegError("live: the next hop's audio has not arrived yet")
+        return self._window(self.emitted + self.live.hop)
+
+    def finish(self) -> np.ndarray:
+        """Sample the frames of the audio left after the last full hop (possibly none)."""
+        end = min(self.heard_frames, self.emitted + self.live.hop)
+        if end <= self.emitted:
+            return np.zeros((0, self.bundle.config.dim), np.float32)
+        return self._window(end)
+
+    def _window(self, end: int) -> np.ndarray:
+        """Sample the window ending at frame `end`, holding the emitted frames before the new ones."""
+        first = max(0, end - self.bundle.config.clip_len)
+        n_known = self.emitted - first
+        cond = self._features(first, end)
+        known = self._known(first) if n_known else None
+        window = self.sampler.sample_window(self._make_eps_fn(cond[None]), end - first, known, self.noise)
+        new = window[0, n_known:]
+        check_finite(self.bundle, new)
+        self._frames.append(new)
+        self.emitted = end
+        return new
+
+    def _known(self, first: int) -> np.ndarray:
+        """(1, emitted - first, D): the emitted frames from `first` on."""
+        need, parts = self.emitted - first, []
+        for part in reversed(self._frames):
+            parts.insert(0, part)
+            need -= len(part)
+            if need <= 0:
+                break
+        return np.concatenate(parts)[None, -(self.emitted - first):]
+
+    def _features(self, first: int, end: int) -> np.ndarray:
+        """(end - first, F) speech features of frames [first, end), computed over the audio
+        from `_context` frames before `end` (aligned to a whole sample) to what has arrived."""
+        cfg = self.bundle.config
+        start = max(0, end - self._context) // self._align * self._align
+        audio = Audio(self._samples[start * self.sample_rate // self.fps:], self.sample_rate)
+        rows = slice(first - start, end - start)
+        parts = [mel_frames(audio, self.fps)[rows]]
+        if cfg.phonetic_input:
+            phonetic = self.bundle.phonetic
+            post = self.network.phone_posteriors(log_mel(audio, phonetic))
+            parts.append(stack_posteriors(post, end - first, phonetic.subframes, first - start))
+        return np.concatenate(parts, axis=1).astype(np.float32)
+
+    # --- what was made ---------------------------------------------------------------
+    def audio(self) -> Audio:
+        return Audio(self._samples.copy(), self.sample_rate)
+
+    def motion(self, meta: Optional[dict] = None) -> Motion:
+        """Every frame emitted so far, as a Motion."""
+        frames = np.concatenate(self._frames) if self._frames else np.zeros((0, self.bundle.config.dim), np.float32)
+        return to_motion(self.bundle, frames, meta=meta or {})
+
+    def meta(self) -> dict:
+        """What a recording records of how it was made (as `generate`, plus the live settings)."""
+        meta = generation_meta(self.bundle, self.settings, self.config, self.network, self.audio())
+        meta["live"] = {"hop": self.live.hop, "lookahead": self.live.lookahead, "context": self.live.context}
+        return meta
+
+
+def _alignment(sample_rate: int, fps: int) -> int:
+    """The fewest frames that span a whole number of samples (3 at 16 kHz and 15 fps)."""
+    return fps // math.gcd(sample_rate, fps)
+
+
+def _margin_frames(bundle: ModelBundle, fps: int) -> int:
+    """Frames of audio before a window that its features depend on: the mel's half window
+    and the phonetic encoder's reach, rounded up."""
+    reach_s = 2048 / 2 / 18000
+    if bundle.config.phonetic_input:
+        phonetic = bundle.phonetic
+        reach_s += (receptive_field(phonetic) + phonetic.subframes) / (phonetic.fps * phonetic.subframes)
+    return int(math.ceil(reach_s * fps)) + 1
