@@ -1,0 +1,208 @@
+"""Live generation end to end on real speech: the `live` CLI at real time with a recording,
+a latency log and VMC out to a real OSC listener; a socket producer that stalls, that
+closes, that breaks and that sends faster than real time. Speed goals live in
+bench/bench_live.py, not here."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import soundfile as sf
+
+from diffsheg_core.audio import Audio, n_motion_frames, read_audio_file
+from diffsheg_core.errors import DiffshegError
+from diffsheg_core.checkpoints import load_model
+from diffsheg_core.live.engine import LiveConfig, LiveEngine
+from diffsheg_core.live.session import LiveSession
+from diffsheg_core.live.sources import TcpSource
+from diffsheg_core.motion import Motion
+from diffsheg_core.pipeline import generate
+from diffsheg_core.runtime.backends import open_network
+from diffsheg_core.settings import GenerateSettings
+from diffsheg_core.training.metrics.channels import face_channel, mouth_opening
+from diffsheg_core.training.metrics.lipsync import envelope_correlation
+
+ROOT = Path(__file__).resolve().parents[1]
+SPEECH = ROOT.parent / "shared" / "data" / "beat2" / "2_scott_0_1_1.wav"
+
+
+@pytest.fixture(scope="module")
+def model():
+    bundle = load_model()
+    return bundle, open_network(bundle, "auto", "auto", "fp32", 1)
+
+
+@pytest.fixture(scope="module")
+def speech() -> Audio:
+    """The first 8 s of a real take (16 kHz)."""
+    full = read_audio_file(SPEECH)
+    return Audio(full.samples[: 8 * full.sample_rate], full.sample_rate)
+
+
+def _mouth_voice(motion: Motion, audio: Audio) -> float:
+    return envelope_correlation(mouth_opening(motion), motion.fps, audio.samples, audio.sample_rate)[0]
+
+
+class _OscListener:
+    """A real python-osc server on 127.0.0.1 that keeps every message with its arrival time."""
+
+    def __init__(self):
+        from pythonosc.dispatcher import Dispatcher
+        from pythonosc.osc_server import BlockingOSCUDPServer
+
+        self.messages: list[tuple[float, str, tuple]] = []
+        dispatcher = Dispatcher()
+        dispatcher.set_default_handler(lambda address, *values: self.messages.append(
+            (time.monotonic(), address, values)))
+        self.server = BlockingOSCUDPServer(("127.0.0.1", 0), dispatcher)
+        self.port = self.server.server_address[1]
+        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        self.thread.start()
+
+    def close(self):
+        self.server.shutdown()
+        self.server.server_close()
+
+
+def test_live_cli_on_a_real_file_at_real_time_records_logs_and_streams_vmc(tmp_path, speech, model):
+    clip = tmp_path / "speech.wav"
+    sf.write(clip, speech.samples, speech.sample_rate)
+    listener = _OscListener()
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "diffsheg_core", "live", "--source", str(clip), "--record",
+             str(tmp_path / "take.npz"), "--latency-log", str(tmp_path / "latency.json"),
+             "--osc", f"127.0.0.1:{listener.port}"],
+            capture_output=True, text=True, timeout=120, env={**os.environ, "DIFFSHEG_THREADS": "1"})
+    finally:
+        listener.close()
+    assert proc.returncode == 0, proc.stderr
+    assert "latency p50" in proc.stdout and "wrote" in proc.stdout
+
+    # the recording covers the audio, is finite, and keeps most of offline generation's lip-sync
+    take = Motion.load_npz(tmp_path / "take.npz")
+    heard = read_audio_file(tmp_path / "take.wav")
+    assert np.array_equal(heard.samples, read_audio_file(clip).samples)  # every sample played, none lost
+    assert abs(take.n_frames - n_motion_frames(speech, take.fps)) <= 1
+    assert np.isfinite(take.rotations).all() and np.isfinite(take.face).all()
+    assert take.meta["live"]["hop"] == LiveConfig().hop
+    offline = generate(speech, settings=GenerateSettings(model=model[0], seed=0))
+    assert _mouth_voice(take, speech) >= 0.8 * _mouth_voice(offline, speech)
+
+    # the latency log holds every frame, in order, each shown after its audio arrived
+    log = json.loads((tmp_path / "latency.json").read_text())["frames"]
+    times = np.array([f["t"] for f in log])
+    assert len(log) == take.n_frames
+    assert np.allclose(times, np.arange(take.n_frames) / take.fps, atol=1e-5)
+    assert all(0 < f["latency"] < 10 for f in log)
+
+    # VMC: one frame of valid messages per shown frame, at the stream's frame rate
+    addresses = [address for _, address, _ in listener.messages]
+    assert set(addresses) <= {"/VMC/Ext/OK", "/VMC/Ext/T", "/VMC/Ext/Root/Pos", "/VMC/Ext/Bone/Pos",
+                              "/VMC/Ext/Blend/Val", "/VMC/Ext/Blend/Apply"}
+    applies = np.array([t for t, address, _ in listener.messages if address == "/VMC/Ext/Blend/Apply"])
+    assert len(applies) == take.n_frames
+    assert 0.7 / take.fps < np.median(np.diff(applies)) < 1.3 / take.fps
+    bones = {values[0] for _, address, values in listener.messages if address == "/VMC/Ext/Bone/Pos"}
+    assert {"Spine", "Neck", "Head", "LeftUpperArm", "RightHand", "LeftIndexProximal"} <= bones
+    shapes = {values[0] for _, address, values in listener.messages if address == "/VMC/Ext/Blend/Val"}
+    assert {"JawOpen", "EyeBlinkLeft", "MouthClose", "A", "Blink_L"} <= shapes
+
+
+def _serve(session: LiveSession) -> tuple[threading.Thread, dict]:
+    """Run the session in a thread; returns the thread and where its result will be."""
+    out: dict = {}
+    thread = threading.Thread(target=lambda: out.setdefault("result", session.run_to_end()), daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while not session.source.port and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return thread, out
+
+
+def _pcm(audio: Audio) -> bytes:
+    return (np.clip(audio.samples, -1, 1) * 32767).astype("<i2").tobytes()
+
+
+def _send_at_real_time(sock: socket.socket, pcm: bytes, rate: int, chunk_s: float = 0.04) -> None:
+    step, start = int(rate * chunk_s) * 2, time.monotonic()
+    for k, i in enumerate(range(0, len(pcm), step)):
+        sock.sendall(pcm[i: i + step])
+        time.sleep(max(0.0, start + (k + 1) * chunk_s - time.monotonic()))
+
+
+def test_a_stalling_producer_eases_the_avatar_to_rest_and_it_resumes(speech, model):
+    rate = speech.sample_rate
+    session = LiveSession(TcpSource(sample_rate=rate), GenerateSettings(seed=0), bundle=model[0], network=model[1])
+    thread, out = _serve(session)
+    first, second = Audio(speech.samples[: 3 * rate], rate), Audio(speech.samples[3 * rate: 6 * rate], rate)
+    with socket.create_connection(("127.0.0.1", session.source.port)) as sock:
+        _send_at_real_time(sock, _pcm(first), rate)
+        time.sleep(2.0)  # the producer stalls
+        _send_at_real_time(sock, _pcm(second), rate)
+    thread.join(60)
+    result = out["result"]
+    assert result.error is None
+    assert 1.2 < result.underrun_seconds < 2.5
+    fps = result.motion.fps
+    assert result.motion.n_frames >= int((6 + result.underrun_seconds - 0.1) * fps)
+    jaw = face_channel(result.motion, "jawOpen")
+    gap = jaw[int(3.8 * fps): int((3 + result.underrun_seconds) * fps)]  # the stall, once eased in
+    spoken = jaw[int(0.5 * fps): int(3 * fps)]
+    after = jaw[int((3.5 + result.underrun_seconds) * fps):]  # speech again
+    assert gap.mean() < 0.5 * spoken.mean()  # the mouth rests while no audio comes
+    assert after.std() > 2 * gap.std() and after.mean() > 2 * gap.mean()  # and talks again after
+    silence = result.audio.samples[3 * rate + rate // 2: 3 * rate + int(rate * (result.underrun_seconds - 0.2))]
+    assert not silence.any()  # the recording holds the filled silence
+
+
+def test_a_closed_socket_ends_the_session_and_a_reset_one_says_why(speech, model):
+    rate = speech.sample_rate
+    session = LiveSession(TcpSource(sample_rate=rate), GenerateSettings(seed=1), bundle=model[0], network=model[1])
+    thread, out = _serve(session)
+    sock = socket.create_connection(("127.0.0.1", session.source.port))
+    _send_at_real_time(sock, _pcm(Audio(speech.samples[: 2 * rate], rate)), rate)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\x00\x00\x00\x00\x00\x00\x00")
+    sock.close()  # an abrupt reset mid-stream
+    thread.join(60)
+    result = out["result"]
+    assert result.error and "reset" in result.error.lower()
+    assert result.motion.n_frames >= int(1.9 * result.motion.fps)  # what was heard is kept
+    assert np.isfinite(result.motion.rotations).all()
+
+
+def test_a_producer_faster_than_real_time_is_bounded_and_reported(speech, model):
+    rate = speech.sample_rate
+    session = LiveSession(TcpSource(sample_rate=rate), GenerateSettings(seed=0), bundle=model[0], network=model[1])
+    session.feed.capacity = 2 * rate  # a 2 s buffer, so the test is short
+    thread, out = _serve(session)
+    with socket.create_connection(("127.0.0.1", session.source.port)) as sock:
+        sock.sendall(_pcm(speech))  # 8 s at once
+    thread.join(60)
+    result = out["result"]
+    assert result.error is None
+    assert 5.0 < result.dropped_seconds < 6.1
+    assert result.audio.duration + result.dropped_seconds == pytest.approx(speech.duration, abs=0.01)
+    assert "dropped" in session.status()
+    assert abs(result.motion.n_frames - n_motion_frames(result.audio, result.motion.fps)) <= 1
+
+
+def test_the_engine_refuses_what_live_cannot_do(model):
+    bundle, network = model
+    with pytest.raises(DiffshegError, match="style over time"):
+        LiveEngine(bundle, network, GenerateSettings(style_at=((0, 0),)), 16000)
+    with pytest.raises(DiffshegError, match="hop"):
+        LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(hop=0))
+    with pytest.raises(DiffshegError, match="lookahead"):
+        LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(lookahead=-1))
+    with pytest.raises(DiffshegError, match="4000 Hz or more"):
+        LiveEngine(bundle, network, GenerateSettings(), 100)
