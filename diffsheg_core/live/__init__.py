@@ -6,4 +6,5 @@ socket drives the avatar within a fraction of a second, and is recorded.
 - engine.py   the low-latency streaming sampler: a FOPPAS window per hop of new frames
 - session.py  a source, the engine and the outputs run together; latency, underruns, recording
 - vmc.py      the VMC protocol over OSC (VSeeFace, Warudo, VNyan)
+- cli.py      `python -m diffsheg_core live`
 """

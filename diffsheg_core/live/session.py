@@ -25,7 +25,7 @@ import collections
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Optional, Protocol
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -38,23 +38,11 @@ from ..runtime.backends import open_network
 from ..settings import GenerateSettings
 from .engine import LiveConfig, LiveEngine
 from .feed import AudioFeed, FeedClosed
+from .sources import Source
 
 UNDERRUN_AFTER_S = 0.3  # no audio for this long: the gap is filled with silence (far above a 20-50 ms chunk)
 CUSHION_S = 0.02  # the pacer shows frames this much after the earliest it could, against compute jitter
 TIGHTEN_S = 0.01  # ... and takes back at most this much waiting per hop once compute is faster again
-
-
-class Source(Protocol):
-    """What `sources.py` provides: audio at `sample_rate` put into a feed from its own thread.
-    A source that plays faster than real time (a file for a demo) has a `speed` attribute,
-    and the frames are shown that much faster too."""
-
-    sample_rate: int
-    description: str
-
-    def start(self, feed: AudioFeed) -> None: ...
-
-    def stop(self) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -165,6 +153,7 @@ class LiveSession:
                                                settings.precision, settings.threads)
         self.engine = LiveEngine(self.bundle, self.network, settings, source.sample_rate, live)
         self.feed = AudioFeed(source.sample_rate)
+        # a file played faster than real time for a demo (its `speed`) is shown that much faster too
         self.pacer = Pacer(self.bundle.config.fps * getattr(source, "speed", 1.0))
         self.underrun_after = underrun_after
         self.latencies: list[tuple[float, float]] = []
