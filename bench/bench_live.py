@@ -12,7 +12,7 @@ For each hop H tried (and the diffusion steps), on one real take with its phone 
   the file played at real time through a `LiveSession` (as `diffsheg live` runs it), idle
   and with another process keeping one core busy (--busy).
 
-    python bench/bench_live.py                         # quality and compute, hops 2 3 4 6 8
+    python bench/bench_live.py                         # quality and compute, hops 3 4 6, lookahead 0 2
     python bench/bench_live.py --realtime --seconds 20 --busy
 
 One thread (DIFFSHEG_THREADS=1, the default). Say which machine the figures came from.
@@ -95,17 +95,24 @@ def bench_quality(args, bundle, network, audio: Audio, phones) -> None:
     print(f"\n{audio.duration:.1f} s of speech, seeds {list(seeds)}; ratios are live / offline")
     print(f"{'setting':<22}" + "".join(f"{k:>19}" for k in base) + f"{'compute/s':>11}")
     print(f"{'offline':<22}" + "".join(f"{v:>19.3f}" for v in base.values()))
-    for steps in args.steps:
-        for hop in args.hops:
-            rows, compute = [], 0.0
-            for seed in seeds:
-                settings = GenerateSettings(model=bundle, seed=seed, steps=steps, threads=1)
-                m, c = run_live(bundle, network, audio, LiveConfig(hop=hop, lookahead=args.lookahead), settings)
-                compute += c / audio.duration / len(seeds)
-                rows.append(quality(m, audio, list(range(hop, m.n_frames, hop)), phones))
-            q = mean_of(rows)
-            cells = "".join(f"{v:>11.3f} ({v / base[k]:4.2f}x)" for k, v in q.items())
-            print(f"{f'H={hop} steps={steps or 25}':<22}{cells}{compute:>10.3f}s", flush=True)
+    for steps, hop, lookahead in settings_tried(args):
+        rows, compute = [], 0.0
+        for seed in seeds:
+            settings = GenerateSettings(model=bundle, seed=seed, steps=steps, threads=1)
+            m, c = run_live(bundle, network, audio, LiveConfig(hop=hop, lookahead=lookahead), settings)
+            compute += c / audio.duration / len(seeds)
+            rows.append(quality(m, audio, list(range(hop, m.n_frames, hop)), phones))
+        q = mean_of(rows)
+        cells = "".join(f"{v:>11.3f} ({v / base[k]:4.2f}x)" for k, v in q.items())
+        print(f"{label(steps, hop, lookahead):<22}{cells}{compute:>10.3f}s", flush=True)
+
+
+def settings_tried(args) -> list[tuple]:
+    return [(steps, hop, lookahead) for steps in args.steps for hop in args.hops for lookahead in args.lookaheads]
+
+
+def label(steps, hop: int, lookahead: int) -> str:
+    return f"H={hop} L={lookahead}" + (f" steps={steps}" if steps else "")
 
 
 def busy_loop() -> None:
@@ -130,14 +137,13 @@ def bench_latency(args, audio_path: Path) -> None:
             hog = multiprocessing.Process(target=busy_loop, daemon=True)
             hog.start()
         try:
-            for steps in args.steps:
-                for hop in args.hops:
-                    settings = GenerateSettings(seed=0, steps=steps, threads=1)
-                    session = LiveSession(FileSource(str(clip)), settings, LiveConfig(hop=hop, lookahead=args.lookahead))
-                    result = session.run_to_end()
-                    s = latency_summary(result.latencies)
-                    print(f"{f'H={hop} steps={steps or 25} {load}':<28}{s['p50']:>8.3f}{s['p95']:>8.3f}{s['max']:>8.3f}"
-                          f"{result.compute / result.audio.duration:>10.3f}s{result.underrun_seconds:>12.2f}", flush=True)
+            for steps, hop, lookahead in settings_tried(args):
+                settings = GenerateSettings(seed=0, steps=steps, threads=1)
+                session = LiveSession(FileSource(str(clip)), settings, LiveConfig(hop=hop, lookahead=lookahead))
+                result = session.run_to_end()
+                s = latency_summary(result.latencies)
+                print(f"{label(steps, hop, lookahead) + ' ' + load:<28}{s['p50']:>8.3f}{s['p95']:>8.3f}{s['max']:>8.3f}"
+                      f"{result.compute / result.audio.duration:>10.3f}s{result.underrun_seconds:>12.2f}", flush=True)
         finally:
             if hog is not None:
                 hog.terminate()
@@ -145,9 +151,9 @@ def bench_latency(args, audio_path: Path) -> None:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--hops", type=int, nargs="+", default=[2, 3, 4, 6, 8])
+    p.add_argument("--hops", type=int, nargs="+", default=[3, 4, 6])
     p.add_argument("--steps", type=int, nargs="+", default=[0], help="diffusion steps (0: the model's)")
-    p.add_argument("--lookahead", type=int, default=0)
+    p.add_argument("--lookaheads", type=int, nargs="+", default=[0, 2], help="frames of lookahead tried")
     p.add_argument("--seeds", type=int, default=2)
     p.add_argument("--seconds", type=float, default=20.0, help="audio played in the real-time runs")
     p.add_argument("--realtime", action="store_true", help="also measure latency at real time")
