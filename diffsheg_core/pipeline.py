@@ -492,19 +492,3 @@ def to_motion(bundle: ModelBundle, normalised: np.ndarray, meta: dict) -> Motion
         face = np.clip(face, 0.0, 1.0)  # ARKit weights are defined on [0, 1]
     return Motion(fps=bundle.config.fps, rig=layout.name, joint_names=list(layout.joint_names),
                   rotations=rotations, face_names=list(layout.face_names), face=face, meta=meta)
-
-
-def open_stream(bundle: ModelBundle, *, seed: int = 0, style: Optional[StyleSpec] = None,
-                guidance: Optional[float] = None, skip_guidance: Optional[float] = None,
-                style_guidance: Optional[float] = None,
-                sampling: Optional[FoppasConfig] = None, face_seed: Optional[int] = None,
-                device: str = "auto", backend: str = "auto", threads: Optional[int] = None) -> FoppasStream:
-    """A `FoppasStream` for live use: push (n, F) speech features from `speech_features`
-    (computed on audio chunks whose lengths are multiples of 1/fps s), get normalised
-    motion frames back; `to_motion` turns them into a Motion. For a model with the phonetic
-    encoder, compute the features over a buffer of the last few seconds and push its newest
-    frames: the encoder looks 0.53 s either side and takes off the level of what it is given."""
-    network = open_network(bundle, backend, device, threads=threads)
-    sampler, make = build_sampling(bundle, network, sampling or bundle.sampling, style, guidance,
-                                   skip_guidance, style_guidance)
-    return FoppasStream(sampler, make, seed, face_seed=face_seed)

@@ -14,7 +14,7 @@ from diffsheg_core.errors import DiffshegError
 from diffsheg_core.foppas import (PROPOSAL_STREAM, Foppas, FoppasConfig, FoppasStream, PRESETS,
                                   carry_overlap, check_seed, jump_schedule, model_calls, plan_windows, sample_long)
 from diffsheg_core.guidance import Guidance
-from diffsheg_core.pipeline import generate, make_eps_fn_factory, open_stream, style_vector
+from diffsheg_core.pipeline import generate, make_eps_fn_factory, style_vector
 from diffsheg_core.prior import GesturePrior
 from diffsheg_core.runtime.backends import open_network
 
@@ -443,8 +443,6 @@ def test_bad_seeds_are_refused(model, seed):
         FoppasStream(sampler, make, seed)
     with pytest.raises(DiffshegError, match="seed"):
         generate(np.zeros(16000, np.float32), 16000, model=model, seed=seed)
-    with pytest.raises(DiffshegError, match="seed"):
-        open_stream(model, seed=seed)
 
 
 def test_a_seed_gives_the_same_motion_on_either_backend(data_dir, tmp_path, model):
