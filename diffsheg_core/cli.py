@@ -32,7 +32,8 @@ def _generate_parser(sub: argparse._SubParsersAction) -> None:
                         "tensor shapes)")
     p.add_argument("--config", dest="dataset", choices=["beat", "show"], help=argparse.SUPPRESS)  # its old name
     p.add_argument("--stats", help="folder of the official normalisation statistics (official checkpoints)")
-    p.add_argument("--preset", choices=sorted(PRESETS), help="FOPPAS settings preset")
+    p.add_argument("--sampling", choices=sorted(PRESETS), help="FOPPAS sampling settings (default: the model's)")
+    p.add_argument("--preset", dest="sampling", choices=sorted(PRESETS), help=argparse.SUPPRESS)  # its old name
     p.add_argument("--no-prior", action="store_true",
                    help="start later FOPPAS windows from pure noise, as in the paper, instead of from "
                         "the model's gesture prior (models that have one)")
@@ -76,7 +77,7 @@ def run_generate(args: argparse.Namespace) -> int:
         bar.set_postfix_str(f"clip {p.clip + 1}/{p.n_clips}", refresh=False)
         bar.update(int(p.fraction * 1000) - bar.n)
 
-    sampling = PRESETS[args.preset] if args.preset else bundle.sampling
+    sampling = PRESETS[args.sampling] if args.sampling else bundle.sampling
     if args.no_prior:
         sampling = replace(sampling, prior_start=False)
     if args.no_refine:
