@@ -366,3 +366,12 @@ def test_a_real_portaudio_stream_from_an_alsa_device_playing_speech(tmp_path, ma
     got = np.load(tmp_path / "got.npy")
     np.testing.assert_array_equal(got[:len(speech)], speech)
     assert "no microphone 'no such microphone'" in result["wrong"] and "speechmic" in result["wrong"]
+
+
+def test_a_tcp_address_may_allow_remote_producers_when_asked():
+    from diffsheg_core.live.sources import open_source
+
+    with pytest.raises(DiffshegError, match="allow_remote=1"):
+        open_source("tcp://0.0.0.0:0")
+    source = open_source("tcp://0.0.0.0:0?allow_remote=1")
+    assert source.allow_remote and not source.keep_listening

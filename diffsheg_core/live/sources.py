@@ -66,7 +66,8 @@ JOIN_S = 5.0  # how long stop() waits for a source's thread
 DEFAULT_TCP_RATE = 16000
 
 SPEC_FORMS = ("'mic' (the default microphone), 'mic:NAME' or 'mic:INDEX' (a microphone by "
-              "name or number), 'tcp://HOST:PORT' (optionally '?rate=22050', '&keep_listening=1'), "
+              "name or number), 'tcp://HOST:PORT' (optionally '?rate=22050', '&keep_listening=1', "
+              "'&allow_remote=1'), "
               "or the path of a speech file")
 
 
@@ -393,7 +394,8 @@ class TcpSource(Source):
                 raise DiffshegError(
                     f"host {self.host!r} is reachable from other computers ({', '.join(remote) or 'all addresses'}), "
                     "and anyone who reaches the socket would speak through the avatar: listen on "
-                    "127.0.0.1, or pass allow_remote=True on a network you trust")
+                    "127.0.0.1, or on a network you trust add ?allow_remote=1 to the tcp:// address "
+                    "(allow_remote=True in Python)")
         return addresses
 
     @property
@@ -497,7 +499,8 @@ class TcpSource(Source):
 
 def open_source(spec: str, speed: float = 1.0) -> Source:
     """A source from a user's text: 'mic' or 'mic:NAME_OR_INDEX' (a microphone),
-    'tcp://HOST:PORT' with optional '?rate=HZ' and '&keep_listening=1' (a TCP producer),
+    'tcp://HOST:PORT' with optional '?rate=HZ', '&keep_listening=1' and '&allow_remote=1'
+    (a TCP producer),
     anything else the path of a speech file played at `speed` times real time."""
     if not isinstance(spec, str) or not spec.strip():
         raise DiffshegError(f"no live audio source given: use {SPEC_FORMS}")
@@ -527,14 +530,17 @@ def _tcp_source(spec: str, text: str) -> TcpSource:
         raise DiffshegError(f"'{spec}' is not of the form tcp://HOST:PORT (e.g. tcp://127.0.0.1:5005, "
                             "optionally ?rate=22050)")
     options = urllib.parse.parse_qs(url.query, keep_blank_values=True)
-    unknown = sorted(set(options) - {"rate", "keep_listening"})
+    unknown = sorted(set(options) - {"rate", "keep_listening", "allow_remote"})
     if unknown:
-        raise DiffshegError(f"'{spec}': unknown option {', '.join(unknown)}; tcp:// takes rate=HZ and "
-                            "keep_listening=1")
+        raise DiffshegError(f"'{spec}': unknown option {', '.join(unknown)}; tcp:// takes rate=HZ, "
+                            "keep_listening=1 and allow_remote=1")
     rate_text = options.get("rate", [str(DEFAULT_TCP_RATE)])[-1]
     if not rate_text.isdigit():
         raise DiffshegError(f"'{spec}': rate must be a whole number of Hz, got {rate_text!r}")
-    keep_text = options.get("keep_listening", ["0"])[-1].lower()
-    if keep_text not in ("0", "1", "true", "false", "yes", "no", ""):
-        raise DiffshegError(f"'{spec}': keep_listening must be 1 or 0, got {keep_text!r}")
-    return TcpSource(url.hostname, port, int(rate_text), keep_listening=keep_text in ("1", "true", "yes", ""))
+    flags = {}
+    for name in ("keep_listening", "allow_remote"):
+        value = options.get(name, ["0"])[-1].lower()
+        if value not in ("0", "1", "true", "false", "yes", "no", ""):
+            raise DiffshegError(f"'{spec}': {name} must be 1 or 0, got {value!r}")
+        flags[name] = value in ("1", "true", "yes", "")
+    return TcpSource(url.hostname, port, int(rate_text), **flags)
