@@ -17,8 +17,10 @@ The wheels are downloaded from PyPI once, with pip, into a cache folder
 ($DIFFSHEG_WHEEL_CACHE, default ~/.cache/diffsheg/wheels; --wheel-cache), at the versions
 pinned in WHEELS below, for CPython 3.11 (Blender 4.2-5.0). Each zip records the pins
 and every wheel's file name, size and sha256 in wheels/wheels.json. The tooling
-(diffsheg_core/training/, diffsheg_core/export.py) stays out of every zip: the add-on
-never needs torch. blender_addon/blender_manifest.toml is the template of the manifest.
+(diffsheg_core/training/, diffsheg_core/torch_layer/export.py) stays out of every zip. The
+add-on runs without torch; the rest of diffsheg_core/torch_layer/ ships for when its user
+installs torch (GPU support: official checkpoints, CUDA GPUs).
+blender_addon/blender_manifest.toml is the template of the manifest.
 """
 
 from __future__ import annotations
@@ -75,7 +77,7 @@ WHEEL_CACHE_ENV = "DIFFSHEG_WHEEL_CACHE"
 
 SKIP_DIRS = {"__pycache__", ".pytest_cache"}
 SKIP_SUFFIXES = {".pyc", ".pyo"}
-CORE_EXCLUDE = ("training/", "export.py")  # tooling, relative to diffsheg_core/
+CORE_EXCLUDE = ("training/", "torch_layer/export.py")  # tooling, relative to diffsheg_core/
 
 
 class BuildError(Exception):

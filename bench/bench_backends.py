@@ -78,7 +78,7 @@ def flops_per_call() -> tuple[float, int]:
     from diffsheg_core.diffusion import Schedule
     from diffsheg_core.guidance import Guidance, step_eps
     from diffsheg_core.pipeline import style_vector, style_weights
-    from diffsheg_core.runtime.backends import TorchNetwork
+    from diffsheg_core.torch_layer.backend import TorchNetwork
 
     bundle = load_model()
     net = TorchNetwork(bundle, "cpu", "fp32")

@@ -29,10 +29,10 @@ from diffsheg_core.bvh import write_bvh
 from diffsheg_core.checkpoints import ModelBundle, load_model
 from diffsheg_core.config import ModelConfig
 from diffsheg_core.foppas import PRESETS, sample_long
-from diffsheg_core.model import UniEG, state_arrays
 from diffsheg_core.motion import write_arkit_json
 from diffsheg_core.pipeline import build_sampling, speech_features, to_motion
 from diffsheg_core.runtime.backends import open_network
+from diffsheg_core.torch_layer.model import UniEG, state_arrays
 
 SPEECH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "audio" / "2_scott_0_3_3.wav"
 

@@ -7,16 +7,17 @@ Three separate steps, each usable alone:
 - resampling: `resample` (soxr "HQ", the resampler `librosa.load` uses by default);
 - features: `mel_spectrogram` (a power mel spectrogram at 18 kHz, as librosa 0.11
   computes it by default), `mel_features`, the official DiffSHEG mel front end (one
-  frame per motion frame), and the optional `hubert_features`.
+  frame per motion frame); the optional HuBERT features are `torch_layer.hubert`'s
+  `hubert_features` (this module says whether they can run: `hubert_status`).
 
 This module runs inside Blender, where only numpy and the bundled wheels exist: it
 imports the standard library, numpy, soundfile and soxr, never librosa, scipy or
 numba. The mel filterbanks therefore are not computed here but read from
 `assets/mel_filters.npz`, which `tools/make_mel_filters.py` makes with librosa.
 The audioread fallback (formats libsndfile cannot read) is used only when installed.
-HuBERT needs the `transformers` package and a local copy of
-facebook/hubert-large-ls960-ft; neither is needed for anything else, and
-importing this module never imports transformers (or torch).
+HuBERT needs torch, the `transformers` package and a local copy of
+facebook/hubert-large-ls960-ft; none is needed for anything else, and this module
+never imports transformers or torch.
 """
 
 from __future__ import annotations
@@ -524,15 +525,6 @@ class SpeechEncoding:
 # --- HuBERT features (optional) ------------------------------------------------
 
 
-@dataclass
-class HubertEncoder:
-    """A loaded HuBERT model and its feature extractor; load once with `load_hubert`, reuse."""
-
-    model: Any
-    feature_extractor: Any
-    device: Any
-
-
 def hubert_status(model_path: str | os.PathLike | None = None) -> str | None:
     """None when HuBERT features can be computed, else a one-line reason why not."""
     if importlib.util.find_spec("transformers") is None:
@@ -549,6 +541,14 @@ def hubert_status(model_path: str | os.PathLike | None = None) -> str | None:
     return None
 
 
+def require_hubert(model_path: str | os.PathLike | None = None) -> None:
+    """Raise AudioError saying what to install when HuBERT features cannot be computed
+    (before `torch_layer.hubert.load_hubert` imports torch)."""
+    reason = hubert_status(model_path)
+    if reason is not None:
+        raise AudioError(f"HuBERT features are unavailable: {reason}. {HUBERT_HOW_TO}")
+
+
 def _cached_hubert_folder() -> Path | None:
     """The cached snapshot folder of HUBERT_REPO_ID, without touching the network."""
     try:
@@ -557,85 +557,3 @@ def _cached_hubert_folder() -> Path | None:
         return None
     config = try_to_load_from_cache(HUBERT_REPO_ID, "config.json")
     return Path(config).parent if isinstance(config, str) else None
-
-
-def load_hubert(model_path: str | os.PathLike | None = None, device: str = "cpu") -> HubertEncoder:
-    """Load HuBERT from `model_path` (a folder) or the Hugging Face cache; never downloads."""
-    reason = hubert_status(model_path)
-    if reason is not None:
-        raise AudioError(f"HuBERT features are unavailable: {reason}. {HUBERT_HOW_TO}")
-    torch_device = _torch_device(device)
-    from transformers import HubertModel, Wav2Vec2FeatureExtractor
-
-    folder = Path(model_path) if model_path is not None else _cached_hubert_folder()
-    try:
-        model = HubertModel.from_pretrained(folder, local_files_only=True)
-        if (folder / "preprocessor_config.json").is_file():
-            extractor = Wav2Vec2FeatureExtractor.from_pretrained(folder, local_files_only=True)
-        else:
-            extractor = Wav2Vec2FeatureExtractor(
-                feature_size=1, sampling_rate=HUBERT_RATE, padding_value=0.0, do_normalize=True)
-    except (OSError, ValueError) as error:
-        raise AudioError(f"HuBERT model in '{folder}' cannot be loaded ({error}). {HUBERT_HOW_TO}") from None
-    return HubertEncoder(model.eval().to(torch_device), extractor, torch_device)
-
-
-def _torch_device(device: str) -> Any:
-    """torch.device for 'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:N'."""
-    from .devices import resolve_device
-
-    try:
-        return resolve_device(device)
-    except DiffshegError as exc:
-        raise AudioError(f"HuBERT: {exc}") from None
-
-
-def hubert_features(
-    audio: Audio,
-    n_frames: int,
-    model_path: str | os.PathLike | None = None,
-    device: str = "cpu",
-    official_quirk: bool = False,
-    encoder: HubertEncoder | None = None,
-) -> np.ndarray:
-    """(n_frames, 1024) float32 HuBERT last hidden states, resampled to the motion frames.
-
-    HuBERT runs on 16 kHz audio. `official_quirk=True` instead feeds the 22050 Hz
-    audio as if it were 16 kHz, as the official DiffSHEG inference code does (it
-    passes librosa.load's output straight to HuBERT). The 50 Hz states are
-    interpolated linearly with align_corners=True (first and last states land on the
-    first and last motion frames), as the official checkpoints were trained; each
-    motion frame then reads HuBERT from 12 to 75 ms after its own time, at any length.
-    `encoder` (from `load_hubert`) avoids reloading the model; otherwise it is
-    loaded from `model_path` or the Hugging Face cache onto `device`.
-    """
-    if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
-        raise AudioError(f"n_frames must be a positive whole number of motion frames, got {n_frames!r}")
-    encoder = encoder if encoder is not None else load_hubert(model_path, device)
-    speech = resample(audio, LOAD_RATE if official_quirk else HUBERT_RATE)
-    import torch.nn.functional as F
-
-    states = _hubert_states(encoder, speech)
-    resized = F.interpolate(states.T[None], size=int(n_frames), mode="linear", align_corners=True)
-    return np.ascontiguousarray(resized[0].T.numpy(), dtype=np.float32)
-
-
-def _hubert_states(encoder: HubertEncoder, speech: Audio) -> Any:
-    """(frames, 1024) float32 CPU tensor: one state per 320 input samples, in 1000-frame chunks."""
-    import torch
-
-    values = encoder.feature_extractor(
-        speech.samples, sampling_rate=HUBERT_RATE, return_tensors="pt").input_values
-    n = values.shape[1]
-    expected = (n - (HUBERT_KERNEL - HUBERT_STRIDE)) // HUBERT_STRIDE
-    if expected < 1:
-        raise AudioError(f"{speech.name} is too short for HuBERT (needs {HUBERT_KERNEL} samples at 16 kHz)")
-    chunk_len = HUBERT_CHUNK + HUBERT_KERNEL - HUBERT_STRIDE
-    chunks = [values[:, start:start + chunk_len] for start in range(0, n, HUBERT_CHUNK)]
-    with torch.inference_mode():
-        states = torch.cat([
-            encoder.model(chunk.to(encoder.device)).last_hidden_state[0].float().cpu()
-            for chunk in chunks if chunk.shape[1] >= HUBERT_KERNEL])
-    if len(states) < expected:  # a tail shorter than one receptive field: repeat the last state
-        states = torch.cat([states, states[-1:].expand(expected - len(states), -1)])
-    return states[:expected]

@@ -10,9 +10,9 @@ onnxruntime backend), optionally `phonetic.*` (the phonetic encoder) and `prior.
 gesture prior), and JSON metadata (config, sampling, guidance scales, model id, model
 card). Reading it needs numpy and safetensors only. Official checkpoints are torch pickles
 holding the state dict under `encoder`; they need torch, are read with
-`weights_only=True` and loaded strictly. Their normalisation statistics (.npy) are read
-without running code: plain arrays, or (SHOW) a pickled dict unpickled with numpy's array
-globals only.
+`weights_only=True` (in `torch_layer.official`) and loaded strictly. Their normalisation
+statistics (.npy) are read without running code: plain arrays, or (SHOW) a pickled dict
+unpickled with numpy's array globals only.
 """
 
 from __future__ import annotations
@@ -336,30 +336,6 @@ OFFICIAL = {
 }
 
 
-def _read_pickle(path: Path) -> dict:
-    try:
-        import torch
-    except ImportError:
-        raise CheckpointError(f"{path}: official DiffSHEG checkpoints are torch pickles and need torch, "
-                              f"which this installation lacks: {TORCH_HOW_TO}") from None
-    damaged = (f"{path}: cannot read this torch checkpoint ({{}}); it is truncated, damaged or not a "
-               "checkpoint at all: download it again")
-    try:
-        return torch.load(str(path), map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as exc:
-        if "Unsupported operand" in str(exc):  # torch's word for bytes that are no pickle opcode
-            raise CheckpointError(damaged.format("its pickle is damaged")) from None
-        raise CheckpointError(
-            f"{path}: refused to load: the file needs arbitrary code to unpickle ({exc}). "
-            "Only plain tensors and containers are accepted; re-save the checkpoint's state "
-            "dict with torch.save({'encoder': model.state_dict()}, path) in a trusted environment."
-        ) from exc
-    except (RuntimeError, OSError) as exc:  # torch's zip reader, the file system
-        raise CheckpointError(damaged.format(exc)) from None
-    except Exception:  # a damaged pickle raises many types (IndexError for 3 bytes, EOFError)
-        raise CheckpointError(damaged.format("its pickle is damaged or cut short")) from None
-
-
 def _encoder_state(raw) -> Optional[dict]:
     """The network's entries of an unpickled official checkpoint (under key `encoder`,
     `module.` prefixes dropped); None when it holds no dict."""
@@ -554,10 +530,14 @@ def official_stats(dataset: str, stats_dir: Optional[str | Path],
 
 
 def _load_official(path: Path, dataset: Optional[str], stats_dir) -> ModelBundle:
+    try:
+        from .torch_layer.model import UniEG, load_state_strict
+        from .torch_layer.official import _read_pickle
+    except ImportError:
+        raise CheckpointError(f"{path}: official DiffSHEG checkpoints are torch pickles and need torch, "
+                              f"which this installation lacks: {TORCH_HOW_TO}") from None
     state = official_state_dict(_read_pickle(path), path)
     check_weights(state, str(path))
-    from .model import UniEG, load_state_strict  # torch: _read_pickle has checked it is there
-
     cfg = config_from_state(state, dataset, path)
     name = "beat" if cfg.layout == "beat" else "show"
     load_state_strict(UniEG(cfg), state, str(path),

@@ -132,7 +132,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     warnings.showwarning = _show_warning  # one plain line per warning, not a source location
     delegated = {"train": "training.train", "evaluate": "training.evaluate",
                  "train-autoencoder": "training.autoencoder", "train-phonetic": "training.phonetic",
-                 "export-onnx": "export"}
+                 "export-onnx": "torch_layer.export"}
     if argv and argv[0] in delegated:
         try:
             return _delegate(argv[0], delegated[argv[0]], argv[1:])

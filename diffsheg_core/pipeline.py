@@ -18,8 +18,8 @@ from typing import Callable, Iterator, Optional, Union
 import numpy as np
 
 from . import __version__
-from .audio import (PIECE_SECONDS, Audio, AudioFile, SpeechEncoding, hubert_features, load_audio, load_hubert,
-                    mel_features, mel_frames, n_motion_frames, open_audio_file)
+from .audio import (PIECE_SECONDS, Audio, AudioFile, SpeechEncoding, load_audio, mel_features, mel_frames,
+                    n_motion_frames, open_audio_file, require_hubert)
 from .checkpoints import ModelBundle, load_model
 from .diffusion import Schedule
 from .errors import DiffshegError
@@ -35,7 +35,13 @@ from .settings import (GUIDANCE, SKIP_GUIDANCE, STYLE_GUIDANCE, GenerateSettings
 
 AudioInput = Union[str, Path, np.ndarray, Audio]
 
-_hubert_encoder = lru_cache(maxsize=1)(load_hubert)  # the 1.2 GB model is loaded once per process
+
+@lru_cache(maxsize=1)  # the 1.2 GB model is loaded once per process
+def _hubert_encoder(hubert_path: Optional[str], device: str):
+    require_hubert(hubert_path)  # says what to install before torch comes in
+    from .torch_layer.hubert import load_hubert
+
+    return load_hubert(hubert_path, device)
 
 
 def style_weights(bundle: ModelBundle, style: Optional[StyleSpec]) -> dict[int, float]:
@@ -168,6 +174,8 @@ def hubert_encoding(hubert_path: Optional[str] = None, hubert_quirk: bool = Fals
                     device: str = "cpu") -> SpeechEncoding:
     """HuBERT as the second speech input (the official models'), loaded once per process."""
     encoder = _hubert_encoder(hubert_path, device)
+    from .torch_layer.hubert import hubert_features
+
     return SpeechEncoding(f"hubert:{hubert_path or 'cache'}:{hubert_quirk}",
                           lambda audio, n: hubert_features(audio, n, official_quirk=hubert_quirk,
                                                            encoder=encoder))

@@ -49,9 +49,9 @@ def random_bundle(graphs: bool = True, seed: int = 0, **config):
 
     from diffsheg_core.checkpoints import ModelBundle
     from diffsheg_core.config import ModelConfig
-    from diffsheg_core.export import with_graphs
     from diffsheg_core.foppas import PRESETS
-    from diffsheg_core.model import UniEG, state_arrays
+    from diffsheg_core.torch_layer.export import with_graphs
+    from diffsheg_core.torch_layer.model import UniEG, state_arrays
 
     cfg = ModelConfig(**{"latent": 64, "layers": 2, "ff": 128, "heads": 4, "speech_encoder": None, **config})
     with torch.random.fork_rng(devices=[]):

@@ -61,7 +61,7 @@ def test_one_zip_per_platform_and_a_legacy_zip(built):
 
 def _tooling_or_cache(name: str) -> bool:
     return ("__pycache__" in name or name.endswith(".pyc") or "diffsheg_core/training/" in name
-            or name.endswith("diffsheg_core/export.py"))
+            or name.endswith("diffsheg_core/torch_layer/export.py"))
 
 
 @pytest.mark.parametrize("platform", list(build_addon.PLATFORMS))

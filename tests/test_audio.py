@@ -16,11 +16,12 @@ import pytest
 import soundfile as sf
 
 from diffsheg_core.audio import (
-    HUBERT_REPO_ID, MEL_FILTERS, SAMPLE_SPEECH, Audio, resampled_length, hubert_features,
+    HUBERT_REPO_ID, MEL_FILTERS, SAMPLE_SPEECH, Audio, resampled_length,
     hubert_status, load_audio, mel_features, mel_filter_key, mel_spectrogram, n_motion_frames,
     resample,
 )
 from diffsheg_core.errors import AudioError, DiffshegError
+from diffsheg_core.torch_layer.hubert import hubert_features
 
 ROOT = Path(__file__).resolve().parents[1]
 AUDIO = ROOT.parent / "shared" / "data" / "audio"

@@ -17,8 +17,8 @@ from diffsheg_core.bvh import read_bvh
 from diffsheg_core.checkpoints import (load_model, official_stats, read_safetensors, save_checkpoint,
                                        stored_style_count, stored_style_names)
 from diffsheg_core.motion import read_arkit_json
-from diffsheg_core.model import ModelConfig, UniEG
 from diffsheg_core.runtime.backends import choose_backend
+from diffsheg_core.torch_layer.model import ModelConfig, UniEG
 
 
 def golden_official_file(golden_dir, tmp_path, prefix="module."):

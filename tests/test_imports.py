@@ -1,6 +1,9 @@
 """The runtime imports light and apart from the tooling: `import diffsheg_core` and everything
 generation runs need only the standard library, numpy and the wheels the add-on bundles; the
-runtime never imports the training tooling; its modules import each other without cycles."""
+runtime never imports the training tooling; torch (and transformers) are imported by the torch
+layer (diffsheg_core/torch_layer/) and the tooling alone, and the runtime reaches the torch
+layer only inside functions, when torch is asked for; its modules import each other without
+cycles."""
 
 from __future__ import annotations
 
@@ -12,20 +15,30 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "diffsheg_core"
-TORCH_LAYER = {"model", "export", "devices"}  # the networks as torch modules, their ONNX export
+TORCH_LAYER = "torch_layer"  # the modules that import torch (the tooling aside): networks, backend, HuBERT...
+TOOLING = "training"
+TORCH_PACKAGES = ("torch", "transformers")  # imported by the torch layer and the tooling alone
 HEAVY = ("torch", "scipy", "librosa", "numba", "transformers", "onnx", "matplotlib", "tqdm")
 BUNDLED = ("onnxruntime", "soundfile", "soxr", "safetensors")
+RUNTIME_ENTRY_POINTS = ("pipeline", "live.session", "runtime.backends", "checkpoints", "audio")
 
 
-def runtime_modules() -> dict[str, Path]:
-    """Dotted names (below diffsheg_core) of the runtime's modules: all but the tooling."""
+def package_modules() -> dict[str, Path]:
+    """Dotted names (below diffsheg_core; "" for the package itself) of all its modules."""
     out = {}
     for path in sorted(PACKAGE.rglob("*.py")):
         parts = path.relative_to(PACKAGE).with_suffix("").parts
-        if parts[0] == "training" or parts[0] in TORCH_LAYER:
-            continue
-        out[".".join(p for p in parts if p != "__init__") or ""] = path
+        out[".".join(p for p in parts if p != "__init__")] = path
     return out
+
+
+def runtime_modules() -> dict[str, Path]:
+    """The runtime's modules: all but the tooling and the torch layer."""
+    return {m: p for m, p in package_modules().items() if m.split(".")[0] not in (TOOLING, TORCH_LAYER)}
+
+
+def torch_layer_modules() -> dict[str, Path]:
+    return {m: p for m, p in package_modules().items() if m.split(".")[0] == TORCH_LAYER}
 
 
 def imports(path: Path, module: str, top_level_only: bool) -> set[str]:
@@ -54,20 +67,43 @@ def imports(path: Path, module: str, top_level_only: bool) -> set[str]:
 def test_the_runtime_never_imports_the_tooling_or_the_torch_layer_at_import_time():
     for module, path in runtime_modules().items():
         everywhere = imports(path, module, top_level_only=False)
-        assert not [m for m in everywhere if m.startswith("diffsheg_core.training")], module
+        assert not [m for m in everywhere if m.startswith(f"diffsheg_core.{TOOLING}")], module
         top = imports(path, module, top_level_only=True)
         assert not [m for m in top if m.split(".")[0] in HEAVY], (module, top)
-        assert not [m for m in top if m.removeprefix("diffsheg_core.") in TORCH_LAYER], (module, top)
+        assert not [m for m in top if m.startswith(f"diffsheg_core.{TORCH_LAYER}")], (module, top)
+
+
+def _imported_by_name(path: Path) -> set[str]:
+    """Modules `path` imports through importlib.import_module("...") or __import__("...")."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.Constant) \
+                and isinstance(node.args[0].value, str):
+            called = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", None)
+            if called in ("import_module", "__import__"):
+                found.add(node.args[0].value)
+    return found
+
+
+def test_only_the_torch_layer_and_the_tooling_import_torch():
+    """Anywhere in a module, inside functions too: the rest of the package reaches torch only
+    through the torch layer (and may ask importlib.util.find_spec whether torch is there)."""
+    for module, path in runtime_modules().items():
+        found = imports(path, module, top_level_only=False) | _imported_by_name(path)
+        assert not [m for m in found if m.split(".")[0] in TORCH_PACKAGES], (module, found)
+    for module, path in torch_layer_modules().items():  # and the layer holds nothing else
+        if path.name != "__init__.py":
+            assert "torch" in {m.split(".")[0] for m in imports(path, module, top_level_only=True)}, module
 
 
 def test_the_torch_layer_never_imports_the_tooling():
-    for name in TORCH_LAYER:
-        found = imports(PACKAGE / f"{name}.py", name, top_level_only=False)
-        assert not [m for m in found if m.startswith("diffsheg_core.training")], name
+    for module, path in torch_layer_modules().items():
+        found = imports(path, module, top_level_only=False)
+        assert not [m for m in found if m.startswith(f"diffsheg_core.{TOOLING}")], module
 
 
 def test_runtime_modules_import_each_other_without_cycles():
-    modules = runtime_modules()
+    modules = {**runtime_modules(), **torch_layer_modules()}
     graph = {}
     for module, path in modules.items():
         targets = set()
@@ -115,6 +151,22 @@ from diffsheg_core import Motion, DiffshegError, generate
 import diffsheg_core.errors, diffsheg_core.motion, diffsheg_core.rigs, diffsheg_core.rotations
 print("ok", sorted(m for m in sys.modules if m.split(".")[0] in {names!r} and sys.modules[m]))
 """.format(names=HEAVY + BUNDLED)
+    result = run_python(code)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "ok []"
+
+
+def test_importing_the_runtime_leaves_torch_out():
+    """Every module of the runtime, the entry points among them, imported where torch and
+    transformers are installed: neither is loaded."""
+    modules = [m for m in runtime_modules() if m and m != "__main__"]
+    assert set(RUNTIME_ENTRY_POINTS) <= set(modules)
+    code = f"""
+import importlib, sys
+for name in {modules!r}:
+    importlib.import_module("diffsheg_core." + name)
+print("ok", sorted(m for m in sys.modules if m.split(".")[0] in {TORCH_PACKAGES!r}))
+"""
     result = run_python(code)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "ok []"

@@ -14,11 +14,12 @@ from conftest import random_bundle
 from diffsheg_core.checkpoints import ModelBundle
 from diffsheg_core.diffusion import Schedule
 from diffsheg_core.errors import CheckpointError
-from diffsheg_core.export import network_graphs
 from diffsheg_core.foppas import PRESETS
 from diffsheg_core.guidance import Guidance, step_eps
-from diffsheg_core.model import ModelConfig, UniEG, load_state_strict, state_arrays
-from diffsheg_core.runtime.backends import OnnxNetwork, TorchNetwork, open_network
+from diffsheg_core.runtime.backends import OnnxNetwork, open_network
+from diffsheg_core.torch_layer.backend import TorchNetwork
+from diffsheg_core.torch_layer.export import network_graphs
+from diffsheg_core.torch_layer.model import ModelConfig, UniEG, load_state_strict, state_arrays
 
 SMALL = dict(latent=64, layers=2, ff=128, heads=4)
 SHOW = dict(gesture_dim=129, expression_dim=103, style_dim=4, classifier_free=True, clip_len=88,

@@ -14,13 +14,13 @@ from conftest import random_bundle
 from diffsheg_core.audio import SAMPLE_SPEECH, Audio, load_audio, n_motion_frames
 from diffsheg_core.checkpoints import ModelBundle, load_model, save_checkpoint
 from diffsheg_core.errors import CheckpointError, DiffshegError
-from diffsheg_core.export import with_graphs
 from diffsheg_core.foppas import PRESETS
-from diffsheg_core.model import PhoneticEncoder, state_arrays
 from diffsheg_core.phonetic import (ENCODER_RATE, PHONES, PhoneticConfig, encoder_speech, log_mel, raw_log_mel,
                                    recogniser_frames, stack_posteriors)
 from diffsheg_core.pipeline import generate, speech_features
 from diffsheg_core.runtime.backends import open_network
+from diffsheg_core.torch_layer.export import with_graphs
+from diffsheg_core.torch_layer.model import PhoneticEncoder, state_arrays
 from diffsheg_core.training.corpus.build import BuildConfig, build
 from diffsheg_core.training.corpus.phones import Phone
 from diffsheg_core.training.phonetic import (

@@ -24,7 +24,7 @@ from diffsheg_core.motion import Motion, write_livelink_csv
 from diffsheg_core.rigs import ARKIT51
 from diffsheg_core.pipeline import generate
 from diffsheg_core.diffusion import Schedule
-from diffsheg_core.model import UniEG
+from diffsheg_core.torch_layer.model import UniEG
 from diffsheg_core.training.train import (
     LOG_FILE, MODEL_FILE, STATE_FILE, SUMMARY_FILE, Dist, TrainConfig, Trainer, diffsheg_loss,
     fine_tuning_statistics, read_config_file, train, x0_term_weight,
@@ -234,7 +234,7 @@ def test_training_with_hubert_features(small_root, tmp_path, tiny_hubert):
 
 def tiny_phonetic_encoder(path: Path) -> torch.nn.Module:
     """A small random phonetic encoder (seed 0), saved to `path` for the training settings."""
-    from diffsheg_core.model import PhoneticEncoder
+    from diffsheg_core.torch_layer.model import PhoneticEncoder
     from diffsheg_core.phonetic import PhoneticConfig
     from diffsheg_core.training.phonetic import save_phonetic
 

@@ -4,7 +4,8 @@
 - onnx: onnxruntime on the CPU, from the ONNX graphs stored in the model file. Needs no
   torch: this is what the Blender add-on runs.
 - torch: the UniEG module built from the file's weights, on the CPU or a CUDA GPU; the
-  backend of official DiffSHEG checkpoints (which carry no graphs) and of training.
+  backend of official DiffSHEG checkpoints (which carry no graphs) and of training. It is
+  `torch_layer.backend.TorchNetwork`, imported only when this backend is chosen.
 
 `backend="auto"` picks onnx where the model has its graphs and no GPU is asked for or
 found, torch otherwise. Both backends get the same inputs from the same numpy sampler,
@@ -92,57 +93,6 @@ class OnnxNetwork:
         return self._run("phonetic", {"mel": mel[None]})[0]
 
 
-class TorchNetwork:
-    """A model's networks as torch modules, on the CPU or a CUDA GPU."""
-
-    name = "torch"
-
-    def __init__(self, bundle: ModelBundle, device: str, precision: str):
-        import torch
-
-        from ..devices import resolve_device
-        from ..model import PhoneticEncoder, UniEG, load_state_strict
-
-        self.torch = torch
-        self.device = resolve_device(device)
-        self.autocast = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}[precision]
-        if self.autocast is not None and self.device.type != "cuda":
-            raise DiffshegError(f"precision '{precision}' is not available on {self.device.type}: "
-                                "use fp32 (or bf16/fp16 on a CUDA GPU)")
-        self.model = UniEG(bundle.config)
-        load_state_strict(self.model, bundle.weights, bundle.source)
-        self.model.to(self.device).eval()
-        self.phonetic = None
-        if bundle.phonetic is not None:
-            self.phonetic = PhoneticEncoder(bundle.phonetic)
-            load_state_strict(self.phonetic, bundle.phonetic_weights, f"{bundle.source} (phonetic encoder)")
-            self.phonetic.to(self.device).eval()
-
-    def _in(self, value: Optional[np.ndarray]):
-        return None if value is None else self.torch.from_numpy(np.ascontiguousarray(value)).to(self.device)
-
-    def _out(self, value) -> np.ndarray:
-        return value.float().cpu().numpy()
-
-    def _call(self, fn, *args):
-        torch = self.torch
-        with torch.inference_mode(), torch.autocast(self.device.type, dtype=self.autocast,
-                                                    enabled=self.autocast is not None):
-            return fn(*(self._in(a) for a in args))
-
-    def expression(self, expression, timesteps, mel, speech, style, null):
-        eps, audio = self._call(self.model.expression, expression, timesteps, mel, speech, style, null)
-        return self._out(eps), self._out(audio)
-
-    def gesture(self, gesture, timesteps, audio, speech, expression_x0, style, null, attend):
-        return self._out(self._call(self.model.gesture, gesture, timesteps, audio, speech, expression_x0,
-                                    style, null, attend))
-
-    def phone_posteriors(self, mel: np.ndarray) -> np.ndarray:
-        logits = self._call(self.phonetic, mel[None])
-        return self._out(logits[0].float().softmax(0).T)
-
-
 def _torch_sees_cuda() -> bool:
     """Whether an installed torch sees a CUDA GPU. A CPU build (version `+cpu`) or macOS
     cannot, and is not imported to find out: that would add most of a second to every run."""
@@ -153,9 +103,9 @@ def _torch_sees_cuda() -> bool:
             return False
     except importlib.metadata.PackageNotFoundError:  # torch on sys.path without metadata
         pass
-    import torch
+    from ..torch_layer.devices import resolve_device
 
-    return torch.cuda.is_available()
+    return resolve_device("auto").type == "cuda"
 
 
 def choose_backend(bundle: ModelBundle, backend: str = "auto", device: str = "auto") -> str:
@@ -196,8 +146,7 @@ def open_network(bundle: ModelBundle, backend: str = "auto", device: str = "auto
                 raise DiffshegError(f"precision '{precision}' needs the torch backend on a CUDA GPU")
             bundle.networks[key] = OnnxNetwork(bundle, threads)
         else:
-            import torch
+            from ..torch_layer.backend import TorchNetwork
 
-            torch.set_num_threads(threads)
-            bundle.networks[key] = TorchNetwork(bundle, device, precision)
+            bundle.networks[key] = TorchNetwork(bundle, device, precision, threads)
     return bundle.networks[key]

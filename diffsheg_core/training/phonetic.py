@@ -1,4 +1,4 @@
-"""Training the phonetic speech encoder (`model.PhoneticEncoder`): a small convolutional
+"""Training the phonetic speech encoder (`torch_layer.model.PhoneticEncoder`): a small convolutional
 phone recogniser over a fine log-mel, trained on the project's synthetic corpus, whose phone
 timings are exact. Its front end and phone set are `diffsheg_core.phonetic`.
 
@@ -21,7 +21,7 @@ from tqdm import tqdm
 from ..audio import load_audio
 from ..checkpoints import read_safetensors, write_safetensors
 from ..errors import CheckpointError, DiffshegError
-from ..model import PhoneticEncoder, load_state_strict, state_arrays
+from ..torch_layer.model import PhoneticEncoder, load_state_strict, state_arrays
 from ..phonetic import BILABIALS, PHONES, PhoneticConfig, fingerprint, log_mel, phonetic_encoding
 from .corpus.phones import Phone
 

@@ -40,13 +40,13 @@ from .data import ClipDataset, DataConfig, NormStats, load_takes, normalisation
 from ..diffusion import Schedule
 from ..errors import DiffshegError
 from ..foppas import PRESETS, FoppasConfig, with_overrides
-from ..export import with_graphs
-from ..model import PhoneticEncoder, UniEG, load_state_strict, state_arrays
 from ..pipeline import check_skip_guidance, hubert_encoding
 from ..settings import check_number
 from .phonetic import load_phonetic, speech_encoding as phonetic_speech
 from ..prior import GesturePrior
-from ..devices import resolve_device
+from ..torch_layer.devices import resolve_device
+from ..torch_layer.export import with_graphs
+from ..torch_layer.model import PhoneticEncoder, UniEG, load_state_strict, state_arrays
 
 EXPORT_DTYPES = {"float32": torch.float32, "float16": torch.float16}
 STATE_FILE = "train_state.pt"

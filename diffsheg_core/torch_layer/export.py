@@ -16,8 +16,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .checkpoints import ModelBundle
-from .config import ModelConfig
+from ..checkpoints import ModelBundle
+from ..config import ModelConfig
 from .model import PhoneticEncoder, UniEG, load_state_strict
 
 OPSET = 17
@@ -137,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     """Add ONNX graphs to a model file (one exported before graphs were stored, or re-export them)."""
     import argparse
 
-    from .checkpoints import load_model, save_checkpoint
+    from ..checkpoints import load_model, save_checkpoint
 
     parser = argparse.ArgumentParser(prog="python -m diffsheg_core export-onnx", description=main.__doc__)
     parser.add_argument("model", help="model file (.safetensors) of this project")
@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     bundle = load_model(args.model)
     if not bundle.source.endswith(".safetensors") or bundle.model_id.startswith("official-"):
-        from .errors import DiffshegError
+        from ..errors import DiffshegError
 
         raise DiffshegError(f"{args.model}: only this project's .safetensors model files carry graphs; "
                             "official checkpoints run on the torch backend")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from .errors import DiffshegError
+from ..errors import DiffshegError
 
 
 def resolve_device(device: str | torch.device = "auto") -> torch.device:

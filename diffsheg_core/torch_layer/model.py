@@ -24,9 +24,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .config import ModelConfig
-from .errors import CheckpointError
-from .phonetic import PHONES, PhoneticConfig
+from ..config import ModelConfig
+from ..errors import CheckpointError
+from ..phonetic import PHONES, PhoneticConfig
 
 def timestep_embedding(timesteps: torch.Tensor, dim: int, max_period: float = 10000.0) -> torch.Tensor:
     """Sinusoidal embedding of diffusion steps: cosines first, then sines."""
