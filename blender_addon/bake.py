@@ -22,7 +22,7 @@ from diffsheg_core.motion import Motion, resample_motion
 from . import takes
 from .keying import Channel, Undo, new_action, rotation_channels, shape_key_channel, undone_on_error, write_channels
 from .preset import available_presets, choose_preset, load_preset, preset_fit
-from .retarget import Preset, bone_quaternions, map_armature, map_shape_keys
+from .retarget import ArmatureMapping, Preset, ShapeKeyMapping, bone_quaternions, map_armature, map_shape_keys
 from .sound import NO_AUDIO_NOTE, add_sound_strip, audio_supported, remove_strips, strips_added_for
 
 
@@ -124,54 +124,97 @@ class Plan:
     preset_notes: list[str]
 
 
-def plan_keys(scene, motion: Motion, options: BakeOptions) -> Plan:
-    """The groups of channels `motion` gives the options' armature and face meshes at the
-    scene's rate. Raises DiffshegError (nothing changed) when nothing can be keyed."""
+@dataclass
+class TargetMap:
+    """The options' armature and face meshes matched to a motion's layout, once: what keying
+    and Live (live.py) turn the motion's frames into bone rotations and shape-key values with."""
+
+    options: BakeOptions                          # with the preset chosen
+    armature: ArmatureMapping | None
+    faces: list[tuple[object, ShapeKeyMapping]]   # (face mesh, its mapping)
+    preset_notes: list[str]
+
+
+def resolve_preset(layout: str, options: BakeOptions) -> tuple[BakeOptions, list[str]]:
+    """The options with their preset chosen (Auto: the one whose names the rig has) and checked
+    against the armature, and notes on how Auto chose. Raises DiffshegError (nothing changed)
+    for no target, a linked target or a preset that does not fit the rig."""
     if options.armature is None and not options.face_meshes:
         raise DiffshegError("no target: choose an armature and/or a face mesh in the panel")
     check_local([options.armature, *options.face_meshes])
-    motion = resample_motion(motion, scene_fps(scene))
-    preset_notes: list[str] = []
+    notes: list[str] = []
     if options.preset is None:
-        preset, note = auto_preset(motion.rig, options.armature, options.face_meshes)
-        options, preset_notes = replace(options, preset=preset), [note]
+        preset, note = auto_preset(layout, options.armature, options.face_meshes)
+        options, notes = replace(options, preset=preset), [note]
     if options.armature is not None:
-        check_preset_fits(options.preset, motion.rig, options.armature)
+        check_preset_fits(options.preset, layout, options.armature)
+    return options, notes
+
+
+def map_targets(motion: Motion, options: BakeOptions, preset_notes: list[str] = ()) -> TargetMap:
+    """The preset of `options` (chosen by `resolve_preset`) matched on their armature and face
+    meshes for `motion`'s layout (only its names are read). Raises DiffshegError (nothing
+    changed) when nothing can be matched."""
+    faces = [(mesh, map_shape_keys(mesh, options.preset, motion)) for mesh in options.face_meshes]
+    mapping = None
+    if options.armature is not None:
+        mapping = map_armature(options.armature, options.preset, motion, jaw_shape_keys=[k for _, k in faces])
+    return TargetMap(options, mapping, faces, list(preset_notes))
+
+
+def bone_channels(armature, mapping: ArmatureMapping, motion: Motion,
+                  smoothing: float = 0.0) -> list[tuple[str, list[Channel]]]:
+    """(bone, its rotation channels in the bone's own rotation mode) for every bone `mapping`
+    drives, one value per frame of `motion`."""
+    out = []
+    for bone, quats in bone_quaternions(motion, mapping).items():
+        if smoothing > 0:
+            quats = smooth(quats, smoothing)
+            quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+        out.append((bone, rotation_channels(bone, armature.pose.bones[bone].rotation_mode, quats)))
+    return out
+
+
+def face_channels(mesh, keys: ShapeKeyMapping, face: np.ndarray, smoothing: float = 0.0) -> list[Channel]:
+    """One channel per shape key of `mesh` that `keys` drives, from (T, C) face weights,
+    within each key's slider range."""
+    face = smooth(face, smoothing) if smoothing > 0 else face
+    blocks = mesh.data.shape_keys.key_blocks
+    return [shape_key_channel(name, np.clip(weights, blocks[name].slider_min, blocks[name].slider_max))
+            for name, weights in keys.curves(face)]
+
+
+def plan_keys(scene, motion: Motion, options: BakeOptions) -> Plan:
+    """The groups of channels `motion` gives the options' armature and face meshes at the
+    scene's rate. Raises DiffshegError (nothing changed) when nothing can be keyed."""
+    options, preset_notes = resolve_preset(motion.rig, options)
+    motion = resample_motion(motion, scene_fps(scene))
     check_frames(options.start_frame, motion.n_frames)
+    matched = map_targets(motion, options, preset_notes)
 
     targets: list[tuple[object, list[Group]]] = []
     unmatched_bones: list[str] = []
-    face_maps = [map_shape_keys(mesh, options.preset, motion) for mesh in options.face_meshes]
     notes: list[str] = []
-    if options.armature is not None:
-        mapping = map_armature(options.armature, options.preset, motion, jaw_shape_keys=face_maps)
-        unmatched_bones, notes = mapping.unmatched, list(mapping.notes)
+    if matched.armature is not None:
+        unmatched_bones, notes = matched.armature.unmatched, list(matched.armature.notes)
         groups = []
-        for bone, quats in bone_quaternions(motion, mapping).items():
-            if options.smoothing > 0:
-                quats = smooth(quats, options.smoothing)
-                quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+        for bone, channels in bone_channels(options.armature, matched.armature, motion, options.smoothing):
             mode = options.armature.pose.bones[bone].rotation_mode
-            groups.append(Group(rotation_channels(bone, mode, quats), lambda v, m=mode: rotation_error(v, m),
-                                options.max_error))
+            groups.append(Group(channels, lambda v, m=mode: rotation_error(v, m), options.max_error))
         targets.append((options.armature, groups))
     unmatched_keys: dict[str, list[str]] = {}
-    for mesh, keys in zip(options.face_meshes, face_maps):
+    for mesh, keys in matched.faces:
         unmatched_keys[mesh.name] = keys.unmatched
         if keys.empty:
             notes.append(f"{mesh.name}: shape keys that move no vertex, skipped ({len(keys.empty)}): "
                          f"{', '.join(keys.empty)}")
         if keys.derived:
             notes.append(f"{mesh.name}: {', '.join(k for _, k in keys.derived)} driven from the ARKit weights")
-        face = smooth(motion.face, options.smoothing) if options.smoothing > 0 else motion.face
-        groups = []
-        for key_name, weights in keys.curves(face):
-            block = mesh.data.shape_keys.key_blocks[key_name]
-            channel = shape_key_channel(key_name, np.clip(weights, block.slider_min, block.slider_max))
-            groups.append(Group([channel], value_error, options.max_face_error))
+        groups = [Group([channel], value_error, options.max_face_error)
+                  for channel in face_channels(mesh, keys, motion.face, options.smoothing)]
         targets.append((mesh.data.shape_keys, groups))
     notes += [f"warning: {w}" for w in motion.meta.get("warnings", [])]
-    return Plan(motion, options, targets, unmatched_bones, unmatched_keys, notes, preset_notes)
+    return Plan(motion, options, targets, unmatched_bones, unmatched_keys, notes, matched.preset_notes)
 
 
 def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOptions,

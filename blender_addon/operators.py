@@ -1,6 +1,7 @@
 """Operators: Generate (modal, generation in a worker thread), Generate for Sound Strips
-(the same, one take per sound strip of the Video Sequencer), new seed, face mesh list,
-takes and the report. What they run is resolved from the panel in panel_settings.py.
+(the same, one take per sound strip of the Video Sequencer), Live (Start and Stop), new
+seed, face mesh list, takes and the report. What they run is resolved from the panel in
+panel_settings.py (Live: live.py).
 
 Generation never touches Blender data: it runs off the main thread in a cancellable job
 (job.py), and only when it has finished does the main thread key the result (one undo
@@ -10,11 +11,13 @@ step). Cancel and errors therefore leave the scene as it was.
 from __future__ import annotations
 
 import random
+import time
 
 import bpy
 
 from diffsheg_core.errors import DiffshegError
 
+from . import live
 from .job import GenerationJob
 from .panel_settings import apply_result, error_message, prepare
 from .report import REPORT_TEXT
@@ -179,6 +182,135 @@ class DIFFSHEG_OT_generate_strips(bpy.types.Operator):
         DIFFSHEG_OT_generate._status(context, None)
 
 
+LIVE_TICK_S = 1 / 60     # the live timer: the viewport shows each frame within this of its time
+LIVE_STATUS_S = 0.25     # the status bar and the panel's line are refreshed this often
+UNDO_KEYS = {"Z", "Y"}   # Ctrl-Z, Ctrl-Shift-Z, Ctrl-Y: held back while live (see DIFFSHEG_OT_live_start.modal)
+
+
+class DIFFSHEG_OT_live_start(bpy.types.Operator):
+    """Animate the character live from the Live panel's source (microphone, file or socket):
+    posed in the viewport as the speech arrives, kept as a take on Stop when Record is on"""
+
+    bl_idname = "diffsheg.live_start"
+    bl_label = "Live"
+    bl_options = {"REGISTER", "UNDO"}
+
+    _run = None
+    _timer = None
+
+    @classmethod
+    def poll(cls, context):
+        return live.current() is None
+
+    def execute(self, context):
+        """Blocking run (scripts): a file source to its end, then the take where Record asks."""
+        if context.scene.diffsheg.live_source != live.FILE:
+            return self._report(context, live.LiveOutcome(
+                "a script runs Live from a file only (a microphone or socket never ends by itself): choose "
+                "File, or press Start in the panel", "ERROR"))
+        try:
+            outcome = live.LiveRun(context).run(context)
+        except Exception as exc:
+            return self._report(context, live.LiveOutcome(f"live: {error_message(exc)}", "ERROR"))
+        return self._report(context, outcome)
+
+    def invoke(self, context, event):
+        try:
+            self._run = live.LiveRun(context).start()
+        except Exception as exc:  # a message in the status bar, never a traceback
+            return self._report(context, live.LiveOutcome(f"live: {error_message(exc)}", "ERROR"))
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(LIVE_TICK_S, window=context.window)
+        self._next_status = 0.0
+        wm.modal_handler_add(self)
+        self._status(context)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        run = self._run
+        if run.discarded:  # undo, redo or a file opened: the data it posed are gone
+            self._end(context)
+            self.report({"WARNING"}, "live session ended (undo or a file opened): nothing recorded")
+            return {"CANCELLED"}
+        if event.type == "ESC" and event.value == "PRESS":
+            run.request_stop()
+            return {"RUNNING_MODAL"}
+        if event.type in UNDO_KEYS and event.value == "PRESS" and (event.ctrl or event.oskey):
+            self.report({"WARNING"}, "undo is held back while live: press Stop (or Esc) first")
+            return {"RUNNING_MODAL"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}  # the viewport, the timeline and the rest of Blender stay usable
+        try:
+            finished = run.step()
+        except Exception as exc:  # e.g. the character deleted while live
+            run.discard(restore=True)
+            self._end(context)
+            return self._report(context, live.LiveOutcome(f"live session ended: {error_message(exc)}", "ERROR"))
+        if finished:
+            self._end(context)
+            return self._report(context, run.end(context))
+        self._status(context)
+        return {"PASS_THROUGH"}
+
+    def cancel(self, context):
+        """Blender ends the operator (a file opened, the window closed): the session ends too."""
+        if self._run is not None and live.current() is self._run:
+            self._run.discard()
+        try:
+            context.window_manager.event_timer_remove(self._timer)
+        except (ReferenceError, RuntimeError, ValueError):
+            pass
+
+    def _status(self, context) -> None:
+        now = time.monotonic()
+        if now < self._next_status:
+            return
+        self._next_status = now + LIVE_STATUS_S
+        DIFFSHEG_OT_generate._status(context, self._run.status() + " - Esc or Stop ends")
+        _redraw_panels(context)
+
+    def _end(self, context) -> None:
+        context.window_manager.event_timer_remove(self._timer)
+        DIFFSHEG_OT_generate._status(context, None)
+        _redraw_panels(context)
+
+    def _report(self, context, outcome) -> set[str]:
+        settings = context.scene.diffsheg
+        settings.last_report = outcome.line
+        settings.last_failed = outcome.take is None and outcome.level == "ERROR"
+        self.report({outcome.level}, outcome.line)
+        return {"FINISHED"} if outcome.take is not None else {"CANCELLED"}
+
+
+def _redraw_panels(context) -> None:
+    """The 3D views' sidebars, which show the Live panel's status line (only them: the
+    viewport itself redraws when the pose changes)."""
+    for window in context.window_manager.windows:
+        for area in window.screen.areas:
+            if area.type == "VIEW_3D":
+                for region in area.regions:
+                    if region.type == "UI":
+                        region.tag_redraw()
+
+
+class DIFFSHEG_OT_live_stop(bpy.types.Operator):
+    """End the live session (with Record on, the performance becomes a take)"""
+
+    bl_idname = "diffsheg.live_stop"
+    bl_label = "Stop Live"
+
+    @classmethod
+    def poll(cls, context):
+        return live.current() is not None
+
+    def execute(self, context):
+        run = live.current()
+        if run is None:
+            return {"CANCELLED"}
+        run.request_stop()
+        return {"FINISHED"}
+
+
 class DIFFSHEG_OT_new_seed(bpy.types.Operator):
     """Pick a new random seed (a different motion for the same audio)"""
 
@@ -274,7 +406,18 @@ class DIFFSHEG_OT_use_take(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (DIFFSHEG_OT_generate, DIFFSHEG_OT_generate_strips, DIFFSHEG_OT_new_seed, DIFFSHEG_OT_face_add,
-           DIFFSHEG_OT_face_remove, DIFFSHEG_OT_use_take, DIFFSHEG_OT_show_report)
+CLASSES = (DIFFSHEG_OT_generate, DIFFSHEG_OT_generate_strips, DIFFSHEG_OT_live_start, DIFFSHEG_OT_live_stop,
+           DIFFSHEG_OT_new_seed, DIFFSHEG_OT_face_add, DIFFSHEG_OT_face_remove, DIFFSHEG_OT_use_take,
+           DIFFSHEG_OT_show_report)
 
-register, unregister = bpy.utils.register_classes_factory(CLASSES)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)
+
+
+def register() -> None:
+    _register_classes()
+    live.register()
+
+
+def unregister() -> None:
+    live.unregister()
+    _unregister_classes()

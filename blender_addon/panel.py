@@ -1,7 +1,8 @@
 """The View3D sidebar tab "DiffSHEG": the panel "Generate from audio" with what most runs
 need (audio, character, style, range, Generate, Generate for Strips where the scene has
-sound strips, takes, the report), and two collapsed sub-panels, "Sampling" (the model's
-options) and "Keys" (how the motion is keyed).
+sound strips, takes, the report), and three collapsed sub-panels, "Sampling" (the model's
+options), "Keys" (how the motion is keyed) and "Live" (the character animated as the speech
+arrives, recorded as a take).
 
 Blender's conventions: labels in a column on the left (`use_property_split`), no
 keyframe decorators, labels short enough for the sidebar's default width; texts that
@@ -261,6 +262,65 @@ class DIFFSHEG_PT_keys(_Panel, bpy.types.Panel):
         col.prop(s, "set_frame_range", text="Frame range")
 
 
-CLASSES = (DIFFSHEG_UL_face_meshes, DIFFSHEG_PT_generate, DIFFSHEG_PT_sampling, DIFFSHEG_PT_keys)
+class DIFFSHEG_PT_live(_Panel, bpy.types.Panel):
+    """The character animated as the speech arrives (live.py): the source, Record, VMC out,
+    Start or Stop, and the session's status line while it runs."""
+
+    bl_label = "Live"
+    bl_idname = "DIFFSHEG_PT_live"
+    bl_parent_id = "DIFFSHEG_PT_generate"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        from . import live
+
+        layout = _split(self.layout)
+        s = context.scene.diffsheg
+        run = live.current()
+        col = layout.column()
+        col.enabled = run is None  # a running session keeps the settings it started with
+        col.prop(s, "live_source")
+        if s.live_source == live.MIC:
+            if _has_placeholder():
+                col.prop(s, "live_mic", placeholder="System default")
+            else:
+                col.prop(s, "live_mic")
+            problem = live.microphone_problem()
+            if problem:
+                wrapped_label(col, context, problem[0].upper() + problem[1:], icon="ERROR")
+        elif s.live_source == live.FILE:
+            if _has_placeholder():
+                col.prop(s, "live_file", placeholder="The Audio above")
+            else:
+                col.prop(s, "live_file")
+            col.prop(s, "live_speed")
+        else:
+            col.prop(s, "live_port")
+            rate = f"{live.SOCKET_RATE / 1000:g}\u00a0kHz"  # a non-breaking space: "16 kHz" on one line
+            wrapped_label(col, context, f"Listens on {live.SOCKET_HOST}:{s.live_port} for 16-bit mono PCM at {rate}")
+        col.prop(s, "live_hop")
+        col.row(heading="Take").prop(s, "live_record")
+        col.row(heading="VMC").prop(s, "live_vmc", text="Send")
+        if s.live_vmc:  # the whole width: an address is longer than the value column shows
+            address = col.row()
+            address.use_property_split = False
+            address.prop(s, "live_vmc_address", text="To")
+
+        row = layout.row()
+        row.scale_y = 1.4
+        if run is None:
+            row.operator("diffsheg.live_start", text="Start Live", icon="REC" if s.live_record else "PLAY")
+        else:
+            row.alert = True
+            row.operator("diffsheg.live_stop", text="Stop", icon="PAUSE")
+            wrapped_label(layout, context, run.status(), icon="REC" if run.record else "PLAY")
+
+
+def _has_placeholder() -> bool:
+    """`placeholder` on UILayout.prop: Blender 4.1 and later."""
+    return bpy.app.version >= (4, 1, 0)
+
+
+CLASSES = (DIFFSHEG_UL_face_meshes, DIFFSHEG_PT_generate, DIFFSHEG_PT_sampling, DIFFSHEG_PT_keys, DIFFSHEG_PT_live)
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)

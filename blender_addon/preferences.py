@@ -8,6 +8,8 @@ optional GPU support.
   add-on (Blender before 4.2) keeps a button that installs them with pip. numpy comes
   with Blender, except with the Blenders that Linux distributions build on the system's
   Python (Debian's 3.4): there the same button installs it too.
+- Live's microphone: sounddevice needs the PortAudio library, which Linux provides as a
+  system package (libportaudio2); the preferences say when a microphone cannot be used, and why.
 - GPU support: torch, optional, for the official DiffSHEG checkpoints and NVIDIA GPUs. A
   button runs pip (in a background thread, its output streamed to the preferences) into
   Blender's user `scripts/modules` folder, which Blender puts on `sys.path`; torch comes
@@ -24,6 +26,7 @@ import importlib.util
 import platform
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import bpy
@@ -39,6 +42,12 @@ RUNTIME: dict[str, str] = {
     "soundfile": "soundfile>=0.12",
     "soxr": "soxr>=0.3",
     "safetensors": "safetensors>=0.4",
+}
+# import name -> pip requirement: what Live uses besides those (the microphone, VMC out); the
+# extension zips bring them, the legacy add-on's "Install dependencies" installs them too
+LIVE: dict[str, str] = {
+    "sounddevice": "sounddevice>=0.4",
+    "pythonosc": "python-osc>=1.8",
 }
 TORCH_REQUIREMENT = "torch>=2.1"
 NUMPY_REQUIREMENT = "numpy>=1.26"  # where Blender's Python lacks it (else Blender's own is kept)
@@ -135,15 +144,36 @@ def _numpy_pin() -> str:
 
 
 def runtime_pip_commands(target: Path) -> list[list[str]]:
-    """The pip run installing the runtime packages into `target` (the legacy add-on, or
-    where numpy is missing)."""
-    return [_pip_base(target) + list(RUNTIME.values()) + [_numpy_pin()]]
+    """The pip run installing the runtime packages (and Live's) into `target` (the legacy
+    add-on, or where numpy is missing)."""
+    return [_pip_base(target) + list(LIVE.values()) + list(RUNTIME.values()) + [_numpy_pin()]]
 
 
 def torch_pip_commands(build: str, target: Path) -> list[list[str]]:
     """The pip run installing torch of `build` (CPU, CUDA, PYPI) into `target`."""
     index = TORCH_INDEXES[build]
     return [_pip_base(target) + (["--index-url", index] if index else []) + [TORCH_REQUIREMENT, _numpy_pin()]]
+
+
+def draw_microphone(layout, context) -> None:
+    """Whether Live can use a microphone, and if not why (on Linux: the system's PortAudio
+    library, libportaudio2) and how to fix it, wrapped to the preferences' width."""
+    if importlib.util.find_spec("numpy") is None:
+        return  # the runtime box says what is missing first
+    from .live import microphone_problem
+
+    problem = microphone_problem()
+    if problem is None:
+        layout.label(text="Live: a microphone can be used", icon="CHECKMARK")
+        return
+    region = getattr(context, "region", None)
+    width = max(40, int((region.width - 60) / 7)) if region is not None and region.width > 1 else 100
+    text = f"Live cannot use a microphone: {problem}"
+    col = layout.column(align=True)
+    for i, line in enumerate(textwrap.wrap(text, width)):
+        row = col.row()
+        row.scale_y = 0.8 if i else 1.0  # one paragraph, as the panel's wrapped texts
+        row.label(text=line, icon="ERROR" if i == 0 else "BLANK1")
 
 
 class InstallJob(BackgroundJob):
@@ -284,6 +314,8 @@ class DIFFSHEG_AP_preferences(bpy.types.AddonPreferences):
             box.label(text="Generation is ready: " + ", ".join(RUNTIME) + " are installed", icon="CHECKMARK")
         if pip_installs_runtime():
             box.operator(DIFFSHEG_OT_install_dependencies.bl_idname, icon="IMPORT")
+
+        draw_microphone(layout.box(), context)
 
         box = layout.box()
         if torch_installed():

@@ -14,6 +14,8 @@ from diffsheg_core.settings import CANDIDATES, GUIDANCE, OVERLAP, SKIP_GUIDANCE,
 from . import preset
 
 CUSTOM_PRESET = "__custom__"
+LIVE_HOST = "127.0.0.1"  # live.SOCKET_HOST, the VMC receiver's default host
+LIVE_HOP, LIVE_HOPS = 3, (1, 16)  # diffsheg_core.live.engine: LiveConfig.hop, HOPS (numpy-free here)
 
 
 def _is_armature(_self, obj) -> bool:
@@ -187,6 +189,32 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
                                   description="Make the scene's frame range cover the clip")
     strips_selected_only: BoolProperty(name="Selected only", default=False,
                                        description="Generate for Sound Strips: only the selected sound strips")
+    live_source: EnumProperty(name="Source", default="MIC", items=[
+        ("MIC", "Microphone", "Your voice, from the microphone below (or the system's default one)"),
+        ("FILE", "File", "A speech file played as if it were spoken now (to try Live, or a recorded line)"),
+        ("SOCKET", "Socket", f"Speech sent by another program (a TTS engine, an agent) to {LIVE_HOST} on the port "
+                             "below: raw 16-bit mono PCM at 16 kHz")],
+        description="Where Live hears the speech from")
+    live_mic: StringProperty(name="Device", default="",
+                             description="The microphone's name (or part of it) or number; empty: the system's "
+                                         "default input")
+    live_file: StringProperty(name="File", subtype="FILE_PATH", default="",
+                              description="The speech file Live plays; empty: the panel's Audio file")
+    live_speed: FloatProperty(name="Speed", default=1.0, min=0.25, max=4.0, precision=2,
+                              description="Play the file this many times as fast as it was spoken (a demo); "
+                                          "a computer that cannot keep up drops audio")
+    live_port: IntProperty(name="Port", default=5005, min=1024, max=65535,
+                           description=f"The port Live listens on, at {LIVE_HOST} (this computer only)")
+    live_hop: IntProperty(name="Hop", default=LIVE_HOP, min=LIVE_HOPS[0], max=LIVE_HOPS[1],
+                          description="Frames made at a time: fewer follow the speech sooner but need a faster "
+                                      "computer, more need less computing and lag more")
+    live_record: BoolProperty(name="Record", default=True,
+                              description="On Stop, keep the performance as a take, keyed as Generate keys, with "
+                                          "its audio as a sound strip from the frame Live started on")
+    live_vmc: BoolProperty(name="VMC out", default=False,
+                           description="Also send the motion over the VMC protocol (VSeeFace, Warudo, VNyan)")
+    live_vmc_address: StringProperty(name="Address", default=f"{LIVE_HOST}:39539",
+                                     description="The VMC receiver as HOST:PORT (avatar apps listen on 39539)")
     model_label: StringProperty(name="Model used", default="",
                                 description="The model of the last generation")
     last_report: StringProperty(default="")

@@ -8,8 +8,9 @@ Installs and enables the add-on zip in that Blender (3.4+; into the user's add-o
 makes a character (armature, face mesh, two takes, a report), shows the 3D view's sidebar at
 its default width with the panel (before 4.1 on the first tab, see show_tab) and saves the
 3D view area as OUT.png, then quits. With --open the
-sub-panels are registered open (Blender has no Python switch for a panel's open state); with
---range the other choices are drawn (a range of frames, a custom preset, a style mix, GPU).
+sub-panels (Sampling, Keys, Live) are registered open (Blender has no Python switch for a
+panel's open state); with --range the other choices are drawn (a range of frames, a custom
+preset, a style mix, GPU; Live from a socket with VMC out).
 Open sub-panels need a taller screen (1600x1900) to be seen whole.
 """
 
@@ -27,8 +28,10 @@ bpy.ops.preferences.addon_install(filepath=ZIP, overwrite=True)
 bpy.ops.preferences.addon_enable(module="diffsheg")
 addon = sys.modules["diffsheg"]
 
+SUB_PANELS = (addon.panel.DIFFSHEG_PT_sampling, addon.panel.DIFFSHEG_PT_keys, addon.panel.DIFFSHEG_PT_live)
+
 if OPEN:
-    for cls in (addon.panel.DIFFSHEG_PT_sampling, addon.panel.DIFFSHEG_PT_keys):
+    for cls in SUB_PANELS:
         bpy.utils.unregister_class(cls)
         cls.bl_options = set()
         bpy.utils.register_class(cls)
@@ -62,6 +65,7 @@ def character():
         s.preset, s.preset_file = "__custom__", "//presets/my_rig.json"
         s.mix_style, s.style_mix = "0", 0.3
         s.device, s.key_mode, s.keep_face = "GPU", "EVERY_FRAME", True
+        s.live_source, s.live_vmc = "SOCKET", True
 
 
 def sidebar():
@@ -84,7 +88,7 @@ def show_tab():
         region.active_panel_category = "DiffSHEG"
     else:
         bpy.context.view_layer.objects.active = None  # no "Item" tab
-        ours = [addon.panel.DIFFSHEG_PT_generate, addon.panel.DIFFSHEG_PT_sampling, addon.panel.DIFFSHEG_PT_keys]
+        ours = [addon.panel.DIFFSHEG_PT_generate, *SUB_PANELS]
         tool = [cls for cls in bpy.types.Panel.__subclasses__()
                 if getattr(cls, "bl_space_type", "") == "VIEW_3D" and getattr(cls, "bl_region_type", "") == "UI"
                 and getattr(cls, "bl_category", "") in ("Tool", "View") and cls.is_registered and cls not in ours]
