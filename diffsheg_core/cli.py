@@ -131,7 +131,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     warnings.showwarning = _show_warning  # one plain line per warning, not a source location
     delegated = {"train": "training.train", "evaluate": "training.evaluate",
-                 "train-autoencoder": "training.autoencoder", "train-phonetic": "training.phonetic",
+                 "train-autoencoder": "training.autoencoder", "train-phonetic": "training.train_phonetic",
                  "export-onnx": "torch_layer.export"}
     if argv and argv[0] in delegated:
         try:

@@ -1,6 +1,6 @@
 """The phonetic speech encoder's front end: the phone set, the log-mel it hears and how its
 phone posteriors become a model's second speech input. The network itself is
-`torch_layer.model.PhoneticEncoder` (torch, trained by `training.phonetic`); at generation
+`torch_layer.model.PhoneticEncoder` (torch, trained by `training.train_phonetic`); at generation
 time it runs on either backend (`runtime.backends`), from the copy stored in the model file.
 
 Why: the official mel (one 114 ms window per 1/15 s frame) tells loud from quiet but not

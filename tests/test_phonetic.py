@@ -23,7 +23,7 @@ from diffsheg_core.torch_layer.export import with_graphs
 from diffsheg_core.torch_layer.model import PhoneticEncoder, state_arrays
 from diffsheg_core.training.corpus.build import BuildConfig, build
 from diffsheg_core.training.corpus.phones import Phone
-from diffsheg_core.training.phonetic import (
+from diffsheg_core.training.train_phonetic import (
     corpus_utterances, evaluate_phonetic, frame_labels, labelled_mels, load_phonetic, main, save_phonetic,
     torch_posteriors,
 )

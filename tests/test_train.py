@@ -236,7 +236,7 @@ def tiny_phonetic_encoder(path: Path) -> torch.nn.Module:
     """A small random phonetic encoder (seed 0), saved to `path` for the training settings."""
     from diffsheg_core.torch_layer.model import PhoneticEncoder
     from diffsheg_core.phonetic import PhoneticConfig
-    from diffsheg_core.training.phonetic import save_phonetic
+    from diffsheg_core.training.train_phonetic import save_phonetic
 
     torch.manual_seed(0)
     encoder = PhoneticEncoder(PhoneticConfig(channels=16, dilations=(1,))).eval()
@@ -247,7 +247,7 @@ def tiny_phonetic_encoder(path: Path) -> torch.nn.Module:
 def test_training_with_the_phonetic_encoder_bundles_it(small_root, tmp_path):
     from diffsheg_core.pipeline import speech_features
     from diffsheg_core.runtime.backends import open_network
-    from diffsheg_core.training.phonetic import speech_encoding
+    from diffsheg_core.training.train_phonetic import speech_encoding
 
     encoder = tiny_phonetic_encoder(tmp_path / "phonetic.safetensors")
     # the settings names from before the second speech input was renamed still read

@@ -11,7 +11,7 @@ from scipy.ndimage import gaussian_filter1d
 from ...rigs import ARKIT51
 from .phones import SILENCE, Phone
 from .prosody import Accent
-from .visemes import arkit_indices, mouth_curves
+from .coarticulation import arkit_indices, mouth_curves
 
 BLINK_MIN_S, BLINK_MAX_S = 0.26, 0.5
 """Blink length, eyelid leaving rest to back at rest. The lid is more than half closed for
