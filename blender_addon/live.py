@@ -195,28 +195,6 @@ def recording_path(folder: Path) -> Path:
     return folder / f"live_{n:03d}.wav"
 
 
-def matched_lengths(motion, audio):
-    """The recording's motion and audio cut to the same length as the model counts it (the
-    audio gives as many motion frames as the motion has), so that a range of the take can be
-    generated anew from that audio (diffsheg_core.regenerate checks it)."""
-    from diffsheg_core.audio import Audio, n_motion_frames
-
-    def frames(n_samples: int) -> int:
-        return n_motion_frames(Audio(audio.samples[:n_samples], audio.sample_rate), motion.fps)
-
-    n = motion.n_frames
-    if frames(len(audio.samples)) < n:
-        cut = slice(0, frames(len(audio.samples)))
-        root = None if motion.root_translation is None else motion.root_translation[cut]
-        return replace(motion, rotations=motion.rotations[cut], face=motion.face[cut], root_translation=root), audio
-    keep = min(len(audio.samples), int(round(n * audio.sample_rate / motion.fps)))
-    while keep > 0 and frames(keep) > n:
-        keep -= 1
-    while keep < len(audio.samples) and frames(keep + 1) <= n:
-        keep += 1
-    return motion, Audio(audio.samples[:keep], audio.sample_rate)
-
-
 def write_recording(audio, path: Path) -> None:
     import soundfile as sf
 
@@ -416,7 +394,7 @@ class LiveRun:
         from .report import model_label, report_details, warning_lines, write_report
 
         scene, settings = context.scene, context.scene.diffsheg
-        motion, audio = matched_lengths(result.motion, result.audio)
+        motion, audio = result.motion, result.audio  # as long as each other (LiveEngine.heard_frames)
         path = recording_path(recording_folder())
         write_recording(audio, path)
         motion = replace(motion, meta={**motion.meta, "audio_file": str(path)})

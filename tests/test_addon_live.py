@@ -358,21 +358,3 @@ def test_the_live_panel_and_the_preferences():
     else:
         assert labels == problem[0].upper() + problem[1:]
         assert in_preferences == f"Live cannot use a microphone: {problem}"
-
-
-def test_the_recording_is_cut_to_one_length_for_regenerating(speech):
-    """A session's motion may end a frame or two before its audio (the engine's last window at
-    a lookahead of 2 or more): the recorded audio is cut to the motion, so that a range of the
-    take can be regenerated (which needs the audio to give as many frames as the motion has)."""
-    from diffsheg_core.audio import Audio
-
-    audio = read_audio_file(speech)
-    frames = n_motion_frames(audio, 15)
-    motion = replace(mocap_motion(frames), meta={})
-    for n in (frames - 2, frames):
-        short = replace(motion, rotations=motion.rotations[:n], face=motion.face[:n])
-        kept, cut = live.matched_lengths(short, audio)
-        assert kept is short and n_motion_frames(cut, 15) == n and len(cut.samples) <= len(audio.samples)
-    clipped = Audio(audio.samples[: len(audio.samples) * (frames - 3) // frames], audio.sample_rate)
-    kept, cut = live.matched_lengths(motion, clipped)
-    assert cut is clipped and kept.n_frames == n_motion_frames(clipped, 15) < frames

@@ -206,3 +206,17 @@ def test_the_engine_refuses_what_live_cannot_do(model):
         LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(lookahead=-1))
     with pytest.raises(DiffshegError, match="4000 Hz or more"):
         LiveEngine(bundle, network, GenerateSettings(), 100)
+
+
+@pytest.mark.parametrize("lookahead", [0, 2, 5])
+def test_every_frame_heard_is_emitted_whatever_the_lookahead(speech, model, lookahead):
+    bundle, network = model
+    audio = Audio(speech.samples[: int(2.5 * speech.sample_rate)], speech.sample_rate)
+    engine = LiveEngine(bundle, network, GenerateSettings(), audio.sample_rate, LiveConfig(lookahead=lookahead))
+    for i in range(0, audio.n_samples, 320):
+        engine.push(audio.samples[i: i + 320])
+        while engine.ready():
+            engine.step()
+    engine.finish()
+    assert engine.emitted == engine.heard_frames == n_motion_frames(audio, bundle.config.fps)
+    assert engine.motion().n_frames == engine.emitted

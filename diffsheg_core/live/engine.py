@@ -27,7 +27,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..audio import MIN_SAMPLE_RATE, Audio, mel_frames
+from ..audio import MIN_SAMPLE_RATE, Audio, mel_frames, n_motion_frames
 from ..checkpoints import ModelBundle
 from ..errors import DiffshegError
 from ..foppas import Foppas, FoppasConfig, Noise, with_overrides
@@ -119,8 +119,10 @@ class LiveEngine:
 
     @property
     def heard_frames(self) -> int:
-        """Motion frames whose audio (a whole 1/fps period) has arrived."""
-        return len(self._samples) * self.fps // self.sample_rate
+        """Motion frames of the audio heard so far, as `generate` counts them for a recording
+        of that length (`audio.n_motion_frames`): so a recording's motion and audio always
+        agree, and a range of it can be regenerated from that audio."""
+        return n_motion_frames(Audio(self._samples, self.sample_rate), self.fps)
 
     def ready(self) -> bool:
         """Whether the audio of the next hop and its lookahead has arrived."""
@@ -134,11 +136,12 @@ class LiveEngine:
         return self._window(self.emitted + self.live.hop)
 
     def finish(self) -> np.ndarray:
-        """Sample the frames of the audio left after the last full hop (possibly none)."""
-        end = min(self.heard_frames, self.emitted + self.live.hop)
-        if end <= self.emitted:
-            return np.zeros((0, self.bundle.config.dim), np.float32)
-        return self._window(end)
+        """Sample the frames of the audio left after the last full hop (possibly none, or
+        more than a hop: the lookahead's), so that every frame heard is emitted."""
+        parts = [np.zeros((0, self.bundle.config.dim), np.float32)]
+        while self.emitted < self.heard_frames:
+            parts.append(self._window(min(self.heard_frames, self.emitted + self.live.hop)))
+        return np.concatenate(parts)
 
     def _window(self, end: int) -> np.ndarray:
         """Sample the window ending at frame `end`, holding the emitted frames before the new ones."""
