@@ -8,8 +8,10 @@ moves. F-Curves go into the slot's channelbag where
 A take already playing there is replaced by the new one (see takes.py); a user's Action
 is kept and pushed onto an NLA track, never overwritten. Keys go in with `keyframe_points.add` + `foreach_set`: either a channel's
 sparse Bezier keys (`diffsheg_core.keyframes`: poses with aligned handles) or one key per
-frame. Every key written is typed GENERATED, Blender's type for keys a tool made; any
-other type is the animator's.
+frame. Every key written is typed GENERATED_KEY: GENERATED, Blender's type for keys a tool
+made (4.2+); any other type is the animator's. Blender before 4.2 has no GENERATED type (the
+legacy zip's Blenders), and there the keys are JITTER, its type for "a filler or baked
+keyframe", which an animator there rarely sets by hand.
 """
 
 from __future__ import annotations
@@ -133,6 +135,9 @@ def write_channels(action, slot, channels: list[Channel], start_frame: float) ->
     return total
 
 
+GENERATED_KEY = "GENERATED" if "GENERATED" in bpy.types.Keyframe.bl_rna.properties["type"].enum_items else "JITTER"
+
+
 def _enum(prop: str, item: str) -> int:
     return bpy.types.Keyframe.bl_rna.properties[prop].enum_items[item].value
 
@@ -155,7 +160,7 @@ def _write_keys(fc, keys: Keys | None, values: np.ndarray, start_frame: float) -
         points.foreach_set("interpolation", [_enum("interpolation", "BEZIER")] * n)
         for side in ("handle_left_type", "handle_right_type"):
             points.foreach_set(side, [_enum(side, "ALIGNED")] * n)
-    points.foreach_set("type", [_enum("type", "GENERATED")] * n)
+    points.foreach_set("type", [_enum("type", GENERATED_KEY)] * n)
     fc.update()
     return n
 

@@ -3,7 +3,7 @@
 The animator picks scene frames [first, last] (the preview range, or frames in the
 panel). `prepare_range` (main thread) finds the take playing on the character, the
 Motion it was made from (takes.source_of), the model frames whose change reaches only
-those scene frames, and the pins: every key of the animator's (any type but GENERATED)
+those scene frames, and the pins: every key of the animator's (any type but GENERATED, `keying.GENERATED_KEY`)
 on a driven bone inside the range, turned back through the retargeting into a pose of
 the model's joint. `diffsheg_core.regenerate` then samples the range anew off the main
 thread, and `apply_range` (main thread) makes the result a new take: a copy of the
@@ -31,7 +31,7 @@ from diffsheg_core.rotations import axis_angle_to_matrix, convert
 
 from . import takes
 from .bake import BakeOptions, BakeResult, Group, auto_preset, group_values, plan_keys, scene_fps
-from .keying import Undo, action_fcurves, fcurves_of, undone_on_error
+from .keying import GENERATED_KEY, Undo, action_fcurves, fcurves_of, undone_on_error
 from .retarget import joint_rotation, map_armature, passed_rotation
 
 REACH = 2  # model frames on either side that one scene frame's value depends on (PCHIP face weights)
@@ -147,7 +147,7 @@ def _animator_keys(armature, first: int, last: int) -> list[tuple[str, float]]:
         bone = fc.data_path.split('"')[1].replace('\\"', '"')
         for point in fc.keyframe_points:
             frame = float(point.co[0])
-            if point.type != "GENERATED" and first <= frame <= last:
+            if point.type != GENERATED_KEY and first <= frame <= last:
                 found.add((bone, frame))
     return sorted(found, key=lambda item: (item[1], item[0]))
 
@@ -304,7 +304,7 @@ def _cut(fc, frame: float) -> None:
     for key in points[max(after - 1, 0): after + 1]:  # their handles stay where they are now
         if key.handle_left_type in {"AUTO", "AUTO_CLAMPED", "VECTOR"}:
             key.handle_left_type = key.handle_right_type = "ALIGNED"
-    points.insert(frame, fc.evaluate(frame), options={"FAST"}, keyframe_type="GENERATED")
+    points.insert(frame, fc.evaluate(frame), options={"FAST"}, keyframe_type=GENERATED_KEY)
     fc.update()
 
 
@@ -315,7 +315,7 @@ def _read(fc) -> _Curve:
     points.foreach_get("co", co)
     points.foreach_get("handle_left", left)
     points.foreach_get("handle_right", right)
-    generated = np.array([p.type == "GENERATED" for p in points], dtype=bool)
+    generated = np.array([p.type == GENERATED_KEY for p in points], dtype=bool)
     co, left, right = co.reshape(n, 2), left.reshape(n, 2), right.reshape(n, 2)
     return _Curve(fc, co[:, 0], co[:, 1], left, right, generated)
 
@@ -368,13 +368,13 @@ def _write_span(curves: list[_Curve], keys: Keys, lo: int, hi: int, request: Ran
         for point, k in zip(list(points)[first_new:], new):
             point.co = (lo + float(keys.frames[k]), float(keys.values[k, c]))
             point.interpolation = "BEZIER"
-            point.type = "GENERATED"
+            point.type = GENERATED_KEY
             point.handle_left_type = point.handle_right_type = "ALIGNED"
             point.handle_left, point.handle_right = left[k, c] + offset, right[k, c] + offset
         kept = {int(round(p.co[0])): p for p in list(points)[:first_new] if lo <= p.co[0] <= hi}
         for k, f in enumerate(keys.frames):
             point = kept.get(lo + int(f))
-            if point is None or point.type != "GENERATED":
+            if point is None or point.type != GENERATED_KEY:
                 continue  # the animator's key stays as set
             if f == 0 and len(keys) > 1:  # the cut before the range: only its handle into it moves
                 point.handle_right = right[k, c] + offset
