@@ -46,7 +46,7 @@ def take_name(audio: str, number: int) -> str:
 
 def action_name(take: str, id_data) -> str:
     """The Action's name within a take: the take's for an armature, the mesh's added for a face."""
-    if getattr(id_data, "id_type", "") == "KEY":
+    if isinstance(id_data, bpy.types.Key):  # (ID.id_type is 4.x's: Blender 3.4 has none)
         owner = getattr(id_data, "user", None)
         return f"{take} ({owner.name if owner is not None else id_data.name})"
     return take
