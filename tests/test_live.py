@@ -220,3 +220,30 @@ def test_every_frame_heard_is_emitted_whatever_the_lookahead(speech, model, look
     engine.finish()
     assert engine.emitted == engine.heard_frames == n_motion_frames(audio, bundle.config.fps)
     assert engine.motion().n_frames == engine.emitted
+
+
+def test_ctrl_c_ends_the_live_cli_cleanly_and_writes_the_recording(tmp_path, speech):
+    import signal
+
+    clip = tmp_path / "speech.wav"
+    sf.write(clip, speech.samples, speech.sample_rate)
+    proc = subprocess.Popen([sys.executable, "-m", "diffsheg_core", "live", "--source", str(clip), "--record",
+                             str(tmp_path / "take.npz")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "DIFFSHEG_THREADS": "1"})
+    err_parts: list[str] = []
+    reader = threading.Thread(target=lambda: err_parts.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True)
+    reader.start()
+    deadline = time.monotonic() + 60
+    while "latency" not in "".join(err_parts) and time.monotonic() < deadline:  # frames are being shown
+        time.sleep(0.1)
+    time.sleep(1.5)
+    proc.send_signal(signal.SIGINT)
+    proc.wait(timeout=60)
+    reader.join(10)
+    err = "".join(err_parts)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err
+    take = Motion.load_npz(tmp_path / "take.npz")
+    heard = read_audio_file(tmp_path / "take.wav")
+    assert 1.0 < heard.duration < speech.duration - 1.0  # stopped part-way: what was heard is kept
+    assert take.n_frames == n_motion_frames(heard, take.fps)
