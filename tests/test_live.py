@@ -204,6 +204,8 @@ def test_the_engine_refuses_what_live_cannot_do(model):
         LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(hop=0))
     with pytest.raises(DiffshegError, match="lookahead"):
         LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(lookahead=-1))
+    with pytest.raises(DiffshegError, match="later_start"):
+        LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(later_start=25))
     with pytest.raises(DiffshegError, match="4000 Hz or more"):
         LiveEngine(bundle, network, GenerateSettings(), 100)
 

@@ -38,21 +38,26 @@ from ..settings import GenerateSettings
 
 HOPS = (1, 16)  # new frames per window: below 1 nothing moves, above 16 (>1 s at 15 fps) it is not live
 LOOKAHEADS = (0, 15)
+LIVE_STEPS = 25  # the schedule `LiveConfig.later_start` counts in (rescaled to the steps sampled)
 
 
 @dataclass(frozen=True)
 class LiveConfig:
     """How the stream is sampled. The defaults, by bench/bench_live.py on the 2-core CI
-    machine (bundled model, one thread, 20 s of real speech at real time, idle): hop 3 and
-    lookahead 1 show frames 0.43 s (p50) / 0.45 s (p95) after their audio at 0.70 s of
-    compute per second of speech; hop 4 costs 0.07 s more latency for 20 % less compute.
-    A lookahead of 1-2 frames gives the phonetic encoder the sound after a frame: with
-    none, jawOpen at open vowels over bilabials fell to 0.84x offline's (2 seeds, 64 s),
-    with 2 it was 0.99x."""
+    machine (bundled model, one thread, real speech): see the README's Live section.
+    - hop 3 and lookahead 1 show frames 0.45 s (p95) after their audio; hop 4 costs 0.07 s
+      more latency for a fifth less compute.
+    - A lookahead of 1-2 frames gives the phonetic encoder the sound after a frame: with
+      none, jawOpen at open vowels over bilabials fell to 0.84x offline's (2 seeds, 64 s).
+    - Later windows start at index 14 of 25 steps, FOPPAS's published value, rather than the
+      bundled model's 17: 15 network calls a window instead of 18, with the same figures
+      against offline (wrist speed 0.74x / 0.76x, jitter 0.96x / 1.03x, lip-sync 0.98x both);
+      at 12 the jaw contrast fell to 0.92x."""
 
-    hop: int = 3             # new frames per window
-    lookahead: int = 1       # frames of audio a window waits for past its new frames
-    context: float = 3.0     # seconds of audio the speech features of a window are computed over
+    hop: int = 3                       # new frames per window
+    lookahead: int = 1                 # frames of audio a window waits for past its new frames
+    context: float = 3.0               # seconds of audio the speech features of a window are computed over
+    later_start: Optional[int] = 14    # schedule index later windows start from, at 25 steps (None: the model's)
 
     def check(self, clip_len: int) -> None:
         for name, value, (lo, hi) in (("hop", self.hop, HOPS), ("lookahead", self.lookahead, LOOKAHEADS)):
@@ -62,6 +67,11 @@ class LiveConfig:
         if self.hop >= clip_len:
             raise DiffshegError(f"live hop must be shorter than the model's {clip_len}-frame window, "
                                 f"got {self.hop}")
+        if self.later_start is not None and (isinstance(self.later_start, bool)
+                                             or not isinstance(self.later_start, int)
+                                             or not 0 <= self.later_start < LIVE_STEPS):
+            raise DiffshegError(f"live later_start must be None (the model's) or a step index from 0 to "
+                                f"{LIVE_STEPS - 1}, got {self.later_start!r}")
         if not isinstance(self.context, (int, float)) or not 0 < self.context <= 60:
             raise DiffshegError(f"live context must be a number of seconds above 0 and at most 60, "
                                 f"got {self.context!r}")
@@ -95,7 +105,8 @@ class LiveEngine:
         self.sample_rate = sample_rate
         self.fps = int(cfg.fps)
         self.config: FoppasConfig = replace(
-            with_overrides(bundle.sampling, steps=settings.steps, candidates=settings.candidates), blend=False, refine=None)
+            with_overrides(_live_sampling(bundle.sampling, live), steps=settings.steps, candidates=settings.candidates),
+            blend=False, refine=None)
         self.sampler: Foppas
         self.sampler, self._make_eps_fn = build_sampling(
             bundle, network, self.config, settings.style, settings.guidance, settings.skip_guidance,
@@ -194,6 +205,14 @@ class LiveEngine:
         meta = generation_meta(self.bundle, self.settings, self.config, self.network, self.audio())
         meta["live"] = {"hop": self.live.hop, "lookahead": self.live.lookahead, "context": self.live.context}
         return meta
+
+
+def _live_sampling(sampling: FoppasConfig, live: LiveConfig) -> FoppasConfig:
+    """The model's sampling settings with later windows starting at `live.later_start` (of
+    LIVE_STEPS steps, rescaled to the model's)."""
+    if live.later_start is None:
+        return sampling
+    return replace(sampling.with_steps(LIVE_STEPS), later_start=live.later_start).with_steps(sampling.steps)
 
 
 def _alignment(sample_rate: int, fps: int) -> int:
