@@ -30,8 +30,9 @@ from diffsheg_core.checkpoints import ModelBundle, load_model
 from diffsheg_core.config import ModelConfig
 from diffsheg_core.foppas import PRESETS, sample_long
 from diffsheg_core.motion import write_arkit_json
-from diffsheg_core.pipeline import build_sampling, speech_features, to_motion
+from diffsheg_core.pipeline import build_sampling, make_plan, speech_features, to_motion
 from diffsheg_core.runtime.backends import open_network
+from diffsheg_core.settings import GenerateSettings
 from diffsheg_core.torch_layer.model import UniEG, state_arrays
 
 SPEECH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "audio" / "2_scott_0_3_3.wav"
@@ -70,7 +71,7 @@ def run(bundle: ModelBundle, audio_path: Path, backend: str, device: str, hubert
     times["features"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    sampler, make = build_sampling(bundle, network, bundle.sampling)
+    sampler, make = build_sampling(bundle, network, make_plan(bundle, GenerateSettings(model=bundle)))
     out_frames = sample_long(sampler, make, cond, 0)
     times["sampling"] = time.perf_counter() - t
 

@@ -112,14 +112,18 @@ def with_style(chunks: Iterator[np.ndarray], track: Optional[np.ndarray]) -> Ite
         done += len(chunk)
 
 
-def style_meta(bundle: ModelBundle, style: Optional[StyleSpec], style_guidance: Optional[float]) -> dict:
-    """What a Motion records of its style: the class (single styles), the weights by name
-    (or index), the names of the model's styles and the style-guidance scale used."""
-    weights = style_weights(bundle, style)
+def named_weights(bundle: ModelBundle, weights: dict[int, float]) -> dict[str, float]:
+    """Style weights by name (by index for a model without style names)."""
     names = bundle.style_names
+    return {(names[k] if names else str(k)): w for k, w in weights.items()}
+
+
+def style_meta(bundle: ModelBundle, weights: dict[int, float], style_guidance: Optional[float]) -> dict:
+    """What a Motion records of its style: the class (single styles), the weights by name
+    (or index), the names of the model's styles and the style-guidance scale used (None: off)."""
     return {"style": next(iter(weights)) if len(weights) == 1 else None,
-            "style_weights": {(names[k] if names else str(k)): w for k, w in weights.items()},
-            "style_names": names, "style_guidance": resolve_style_guidance(bundle, style_guidance) or 1.0}
+            "style_weights": named_weights(bundle, weights),
+            "style_names": bundle.style_names, "style_guidance": style_guidance or 1.0}
 
 
 def resolve_style_guidance(bundle: ModelBundle, scale: Optional[float]) -> Optional[float]:
@@ -259,24 +263,47 @@ def uses_prior(bundle: ModelBundle, config: FoppasConfig) -> bool:
     return bundle.prior is not None and config.prior_start
 
 
-def build_sampling(bundle: ModelBundle, network, config: FoppasConfig, style: Optional[StyleSpec] = None,
-                   guidance: Optional[float] = None, skip_guidance: Optional[float] = None,
-                   style_guidance: Optional[float] = None,
-                   tracked: bool = False) -> tuple[Foppas, Callable[[np.ndarray], EpsFn]]:
-    """The FOPPAS sampler for `bundle` with `config`, and the factory that binds the network,
-    style and guidance scales to one window's speech features (`tracked`: the features end
-    in a style track, `with_style`, which gives each window its style). Bad settings raise
-    DiffshegError."""
+@dataclass(frozen=True)
+class Plan:
+    """A `GenerateSettings` resolved against a model once, for sampling and for the metadata
+    alike: the sampler's settings, the guidance scales (None: off), the style's class
+    weights, and the style track when the style changes over time."""
+
+    config: FoppasConfig
+    guidance: Guidance
+    guidance_scale: Optional[float]      # the classifier-free scale as chosen, for the record (1: off)
+    style_weights: dict
+    track: Optional[np.ndarray] = None   # (n_frames, style_dim); None: `style_weights` throughout
+    style_at: tuple = ()                 # ((seconds, {class: weight}), ...) of the track's changes
+
+
+def make_plan(bundle: ModelBundle, s: GenerateSettings, sampling: Optional[FoppasConfig] = None,
+              n_frames: int = 0) -> Plan:
+    """Resolve `s` against `bundle`: the sampling settings `s` asks for over the model's (or
+    `sampling`), its guidance and style (a track of `n_frames` frames for `s.style_at`). Bad
+    settings raise DiffshegError."""
+    config = with_overrides(sampling or bundle.sampling, steps=s.steps, overlap=s.overlap, candidates=s.candidates)
+    scale = resolve_guidance(bundle, s.guidance)
+    guidance = Guidance(scale, resolve_skip_guidance(bundle, s.skip_guidance),
+                        resolve_style_guidance(bundle, s.style_guidance))
+    changes = tuple((t, style_weights(bundle, spec)) for t, spec in s.style_at or ())
+    return Plan(config, guidance, scale, style_weights(bundle, s.style),
+                style_track(bundle, s.style, s.style_at, n_frames), changes)
+
+
+def build_sampling(bundle: ModelBundle, network, plan: Plan) -> tuple[Foppas, Callable[[np.ndarray], EpsFn]]:
+    """The FOPPAS sampler of `plan`, and the factory that binds the network, style and guidance
+    scales to one window's speech features (with a style track, the features end in it,
+    `with_style`, which gives each window its style). Bad settings raise DiffshegError."""
+    config = plan.config
     try:
         sampler = Foppas(Schedule.linear(), config, bundle.config.clip_len, bundle.config.dim,
                          proposal=bundle.prior.propose if uses_prior(bundle, config) else None,
                          gestures=bundle.config.gesture_dim)
     except ValueError as exc:
         raise DiffshegError(str(exc)) from None
-    scales = Guidance(resolve_guidance(bundle, guidance), resolve_skip_guidance(bundle, skip_guidance),
-                      resolve_style_guidance(bundle, style_guidance))
-    vector = None if tracked else style_vector(bundle, style_weights(bundle, style))
-    return sampler, make_eps_fn_factory(bundle, network, sampler, vector, scales)
+    vector = None if plan.track is not None else style_vector(bundle, plan.style_weights)
+    return sampler, make_eps_fn_factory(bundle, network, sampler, vector, plan.guidance)
 
 
 def _repeat(values: Optional[np.ndarray], rows: int) -> Optional[np.ndarray]:
@@ -345,8 +372,8 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     network = open_network(bundle, s.backend, s.device, s.precision, s.threads)
     speech = open_speech(audio, sample_rate)
     n_frames = n_motion_frames(speech, bundle.config.fps)
-    config, sampler, make_eps_fn, track = _sampling(bundle, network, s, sampling, n_frames)
-    chunks = with_style(speech_chunks(bundle, network, speech, hubert_path, hubert_quirk), track)
+    plan, sampler, make_eps_fn = _sampling(bundle, network, s, sampling, n_frames)
+    chunks = with_style(speech_chunks(bundle, network, speech, hubert_path, hubert_quirk), plan.track)
     if pins:  # sampled as one range with the pinned poses held, from the first frame
         normalised = np.zeros((n_frames, bundle.config.dim), dtype=np.float32)
         hold = np.zeros(normalised.shape, dtype=bool)
@@ -360,33 +387,30 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
         normalised = np.concatenate(parts + [stream.finish()])
         del parts  # a long take's motion is held once, not twice
     check_finite(bundle, normalised)
-    meta = generation_meta(bundle, s, config, network, speech)
+    meta = generation_meta(bundle, s, plan, network, speech)
     if pins:
         meta["pins"] = len(pins)
     return to_motion(bundle, normalised, meta=meta)
 
 
 def _sampling(bundle: ModelBundle, network, s: GenerateSettings, sampling: Optional[FoppasConfig],
-              n_frames: int) -> tuple[FoppasConfig, Foppas, Callable[[np.ndarray], EpsFn], Optional[np.ndarray]]:
-    """The sampling settings `s` asks for over the model's (or `sampling`), the sampler and
-    its eps factory, and the style track of `n_frames` frames (None: one style throughout)."""
-    config = with_overrides(sampling or bundle.sampling, steps=s.steps, overlap=s.overlap, candidates=s.candidates)
-    track = style_track(bundle, s.style, s.style_at, n_frames)
-    sampler, make_eps_fn = build_sampling(bundle, network, config, s.style, s.guidance, s.skip_guidance,
-                                          s.style_guidance, tracked=track is not None)
-    return config, sampler, make_eps_fn, track
+              n_frames: int) -> tuple[Plan, Foppas, Callable[[np.ndarray], EpsFn]]:
+    """The plan of `s` for `n_frames` frames, its sampler and eps factory."""
+    plan = make_plan(bundle, s, sampling, n_frames)
+    return (plan, *build_sampling(bundle, network, plan))
 
 
-def generation_meta(bundle: ModelBundle, s: GenerateSettings, config: FoppasConfig, network,
+def generation_meta(bundle: ModelBundle, s: GenerateSettings, plan: Plan, network,
                     speech: Union[Audio, AudioFile]) -> dict:
     """What a Motion records of how it was made."""
+    config = plan.config
     return {
         "model_id": bundle.model_id, "trained": bundle.trained, "seed": s.seed, "face_seed": s.face_seed,
         "audio_file": speech.path, "sample_rate": speech.sample_rate,
-        **style_meta(bundle, s.style, s.style_guidance),
-        "style_at": [[t, style_meta(bundle, spec, None)["style_weights"]] for t, spec in s.style_at or ()],
-        "guidance": resolve_guidance(bundle, s.guidance),
-        "skip_guidance": resolve_skip_guidance(bundle, s.skip_guidance),
+        **style_meta(bundle, plan.style_weights, plan.guidance.style),
+        "style_at": [[t, named_weights(bundle, weights)] for t, weights in plan.style_at],
+        "guidance": plan.guidance_scale,
+        "skip_guidance": plan.guidance.skip,
         "steps": config.steps, "overlap": config.overlap, "candidates": config.candidates,
         "prior_start": uses_prior(bundle, config), "carry": config.carry,
         "refine": config.refine, "refine_skip": config.refine_skip if config.refine is not None else None,
@@ -430,8 +454,8 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     if n_motion_frames(speech, bundle.config.fps) != motion.n_frames:
         raise DiffshegError(f"the audio gives {n_motion_frames(speech, bundle.config.fps)} frames of motion, the "
                             f"motion has {motion.n_frames}: regenerate with the audio it was made from")
-    config, sampler, make_eps_fn, track = _sampling(bundle, network, s, sampling, motion.n_frames)
-    cond = np.concatenate(list(with_style(speech_chunks(bundle, network, speech), track)))
+    plan, sampler, make_eps_fn = _sampling(bundle, network, s, sampling, motion.n_frames)
+    cond = np.concatenate(list(with_style(speech_chunks(bundle, network, speech), plan.track)))
     normalised = bundle.normalise(layout.join(motion.rotations, motion.face)).astype(np.float32)
     hold = np.zeros(normalised.shape, dtype=bool)
     if keep_face:
@@ -446,7 +470,7 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     if not keep_face:
         face[start:end] = part.face
     record = {"start": int(start), "end": int(end), "keep_face": keep_face, "pins": len(pins),
-              **generation_meta(bundle, s, config, network, speech)}
+              **generation_meta(bundle, s, plan, network, speech)}
     return replace(motion, rotations=rotations, face=face,
                    meta={**motion.meta, "regenerated": list(motion.meta.get("regenerated", [])) + [record]})
 

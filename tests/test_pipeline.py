@@ -222,13 +222,13 @@ def prior_model(model, data_dir):
 def test_streaming_foppas_in_small_pushes_matches_generate(speech, model, prior_model, with_prior):
     from diffsheg_core.audio import load_audio
     from diffsheg_core.foppas import FoppasStream
-    from diffsheg_core.pipeline import build_sampling, speech_features, to_motion
+    from diffsheg_core.pipeline import build_sampling, make_plan, speech_features, to_motion
     from diffsheg_core.runtime.backends import open_network
 
     model = prior_model if with_prior else model
     network = open_network(model)
     features = speech_features(model, network, load_audio(speech))
-    stream = FoppasStream(*build_sampling(model, network, model.sampling), seed=5)
+    stream = FoppasStream(*build_sampling(model, network, make_plan(model, GenerateSettings(model=model))), seed=5)
     frames = [stream.push(features[i:i + 15]) for i in range(0, len(features), 15)] + [stream.finish()]
     streamed = to_motion(model, np.concatenate(frames), meta={})
     offline = generate(speech, model=model, seed=5, device="cpu")

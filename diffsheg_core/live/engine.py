@@ -30,9 +30,9 @@ import numpy as np
 from ..audio import MIN_SAMPLE_RATE, Audio, mel_frames, n_motion_frames
 from ..checkpoints import ModelBundle
 from ..errors import DiffshegError
-from ..foppas import Foppas, FoppasConfig, Noise, with_overrides
+from ..foppas import Foppas, FoppasConfig, Noise
 from ..phonetic import log_mel, receptive_field, stack_posteriors
-from ..pipeline import build_sampling, check_finite, generation_meta, to_motion
+from ..pipeline import build_sampling, check_finite, generation_meta, make_plan, to_motion
 from ..motion import Motion
 from ..settings import GenerateSettings
 
@@ -104,13 +104,11 @@ class LiveEngine:
         self.bundle, self.network, self.settings, self.live = bundle, network, settings, live
         self.sample_rate = sample_rate
         self.fps = int(cfg.fps)
-        self.config: FoppasConfig = replace(
-            with_overrides(_live_sampling(bundle.sampling, live), steps=settings.steps, candidates=settings.candidates),
-            blend=False, refine=None)
+        self.plan = make_plan(bundle, settings, replace(_live_sampling(bundle.sampling, live), blend=False,
+                                                        refine=None))
+        self.config: FoppasConfig = self.plan.config
         self.sampler: Foppas
-        self.sampler, self._make_eps_fn = build_sampling(
-            bundle, network, self.config, settings.style, settings.guidance, settings.skip_guidance,
-            settings.style_guidance)
+        self.sampler, self._make_eps_fn = build_sampling(bundle, network, self.plan)
         self.noise = Noise(settings.seed, settings.face_seed, self.sampler.gestures)
         self._align = _alignment(sample_rate, self.fps)
         self._margin = _margin_frames(bundle, self.fps)
@@ -202,7 +200,7 @@ class LiveEngine:
 
     def meta(self) -> dict:
         """What a recording records of how it was made (as `generate`, plus the live settings)."""
-        meta = generation_meta(self.bundle, self.settings, self.config, self.network, self.audio())
+        meta = generation_meta(self.bundle, self.settings, self.plan, self.network, self.audio())
         meta["live"] = {"hop": self.live.hop, "lookahead": self.live.lookahead, "context": self.live.context}
         return meta
 
