@@ -113,25 +113,33 @@ class LiveEngine:
         self._align = _alignment(sample_rate, self.fps)
         self._margin = _margin_frames(bundle, self.fps)
         self._context = max(int(math.ceil(live.context * self.fps)), cfg.clip_len + self._margin)
-        self._samples = np.zeros(0, np.float32)
+        self._buffer = np.zeros(self.sample_rate * 10, np.float32)  # every sample heard, in [: _n]
+        self._n = 0
         self._frames: list[np.ndarray] = []  # emitted (k, D) normalised frames, in order
         self.emitted = 0
 
     # --- audio in --------------------------------------------------------------------
     def push(self, samples: np.ndarray) -> None:
-        self._samples = np.concatenate([self._samples, np.asarray(samples, np.float32)])
+        samples = np.asarray(samples, np.float32)
+        end = self._n + len(samples)
+        if end > len(self._buffer):  # grown by doubling: a chunk costs its own length, not the session's
+            grown = np.zeros(max(end, 2 * len(self._buffer)), np.float32)
+            grown[: self._n] = self._buffer[: self._n]
+            self._buffer = grown
+        self._buffer[self._n: end] = samples
+        self._n = end
 
     @property
     def n_samples(self) -> int:
         """Samples heard so far."""
-        return len(self._samples)
+        return self._n
 
     @property
     def heard_frames(self) -> int:
         """Motion frames of the audio heard so far, as `generate` counts them for a recording
         of that length (`audio.n_motion_frames`): so a recording's motion and audio always
         agree, and a range of it can be regenerated from that audio."""
-        return n_motion_frames(Audio(self._samples, self.sample_rate), self.fps)
+        return n_motion_frames(Audio(self._buffer[: self._n], self.sample_rate), self.fps)
 
     def ready(self) -> bool:
         """Whether the audio of the next hop and its lookahead has arrived."""
@@ -180,7 +188,7 @@ class LiveEngine:
         from `_context` frames before `end` (aligned to a whole sample) to what has arrived."""
         cfg = self.bundle.config
         start = max(0, end - self._context) // self._align * self._align
-        audio = Audio(self._samples[start * self.sample_rate // self.fps:], self.sample_rate)
+        audio = Audio(self._buffer[start * self.sample_rate // self.fps: self._n], self.sample_rate)
         rows = slice(first - start, end - start)
         parts = [mel_frames(audio, self.fps)[rows]]
         if cfg.phonetic_input:
@@ -191,7 +199,7 @@ class LiveEngine:
 
     # --- what was made ---------------------------------------------------------------
     def audio(self) -> Audio:
-        return Audio(self._samples.copy(), self.sample_rate)
+        return Audio(self._buffer[: self._n].copy(), self.sample_rate)
 
     def motion(self, meta: Optional[dict] = None) -> Motion:
         """Every frame emitted so far, as a Motion."""
