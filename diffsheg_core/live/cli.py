@@ -52,11 +52,10 @@ def run(args: argparse.Namespace) -> int:
     audio_out = record.with_suffix(".wav") if record else None
     if record is not None and record.suffix != ".npz":
         raise DiffshegError(f"--record {record}: the recording is a Motion .npz; name it e.g. take.npz")
-    source_file = None if args.source == "mic" or args.source.startswith(("mic:", "tcp://")) else args.source
-    check_outputs([record, audio_out, args.latency_log], inputs=[source_file, *files_read(args.model)])
+    source = open_source(args.source, speed=args.speed)
+    check_outputs([record, audio_out, args.latency_log], inputs=[getattr(source, "path", None), *files_read(args.model)])
     settings = from_arguments(args)
     live = LiveConfig(hop=args.hop, lookahead=args.lookahead)
-    source = open_source(args.source, speed=args.speed)
     session = LiveSession(source, settings, live)
     sender = _vmc_sender(args.osc, session.bundle) if args.osc else None
     print(f"live from {source.description}, model {session.bundle.model_id}, hop {live.hop} frames"
