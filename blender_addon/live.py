@@ -368,7 +368,7 @@ class LiveRun:
             from .panel_settings import error_message
 
             why = error_message(job.error) if job is not None and job.error is not None else "it did not finish"
-            return self._outcome(context, LiveOutcome(f"live session failed: {why}", "ERROR"))
+            return LiveOutcome(f"live session failed: {why}", "ERROR")
         result = job.result
         heard = len(result.audio.samples) / result.audio.sample_rate
         summary = _summary(result)
@@ -376,18 +376,18 @@ class LiveRun:
             problems.insert(0, result.error)
         if not result.motion.n_frames:
             line = "live: no speech came, nothing recorded" + (f": {result.error}" if result.error else "")
-            return self._outcome(context, LiveOutcome(line, "ERROR" if result.error else "WARNING"))
+            return LiveOutcome(line, "ERROR" if result.error else "WARNING")
         if not self.record:
             line = f"live: {heard:.1f} s, {summary}; not recorded (Record is off)"
-            return self._outcome(context, LiveOutcome(_with(line, problems), "WARNING" if problems else "INFO"))
+            return LiveOutcome(_with(line, problems), "WARNING" if problems else "INFO")
         try:
             take = self._record(context, result, summary, problems)
         except Exception as exc:
             from .panel_settings import error_message
 
             line = f"live: {heard:.1f} s, {summary}; the recording could not be keyed: {error_message(exc)}"
-            return self._outcome(context, LiveOutcome(line, "ERROR"))
-        return self._outcome(context, take)
+            return LiveOutcome(line, "ERROR")
+        return take
 
     def _record(self, context, result, summary: str, problems: list[str]) -> LiveOutcome:
         from .bake import bake_motion
@@ -420,11 +420,6 @@ class LiveRun:
         write_report(details + "\n".join([f"live: {self.source.description}", f"audio: {path}", summary,
                                           *[f"- {p}" for p in problems]]) + "\n")
         return LiveOutcome(line, "WARNING" if warnings else "INFO", baked.take)
-
-    def _outcome(self, context, outcome: LiveOutcome) -> LiveOutcome:
-        settings = context.scene.diffsheg
-        settings.last_report, settings.last_failed = outcome.line, outcome.take is None and outcome.level == "ERROR"
-        return outcome
 
     def _close_vmc(self) -> None:
         if getattr(self, "vmc", None) is not None:

@@ -281,18 +281,12 @@ class DIFFSHEG_PT_live(_Panel, bpy.types.Panel):
         col.enabled = run is None  # a running session keeps the settings it started with
         col.prop(s, "live_source")
         if s.live_source == live.MIC:
-            if _has_placeholder():
-                col.prop(s, "live_mic", placeholder="System default")
-            else:
-                col.prop(s, "live_mic")
+            _prop(col, s, "live_mic", placeholder="System default")
             problem = live.microphone_problem()
             if problem:
                 wrapped_label(col, context, problem[0].upper() + problem[1:], icon="ERROR")
         elif s.live_source == live.FILE:
-            if _has_placeholder():
-                col.prop(s, "live_file", placeholder="The Audio above")
-            else:
-                col.prop(s, "live_file")
+            _prop(col, s, "live_file", placeholder="The Audio above")
             col.prop(s, "live_speed")
         else:
             col.prop(s, "live_port")
@@ -316,9 +310,13 @@ class DIFFSHEG_PT_live(_Panel, bpy.types.Panel):
             wrapped_label(layout, context, run.status(), icon="REC" if run.record else "PLAY")
 
 
-def _has_placeholder() -> bool:
-    """`placeholder` on UILayout.prop: Blender 4.1 and later."""
-    return bpy.app.version >= (4, 1, 0)
+def _prop(layout, data, name: str, placeholder: str) -> None:
+    """`layout.prop` with the grey text an empty field shows (`placeholder`: Blender 4.1 and
+    later; before, the field is drawn without it)."""
+    if bpy.app.version >= (4, 1, 0):
+        layout.prop(data, name, placeholder=placeholder)
+    else:
+        layout.prop(data, name)
 
 
 CLASSES = (DIFFSHEG_UL_face_meshes, DIFFSHEG_PT_generate, DIFFSHEG_PT_sampling, DIFFSHEG_PT_keys, DIFFSHEG_PT_live)

@@ -26,7 +26,6 @@ import importlib.util
 import platform
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import bpy
@@ -161,19 +160,13 @@ def draw_microphone(layout, context) -> None:
     if importlib.util.find_spec("numpy") is None:
         return  # the runtime box says what is missing first
     from .live import microphone_problem
+    from .panel import wrapped_label  # (panel imports this module)
 
     problem = microphone_problem()
     if problem is None:
         layout.label(text="Live: a microphone can be used", icon="CHECKMARK")
         return
-    region = getattr(context, "region", None)
-    width = max(40, int((region.width - 60) / 7)) if region is not None and region.width > 1 else 100
-    text = f"Live cannot use a microphone: {problem}"
-    col = layout.column(align=True)
-    for i, line in enumerate(textwrap.wrap(text, width)):
-        row = col.row()
-        row.scale_y = 0.8 if i else 1.0  # one paragraph, as the panel's wrapped texts
-        row.label(text=line, icon="ERROR" if i == 0 else "BLANK1")
+    wrapped_label(layout, context, f"Live cannot use a microphone: {problem}", icon="ERROR", beside_px=16)
 
 
 class InstallJob(BackgroundJob):
