@@ -529,7 +529,7 @@ def hubert_status(model_path: str | os.PathLike | None = None) -> str | None:
     """None when HuBERT features can be computed, else a one-line reason why not."""
     if importlib.util.find_spec("transformers") is None:
         return "the Python package 'transformers' is not installed"
-    folder = Path(model_path) if model_path is not None else _cached_hubert_folder()
+    folder = Path(model_path) if model_path is not None else cached_hubert_folder()
     if folder is None:
         return f"{HUBERT_REPO_ID} is not in the Hugging Face cache"
     if not folder.is_dir():
@@ -549,7 +549,7 @@ def require_hubert(model_path: str | os.PathLike | None = None) -> None:
         raise AudioError(f"HuBERT features are unavailable: {reason}. {HUBERT_HOW_TO}")
 
 
-def _cached_hubert_folder() -> Path | None:
+def cached_hubert_folder() -> Path | None:
     """The cached snapshot folder of HUBERT_REPO_ID, without touching the network."""
     try:
         from huggingface_hub import try_to_load_from_cache

@@ -532,11 +532,11 @@ def official_stats(dataset: str, stats_dir: Optional[str | Path],
 def _load_official(path: Path, dataset: Optional[str], stats_dir) -> ModelBundle:
     try:
         from .torch_layer.model import UniEG, load_state_strict
-        from .torch_layer.official import _read_pickle
+        from .torch_layer.official import read_official_pickle
     except ImportError:
         raise CheckpointError(f"{path}: official DiffSHEG checkpoints are torch pickles and need torch, "
                               f"which this installation lacks: {TORCH_HOW_TO}") from None
-    state = official_state_dict(_read_pickle(path), path)
+    state = official_state_dict(read_official_pickle(path), path)
     check_weights(state, str(path))
     cfg = config_from_state(state, dataset, path)
     name = "beat" if cfg.layout == "beat" else "show"

@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 
 from ..audio import (HUBERT_CHUNK, HUBERT_HOW_TO, HUBERT_KERNEL, HUBERT_RATE, HUBERT_STRIDE, LOAD_RATE, Audio,
-                     _cached_hubert_folder, require_hubert, resample)
+                     cached_hubert_folder, require_hubert, resample)
 from ..errors import AudioError, DiffshegError
 from .devices import resolve_device
 
@@ -38,7 +38,7 @@ def load_hubert(model_path: str | os.PathLike | None = None, device: str = "cpu"
     torch_device = _torch_device(device)
     from transformers import HubertModel, Wav2Vec2FeatureExtractor
 
-    folder = Path(model_path) if model_path is not None else _cached_hubert_folder()
+    folder = Path(model_path) if model_path is not None else cached_hubert_folder()
     try:
         model = HubertModel.from_pretrained(folder, local_files_only=True)
         if (folder / "preprocessor_config.json").is_file():

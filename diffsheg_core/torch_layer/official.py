@@ -14,7 +14,7 @@ import torch
 from ..errors import CheckpointError
 
 
-def _read_pickle(path: Path) -> dict:
+def read_official_pickle(path: Path) -> dict:
     """The unpickled contents of an official checkpoint, plain tensors and containers only
     (`weights_only=True`); damaged files and pickles that would run code raise CheckpointError."""
     damaged = (f"{path}: cannot read this torch checkpoint ({{}}); it is truncated, damaged or not a "
