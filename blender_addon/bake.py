@@ -31,7 +31,9 @@ class BakeOptions:
     """What to key and how. By default sparse Bezier keys on the motion's turning points,
     within `max_error` degrees per bone and `max_face_error` per shape key on every frame;
     `every_frame` keys each frame instead (baked curves for game export). `smoothing` is
-    a Gaussian sigma in scene frames."""
+    a Gaussian sigma in scene frames. With `nla_strip` (Generate for Sound Strips: the sound
+    strip's name) the take plays from the sound-strips NLA track instead of as the active
+    Action (takes.play_in_sequence), so each line's take plays at its own frames."""
 
     armature: object | None
     face_meshes: list = field(default_factory=list)
@@ -43,6 +45,7 @@ class BakeOptions:
     smoothing: float = 0.0
     add_sound: bool = True
     set_frame_range: bool = True
+    nla_strip: str | None = None    # play the take from the sound-strips NLA track, as this strip
 
     def __post_init__(self):
         for name, value in (("max_error", self.max_error), ("max_face_error", self.max_face_error),
@@ -238,6 +241,8 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
             takes.mark(action, take, audio_name, number, id_data)
             channels = [ch for g in groups for ch in (g.channels if options.every_frame else with_keys(g))]
             n_keys += write_channels(action, slot, channels, options.start_frame)
+            if options.nla_strip is not None:
+                takes.play_in_sequence(id_data, options.nla_strip, undo)
             actions.append(action.name)
         takes.store_source(bpy.data.actions[actions[0]],
                            takes.TakeSource(motion, str(audio_path or ""), options.start_frame))

@@ -27,7 +27,7 @@ import bpy
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.keyframes import Keys, handles
 
-from .takes import assign, is_take
+from .takes import assign, is_take, nla_strip, playing_action
 
 try:
     from bpy_extras.anim_utils import action_ensure_channelbag_for_slot
@@ -104,10 +104,7 @@ def _push_to_nla(anim, action, undo: list[Undo]) -> None:
     slot = getattr(anim, "action_slot", None)
     track = anim.nla_tracks.new()
     track.name = action.name
-    start = int(np.floor(action.frame_range[0]))
-    strip = track.strips.new(action.name, start, action)
-    if slot is not None and hasattr(strip, "action_slot"):
-        strip.action_slot = slot
+    nla_strip(track, action.name, action, slot)
     anim.action = None
 
     def restore() -> None:
@@ -195,12 +192,11 @@ def action_fcurves(action, slot=None) -> list:
     return list(action.fcurves)
 
 
-def fcurves_of(id_data) -> list:
-    """The F-Curves of the Action (and slot) assigned to `id_data`, on either API."""
-    anim = id_data.animation_data
-    if anim is None or anim.action is None:
-        return []
-    return action_fcurves(anim.action, getattr(anim, "action_slot", None))
+def fcurves_of(id_data, frame: float | None = None) -> list:
+    """The F-Curves of the Action (and slot) `id_data` plays, on either API: its active
+    Action, else at scene `frame` the take on the sound-strips NLA track (takes.playing_action)."""
+    action, slot = playing_action(id_data, frame)
+    return [] if action is None else action_fcurves(action, slot)
 
 
 def rotation_channels(bone: str, rotation_mode: str, quaternions: np.ndarray) -> list[Channel]:

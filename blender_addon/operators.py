@@ -386,7 +386,7 @@ class DIFFSHEG_OT_show_report(bpy.types.Operator):
 
 
 class DIFFSHEG_OT_use_take(bpy.types.Operator):
-    """Play this take on the character (body and face); the other takes stay in the file"""
+    """Play this take (body and face): a sound strip's take with the other lines, any other over them all"""
 
     bl_idname = "diffsheg.use_take"
     bl_label = "Use Take"
@@ -398,7 +398,7 @@ class DIFFSHEG_OT_use_take(bpy.types.Operator):
         from . import takes
 
         try:
-            names = takes.use_take(self.take)
+            names = takes.use_take(self.take, context.scene)
         except DiffshegError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}

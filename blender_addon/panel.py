@@ -81,15 +81,15 @@ def _toggled(layout, settings, toggle: str, value: str, label: str) -> None:
     sub.prop(settings, value, text="")
 
 
-def draw_takes(layout, settings) -> None:
-    """One button per take of the panel's character; the one playing is pressed."""
+def draw_takes(layout, settings, frame: int) -> None:
+    """One button per take of the panel's character; the one playing at `frame` is pressed."""
     from . import takes
 
     targets = [settings.armature] + [ob.data.shape_keys for ob in settings.face_objects()]
     names = takes.takes_of(targets)
     if not names:
         return
-    current = takes.first_playing(targets)
+    current = takes.first_playing(targets, frame)
     col = layout.column(align=True)
     col.label(text="Takes:")
     for name in names:
@@ -198,7 +198,7 @@ class DIFFSHEG_PT_generate(_Panel, bpy.types.Panel):
         row.operator("diffsheg.generate", icon="PLAY_SOUND",
                      text="Generate" if s.range_mode == "WHOLE" else "Regenerate Range")
         draw_strips(layout, context, s)
-        draw_takes(layout, s)
+        draw_takes(layout, s, context.scene.frame_current)
         draw_report(layout, context, s)
 
 

@@ -62,10 +62,13 @@ def scene_range(settings, scene) -> tuple[int, int]:
     return settings.range_start, settings.range_end
 
 
-def playing_take(targets) -> str:
-    """The take the character plays (its armature, else a face)."""
-    name = takes.first_playing(targets)
+def playing_take(targets, frame: int) -> str:
+    """The take the character plays at scene `frame` (its armature, else a face); refused
+    where that take plays from an NLA strip moved off its own frames."""
+    name = takes.first_playing(targets, frame)
     if name is not None:
+        for target in targets:
+            takes.check_in_place(target, name)
         return name
     raise DiffshegError("the character plays no take: generate the whole clip first (Range 'Whole clip'), "
                         "or pick a take in the panel's take list")
@@ -92,7 +95,7 @@ def model_range(first: int, last: int, source: takes.TakeSource, fps: float) -> 
 def prepare_range(scene, options: BakeOptions, first: int, last: int) -> RangeRequest:
     """Everything regenerating [first, last] needs from the scene (main thread only)."""
     targets = [options.armature] + [m.data.shape_keys for m in options.face_meshes]
-    take = playing_take(targets)
+    take = playing_take(targets, first)
     source = takes.source_of(take)
     start, end = model_range(first, last, source, scene_fps(scene))
     request = RangeRequest(take, source, first, last, start, end)
@@ -141,7 +144,7 @@ def _mapping(options: BakeOptions, motion: Motion):
 def _animator_keys(armature, first: int, last: int) -> list[tuple[str, float]]:
     """(bone, frame) of every key not typed GENERATED on a bone's rotation inside [first, last]."""
     found = set()
-    for fc in fcurves_of(armature):
+    for fc in fcurves_of(armature, first):
         if not fc.data_path.startswith("pose.bones[") or ".rotation_" not in fc.data_path:
             continue
         bone = fc.data_path.split('"')[1].replace('\\"', '"')
@@ -159,7 +162,7 @@ def _bone_quaternion(armature, bone: str, frame: float) -> np.ndarray:
     attr = {"QUATERNION": "rotation_quaternion", "AXIS_ANGLE": "rotation_axis_angle"}.get(mode, "rotation_euler")
     values = np.array(getattr(pose_bone, attr), dtype=np.float64)
     path = f'pose.bones["{bone}"].{attr}'
-    for fc in fcurves_of(armature):
+    for fc in fcurves_of(armature, frame):
         if fc.data_path == path and fc.array_index < len(values):
             values[fc.array_index] = fc.evaluate(frame)
     return to_quaternions(values[None], mode)[0]
@@ -208,7 +211,7 @@ def apply_range(scene, request: RangeRequest, motion: Motion, options: BakeOptio
     take = takes.take_name(audio, number)
     notes = list(request.notes)
     with undone_on_error("the regenerated range") as undo:
-        actions, n_keys = [], 0
+        actions, replaced, n_keys = [], [], 0
         for (id_data, groups), (_, old_groups) in zip(plan.targets, was.targets):
             source_action = old.get(id_data)
             if source_action is None:
@@ -220,12 +223,13 @@ def apply_range(scene, request: RangeRequest, motion: Motion, options: BakeOptio
             n_keys += sum(splice_group(action_fcurves(action, slot), group, request, plan.options)
                           for group, old_group in zip(groups, old_groups) if _changed(group, old_group, request))
             actions.append(action)
+            replaced.append(source_action)
         if not actions:
             raise DiffshegError(f"none of the chosen armature and faces plays take '{request.take}'")
         takes.store_source(actions[0], takes.TakeSource(motion, request.source.audio_path,
                                                         request.source.start_frame))
-        for action in actions:
-            takes.assign(action[takes.TARGET], action)
+        for action, old_action in zip(actions, replaced):
+            takes.replace_playing(action[takes.TARGET], old_action, action, undo)
     return BakeResult(take=take, preset=plan.options.preset.name, actions=[a.name for a in actions],
                       n_frames=request.last - request.first + 1, n_keys=n_keys,
                       unmatched_bones=plan.unmatched_bones, unmatched_shape_keys=plan.unmatched_shape_keys,
@@ -240,9 +244,6 @@ def _copy_take(action, take: str, audio: str, number: int, id_data, undo: list[U
     takes.mark(copy, take, audio, number, id_data)
     if takes.SOURCE in copy:
         del copy[takes.SOURCE]
-    previous = id_data.animation_data.action if id_data.animation_data else None
-    if previous is not None:
-        undo.append(lambda: takes.assign(id_data, previous))
     return copy
 
 

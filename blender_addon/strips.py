@@ -52,7 +52,9 @@ class StripTake:
 class StripsRun:
     """One Generate for Sound Strips: every sound strip of the scene's Video Sequencer (or
     the selected ones) generated from its own sound file and keyed onto the panel's
-    character from the strip's start frame, one take per strip. The strips' requests are
+    character from the strip's start frame, one take per strip, each playing from the
+    "DiffSHEG sound strips" NLA track at its own frames (named after its sound strip, in
+    place of an earlier run's take of that strip), so every line plays. The strips' requests are
     made here on the main thread; a `RequestQueue` generates them one after another off it,
     and `step` (main thread) keys each as soon as it is made. A strip that cannot be
     generated or keyed fails alone, with its own message; the others go on.
@@ -83,7 +85,8 @@ class StripsRun:
             try:
                 path = strip_audio(strip)
                 check_frames(take.start)
-                take.request = Request(path, replace(options, start_frame=take.start), generation)
+                take.request = Request(path, replace(options, start_frame=take.start, nla_strip=strip.name),
+                                       generation)
             except Exception as exc:
                 take.error = error_message(exc)
             self.takes.append(take)

@@ -7,6 +7,12 @@ place of the one playing: no `.001` copies and no NLA track per run. An Action t
 not a take is the animator's: keying never changes it (it is pushed onto the NLA once,
 as before, so it is kept and still plays beneath the take).
 
+A take plays either as the active Action (Generate, Live) or, for Generate for Sound
+Strips, from a strip on the "DiffSHEG sound strips" NLA track at its own frames, named
+after its sound strip, so that one take per line plays, line after line. The take
+playing at a frame is the active Action's where there is one (it plays over the NLA),
+else the sound-strips track's strip under that frame.
+
 The take's first Action also keeps what the take was made from (`store_source`): the
 generated Motion at the model's rate, the audio file and the scene frame of its first
 frame, so that a range of it can be generated anew (regenerate.py) after the file was
@@ -18,6 +24,7 @@ Only bpy data are read and written here; call from Blender's main thread.
 from __future__ import annotations
 
 import json
+import math
 import re
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -75,20 +82,33 @@ def takes_of(targets) -> list[str]:
     return [name for _, _, name in sorted(found)]
 
 
-def playing(id_data) -> str | None:
-    """The take `id_data` plays, if its Action is one."""
+def playing_action(id_data, frame: float | None = None) -> tuple[object | None, object | None]:
+    """The Action `id_data` plays and its slot (None on Blender before 4.4): its active
+    Action, else, at scene `frame`, the take on a sound-strips track (None, None where none)."""
     anim = getattr(id_data, "animation_data", None)
-    action = anim.action if anim is not None else None
+    if anim is None:
+        return None, None
+    if anim.action is not None:
+        return anim.action, getattr(anim, "action_slot", None)
+    strip = sequence_strip_at(anim, frame) if frame is not None else None
+    return (strip.action, getattr(strip, "action_slot", None)) if strip is not None else (None, None)
+
+
+def playing(id_data, frame: float | None = None) -> str | None:
+    """The take `id_data` plays (at scene `frame`, where takes play from the NLA), if any."""
+    action = playing_action(id_data, frame)[0]
     return action[TAKE] if is_take(action) else None
 
 
-def first_playing(targets) -> str | None:
+def first_playing(targets, frame: float | None = None) -> str | None:
     """The take the first of `targets` (Objects or Keys; None skipped) that plays one plays."""
-    return next((t for t in (playing(x) for x in targets if x is not None) if t is not None), None)
+    return next((t for t in (playing(x, frame) for x in targets if x is not None) if t is not None), None)
 
 
-def use_take(take: str) -> list[str]:
-    """Assign every Action of take `take` to the datablock it animates; returns their names."""
+def use_take(take: str, scene=None) -> list[str]:
+    """Play take `take` on every datablock it animates; returns its Actions' names. A take on
+    the sound-strips track plays from there (the active Action is cleared so the track
+    plays, and `scene` moves to its first frame); any other is assigned as the active Action."""
     actions = [a for a in bpy.data.actions if is_take(a) and a[TAKE] == take]
     if not actions:
         raise DiffshegError(f"there is no take '{take}' in this file: choose one of the takes the panel lists")
@@ -96,7 +116,13 @@ def use_take(take: str) -> list[str]:
         target = action.get(TARGET)
         if target is None:
             raise DiffshegError(f"take '{take}': the object that Action '{action.name}' animated is gone")
-        assign(target, action)
+        strip = _sequence_strip_of(target, action)
+        if strip is None:
+            assign(target, action)
+            continue
+        target.animation_data.action = None
+        if scene is not None:
+            scene.frame_set(int(strip.frame_start))
     return [a.name for a in actions]
 
 
@@ -106,6 +132,119 @@ def assign(id_data, action) -> None:
     anim.action = action
     if hasattr(anim, "action_slot") and len(getattr(action, "slots", ())):
         anim.action_slot = action.slots[0]
+
+
+# ---------------------------------------------------------------- the sound-strips track
+
+SEQUENCE_TRACK = "DiffSHEG sound strips"  # NLA tracks playing Generate for Sound Strips' takes
+
+
+def _sequence_tracks(anim) -> list:
+    return [t for t in anim.nla_tracks if t.name.startswith(SEQUENCE_TRACK)]
+
+
+def sequence_strip_at(anim, frame: float):
+    """The unmuted strip of the topmost sound-strips track under scene `frame`, or None."""
+    for track in reversed(_sequence_tracks(anim)):
+        if track.mute:
+            continue
+        for strip in track.strips:
+            if not strip.mute and strip.frame_start <= frame <= strip.frame_end:
+                return strip
+    return None
+
+
+def _sequence_strip_of(id_data, action):
+    anim = getattr(id_data, "animation_data", None)
+    tracks = _sequence_tracks(anim) if anim is not None else []
+    return next((s for t in tracks for s in t.strips if s.action == action), None)
+
+
+def nla_strip(track, name: str, action, slot=None):
+    """A strip on `track` playing `action` (and `slot`, on 4.4+) at its own frames."""
+    strip = track.strips.new(name, int(math.floor(action.frame_range[0])), action)
+    strip.name = name  # (Blender 3.4 names it after the Action)
+    if slot is not None and hasattr(strip, "action_slot"):
+        strip.action_slot = slot
+    return strip
+
+
+def play_in_sequence(id_data, name: str, undo: list) -> None:
+    """Move the take `id_data` plays as its active Action onto the sound-strips track, as a
+    strip named `name` (its sound strip's) at its own frames, so that it plays beside the
+    other lines' takes. A strip of that name from an earlier run is taken off (its take stays
+    in the file). The strip goes on the lowest sound-strips track with room for it (a new one
+    above where none has); there it holds its last pose until the next line, on a higher
+    track (lines that overlap) it plays only its own frames. `undo` gets the steps back."""
+    anim = id_data.animation_data
+    action, slot = anim.action, getattr(anim, "action_slot", None)
+    for track in _sequence_tracks(anim):
+        for old in [s for s in track.strips if s.name == name]:
+            _remove_strip(track, old, undo)
+    first, last = action.frame_range
+    tracks = _sequence_tracks(anim)
+    track = next((t for t in tracks if all(s.frame_end < first or s.frame_start > last for s in t.strips)), None)
+    if track is None:
+        track = anim.nla_tracks.new(prev=tracks[-1] if tracks else None)
+        track.name = SEQUENCE_TRACK
+        undo.append(lambda: anim.nla_tracks.remove(track))
+    strip = nla_strip(track, name, action, slot)
+    strip.extrapolation = "HOLD_FORWARD" if track == _sequence_tracks(anim)[0] else "NOTHING"
+    undo.append(lambda: track.strips.remove(strip))
+    anim.action = None
+    undo.append(lambda: assign(id_data, action))
+
+
+def _remove_strip(track, strip, undo: list) -> None:
+    name, action, slot, extrapolation = strip.name, strip.action, getattr(strip, "action_slot", None), \
+        strip.extrapolation
+    track.strips.remove(strip)
+
+    def restore() -> None:
+        nla_strip(track, name, action, slot).extrapolation = extrapolation
+    undo.append(restore)
+
+
+def replace_playing(id_data, old, new, undo: list) -> None:
+    """Play Action `new` (a regenerated copy of `old`) in the sound-strips track's strip of
+    `old` where `old` plays from there and is not overridden by an active Action, else as
+    `id_data`'s active Action."""
+    anim = id_data.animation_data_create()
+    strip = _sequence_strip_of(id_data, old) if anim.action is None else None
+    if strip is None:
+        previous, previous_slot = anim.action, getattr(anim, "action_slot", None)
+        assign(id_data, new)
+
+        def restore_active() -> None:
+            anim.action = previous
+            if previous_slot is not None:
+                anim.action_slot = previous_slot
+        undo.append(restore_active)
+        return
+    slot = getattr(strip, "action_slot", None)
+    strip.action = new
+    if slot is not None:
+        strip.action_slot = new.slots[0]
+
+    def restore() -> None:
+        strip.action = old
+        if slot is not None:
+            strip.action_slot = slot
+    undo.append(restore)
+
+
+def check_in_place(id_data, take: str) -> None:
+    """Refuse where `id_data` plays take `take` from a sound-strips strip that no longer
+    plays it at its own frames (moved, scaled or repeated in the NLA): regenerating a range
+    maps scene frames to the take's."""
+    anim = getattr(id_data, "animation_data", None)
+    for strip in (s for t in (_sequence_tracks(anim) if anim is not None else []) for s in t.strips):
+        if not is_take(strip.action) or strip.action[TAKE] != take:
+            continue
+        first, last = strip.action.frame_range
+        if (strip.frame_start, strip.frame_end) != (first, last) or strip.scale != 1 or strip.repeat != 1:
+            raise DiffshegError(f"the NLA strip '{strip.name}' of take '{take}' was moved or scaled: put it back "
+                                f"at frame {first:g} (scale 1, repeat 1) to regenerate a range of it")
 
 
 @dataclass

@@ -1,8 +1,10 @@
 """Generate for Sound Strips (issue 28, item 6) in headless Blender, with real speech: every
 sound strip of the Video Sequencer (or the selected ones) keyed onto the panel's character
-from the strip's own frame, one take per strip, no sound strip added; a strip whose file is
-gone (or whose sound is packed) fails by name while the others are keyed; Esc keeps the
-strips already keyed and leaves nothing of the one under way."""
+from the strip's own frame, one take per strip, no sound strip added, every strip's take
+playing from the sound-strips NLA track at its own frames (a rerun replaces a line's take
+there, a range of one line regenerates in place); a strip whose file is gone (or whose sound
+is packed) fails by name while the others are keyed; Esc keeps the strips already keyed and
+leaves nothing of the one under way."""
 
 from __future__ import annotations
 
@@ -86,6 +88,114 @@ def test_one_take_per_strip_keyed_at_the_strips_frame(speech):
                               ("Line C", 500, "talk take 2")):
         assert f"strip '{name}' at frame {frame}: {take}: {FRAMES} frames" in details
     assert "style: the panel's" in details
+
+
+BONE = "RightArm"
+ROTATION = f'pose.bones["{BONE}"].rotation_euler'
+
+
+def _sequence(id_data) -> dict[str, tuple[int, str]]:
+    """{NLA strip name: (first frame, take)} on the sound-strips tracks of `id_data`."""
+    return {s.name: (int(s.frame_start), s.action[takes.TAKE]) for t in id_data.animation_data.nla_tracks
+            if t.name.startswith(takes.SEQUENCE_TRACK) for s in t.strips}
+
+
+def _played(scene, ob, frames) -> np.ndarray:
+    """(F, 3) the bone's rotation as the scene plays it (NLA evaluated), at `frames`."""
+    played = []
+    for frame in frames:
+        scene.frame_set(int(frame))
+        played.append(tuple(ob.pose.bones[BONE].rotation_euler))
+    return np.array(played)
+
+
+def _keyed(take: str, ob, frames) -> np.ndarray:
+    """(F, 3) the bone's rotation as take `take`'s own F-curves give it."""
+    action = next(a for a in bpy.data.actions if takes.is_take(a) and a[takes.TAKE] == take
+                  and a[takes.TARGET] == ob)
+    curves = {fc.array_index: fc for fc in action_fcurves(action, action.slots[0] if len(
+        getattr(action, "slots", ())) else None) if fc.data_path == ROTATION}
+    return np.array([[curves[i].evaluate(f) for i in range(3)] for f in frames])
+
+
+def test_every_strips_take_plays_at_its_own_frames_and_a_rerun_replaces_its_line(speech):
+    talk, other = speech
+    scene, ob, face = _scene([("Line A", talk, 1), ("Line B", other, 200), ("Line C", talk, 500)])
+    targets = [ob, face.data.shape_keys]
+    assert bpy.ops.diffsheg.generate_strips() == {"FINISHED"}
+    lines = {"Line A": (1, "talk take 1"), "Line B": (200, "other take 1"), "Line C": (500, "talk take 2")}
+    for target in targets:
+        assert target.animation_data.action is None  # the track plays
+        assert _sequence(target) == lines
+    for frame, take in ((10, "talk take 1"), (210, "other take 1"), (510, "talk take 2")):
+        frames = np.arange(frame, frame + 30)
+        np.testing.assert_allclose(_played(scene, ob, frames), _keyed(take, ob, frames), atol=1e-5)
+        assert takes.first_playing(targets, frame) == take
+    after_a = _played(scene, ob, [100])  # between lines the last pose holds
+    np.testing.assert_allclose(after_a, _keyed("talk take 1", ob, [FRAMES]), atol=1e-5)
+
+    for strip in sound_strips(scene):
+        strip.select = strip.name == "Line B"
+    assert bpy.ops.diffsheg.generate_strips(selected_only=True) == {"FINISHED"}
+    for target in targets:
+        assert _sequence(target) == {**lines, "Line B": (200, "other take 2")}
+    assert "other take 1" in takes.takes_of(targets)  # kept in the file, not playing
+    frames = np.arange(200, 200 + FRAMES)
+    np.testing.assert_allclose(_played(scene, ob, frames), _keyed("other take 2", ob, frames), atol=1e-5)
+
+    assert bpy.ops.diffsheg.use_take(take="other take 1") == {"FINISHED"}  # off the track: plays over it
+    assert ob.animation_data.action[takes.TAKE] == "other take 1"
+    assert takes.first_playing(targets, 510) == "other take 1"
+    assert bpy.ops.diffsheg.use_take(take="talk take 2") == {"FINISHED"}  # on the track: the track plays
+    assert ob.animation_data.action is None and scene.frame_current == 500
+    assert takes.first_playing(targets, 510) == "talk take 2"
+
+
+def test_a_range_of_one_line_regenerates_in_its_strip(speech):
+    talk, other = speech
+    scene, ob, face = _scene([("Line A", talk, 1), ("Line B", other, 200)])
+    targets = [ob, face.data.shape_keys]
+    assert bpy.ops.diffsheg.generate_strips() == {"FINISHED"}
+    frames = np.concatenate([np.arange(1, FRAMES + 1), np.arange(200, 200 + FRAMES)])
+    before = _played(scene, ob, frames)
+    s = scene.diffsheg
+    s.range_mode, s.range_start, s.range_end, s.seed = "FRAMES", 210, 235, 7
+    assert bpy.ops.diffsheg.generate() == {"FINISHED"}
+    assert s.last_report.startswith("other take 2: 26 frames"), s.last_report
+    for target in targets:
+        assert target.animation_data.action is None
+        assert _sequence(target) == {"Line A": (1, "talk take 1"), "Line B": (200, "other take 2")}
+    after = _played(scene, ob, frames)
+    outside = (frames < 210) | (frames > 235)
+    np.testing.assert_allclose(after[outside], before[outside], atol=1e-5)
+    assert np.abs(after - before).max() > 0.05
+
+    strip = next(st for t in ob.animation_data.nla_tracks if t.name.startswith(takes.SEQUENCE_TRACK)
+                 for st in t.strips if st.name == "Line B")
+    strip.frame_start_ui = 220  # the animator slid the line in the NLA
+    with pytest.raises(RuntimeError, match="NLA strip 'Line B' of take 'other take 2' was moved or scaled: put it "
+                                           "back at frame 200"):
+        bpy.ops.diffsheg.generate()
+
+
+def test_a_line_that_fails_keying_leaves_the_track_as_it_was(speech, monkeypatch):
+    talk, other = speech
+    scene, ob, face = _scene([("Line A", talk, 1), ("Line B", other, 200)])
+    targets = [ob, face.data.shape_keys]
+    assert bpy.ops.diffsheg.generate_strips() == {"FINISHED"}
+    lines, actions = _sequence(ob), sorted(bpy.data.actions.keys())
+
+    def full_disk(*args):
+        raise OSError("No space left on device")
+    monkeypatch.setattr(takes, "store_source", full_disk)  # after the keys and the NLA strip
+    with pytest.raises(RuntimeError, match="0 of 2 sound strips keyed; 2 failed: 'Line A' \\(could not write"):
+        bpy.ops.diffsheg.generate_strips()
+    assert sorted(bpy.data.actions.keys()) == actions
+    for target in targets:
+        assert target.animation_data.action is None
+        assert len([t for t in target.animation_data.nla_tracks if t.name.startswith(takes.SEQUENCE_TRACK)]) == 1
+    assert _sequence(ob) == lines and _sequence(face.data.shape_keys) == {
+        "Line A": (1, "talk take 1"), "Line B": (200, "other take 1")}
 
 
 def test_selected_only_keys_only_the_selected_strips(speech):
