@@ -1,0 +1,147 @@
+"""Lip-sync of the bundled model on real speech in languages other than English (issue 29, item 3).
+
+Runs the bundled model with its default settings (seeds 0 and 1) on every recording in
+../shared/data/audio/lang/ and on the real English recordings of ../shared/data (the take
+beat2/2_scott_0_1_1 and audio/2_scott_0_3_3, 2_scott_0_4_4, 12_zhao_2_3_3,
+2_scott_0_103_103_28s; Forrest_tts is synthetic and left out), and prints per file and per
+language (means over seeds, then over files):
+  r whole     mouth-to-voice correlation over the whole clip (diffsheg_core.qc)
+  r voiced    the same over voiced frames only (qc.voiced_mouth_voice_correlation)
+  x English   r voiced against English's (the issue's goal: at least 0.9)
+  closures/s  lips shutting during speech per second of voiced speech (qc.lip_closures), a
+              proxy for closing on p/b/m: only the English take has phone timings
+  per p/b/m   those closures per p, b or m of the transcript, counted by espeak-ng in its
+              IPA (the take: its TextGrid); none where espeak-ng cannot read the script
+              (Chinese characters and pinyin, Japanese kanji) or there is no transcript
+and, for the English take, the phone-timed lip-sync of the model card (jaw open at open
+vowels over bilabials, mouthClose at bilabials minus at open vowels).
+
+    python bench/eval_languages.py [--seeds 0 1] [--steps N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from diffsheg_core.audio import load_audio
+from diffsheg_core.checkpoints import load_model
+from diffsheg_core.motion import Motion
+from diffsheg_core.pipeline import generate
+from diffsheg_core.qc import lip_closures, mouth_voice_correlation, voiced_frames, voiced_mouth_voice_correlation
+from diffsheg_core.training.metrics import face_channel, mouth_opening, phone_tier, phoneme_contrast, read_textgrid
+from diffsheg_core.training.metrics.lipsync import BILABIALS, base_phone
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
+LANG = DATA / "audio" / "lang"
+TAKE_WAV = DATA / "beat2" / "2_scott_0_1_1.wav"
+TAKE_TEXTGRID = DATA / "beat2" / "2_scott_0_1_1.TextGrid"
+ENGLISH = (TAKE_WAV, *(DATA / "audio" / name for name in (
+    "2_scott_0_3_3.wav", "2_scott_0_4_4.wav", "12_zhao_2_3_3.wav", "2_scott_0_103_103_28s.wav")))
+ESPEAK_VOICES = {"de": "de", "es": "es", "fr": "fr", "hi": "hi", "ru": "ru", "sv": "sv"}
+"""Languages whose transcripts espeak-ng reads (its zh and ja voices cannot read pinyin or kanji)."""
+
+
+def language(path: Path) -> str:
+    return "en" if path.parent != LANG else path.name.split("_", 1)[0]
+
+
+def transcript_bilabials(path: Path) -> Optional[int]:
+    """p, b and m in the transcript as espeak-ng speaks it (IPA); the take's from its TextGrid."""
+    if path == TAKE_WAV:
+        return sum(base_phone(p.label) in BILABIALS for p in phone_tier(read_textgrid(TAKE_TEXTGRID)))
+    sidecar = path.with_suffix(".txt")
+    voice = ESPEAK_VOICES.get(language(path))
+    if voice is None or not sidecar.is_file():
+        return None
+    ipa = subprocess.run(["espeak-ng", "-q", "--ipa", "-v", voice, sidecar.read_text(encoding="utf-8")],
+                         check=True, capture_output=True, text=True).stdout
+    return sum(ipa.count(c) for c in "pbm")
+
+
+@dataclass
+class Row:
+    language: str
+    file: str
+    seconds: float
+    whole: float
+    voiced: float
+    closures_per_s: float
+    per_bilabial: Optional[float]
+
+
+def measure(path: Path, motions: list[Motion]) -> Row:
+    """Figures of one recording, means over its motions (one per seed)."""
+    audio = load_audio(path)
+    whole, voiced, rate, closures = [], [], [], []
+    for m in motions:
+        whole.append(mouth_voice_correlation(m, audio.samples, audio.sample_rate))
+        voiced.append(voiced_mouth_voice_correlation(m, audio.samples, audio.sample_rate))
+        shut = len(lip_closures(m, audio.samples, audio.sample_rate))
+        voiced_seconds = voiced_frames(audio.samples, audio.sample_rate, m.fps, m.n_frames).sum() / m.fps
+        rate.append(shut / voiced_seconds)
+        closures.append(shut)
+    bilabials = transcript_bilabials(path)
+    return Row(language(path), path.stem, audio.duration, float(np.mean(whole)), float(np.mean(voiced)),
+               float(np.mean(rate)), float(np.mean(closures)) / bilabials if bilabials else None)
+
+
+def take_contrast(motions: list[Motion]) -> str:
+    phones = phone_tier(read_textgrid(TAKE_TEXTGRID))
+    jaw = [phoneme_contrast(mouth_opening(m), m.fps, phones)["ratio"] for m in motions]
+    close = [phoneme_contrast(face_channel(m, "mouthClose"), m.fps, phones) for m in motions]
+    shut = [c["bilabial"] - c["open"] for c in close]
+    return (f"English take 2_scott_0_1_1 with its phone timings: jaw open at open vowels / at p,b,m "
+            f"{np.mean(jaw):.2f} (seeds {', '.join(f'{x:.2f}' for x in jaw)}); mouthClose at p,b,m minus "
+            f"at open vowels {np.mean(shut):.2f}")
+
+
+def _cell(x: Optional[float], digits: int = 2) -> str:
+    return "n/a" if x is None else f"{x:.{digits}f}"
+
+
+def table(rows: list[Row]) -> str:
+    english = float(np.mean([r.voiced for r in rows if r.language == "en"]))
+    head = ["language", "file", "seconds", "r whole", "r voiced", "x English", "closures/s", "per p/b/m"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for lang in dict.fromkeys(r.language for r in rows):
+        group = [r for r in rows if r.language == lang]
+        for r in group:
+            lines.append(f"| {lang} | {r.file} | {r.seconds:.1f} | {r.whole:.2f} | {r.voiced:.2f} | "
+                         f"{r.voiced / english:.2f} | {r.closures_per_s:.2f} | {_cell(r.per_bilabial)} |")
+        known = [r.per_bilabial for r in group if r.per_bilabial is not None]
+        voiced = float(np.mean([r.voiced for r in group]))
+        lines.append(f"| **{lang}** | mean of {len(group)} | {sum(r.seconds for r in group):.1f} | "
+                     f"{np.mean([r.whole for r in group]):.2f} | **{voiced:.2f}** | **{voiced / english:.2f}** | "
+                     f"{np.mean([r.closures_per_s for r in group]):.2f} | "
+                     f"{_cell(float(np.mean(known)) if known else None)} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--steps", type=int, default=None, help="sampling steps (default: the model's)")
+    args = parser.parse_args()
+    bundle = load_model()
+    options = {} if args.steps is None else {"steps": args.steps}
+    rows, take_motions, started = [], [], time.perf_counter()
+    for path in (*ENGLISH, *sorted(LANG.glob("*.wav"))):
+        motions = [generate(path, model=bundle, seed=s, **options) for s in args.seeds]
+        take_motions = motions if path == TAKE_WAV else take_motions
+        rows.append(measure(path, motions))
+    print(table(rows))
+    print()
+    print(take_contrast(take_motions))
+    print(f"{len(rows)} recordings, seeds {args.seeds}: {time.perf_counter() - started:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,133 @@
+"""Lip-sync of the bundled model on real speech beyond English (issue 29, item 3): the
+mouth-to-voice correlation over voiced frames per language against real English, and lip
+closures during speech, on every recording of ../shared/data/audio/lang (seed 0, default
+settings). bench/eval_languages.py prints the same figures for two seeds and more English."""
+
+from collections import defaultdict
+
+import numpy as np
+import pytest
+
+from conftest import DATA
+from diffsheg_core.audio import Audio, load_audio
+from diffsheg_core.checkpoints import load_model
+from diffsheg_core.motion import Motion
+from diffsheg_core.pipeline import generate
+from diffsheg_core.qc import lip_closures, voiced_frames, voiced_mouth_voice_correlation
+from diffsheg_core.training.metrics import phone_tier, read_textgrid
+from diffsheg_core.training.metrics.lipsync import BILABIALS, base_phone
+
+LANG = DATA / "audio" / "lang"
+TAKE_WAV = DATA / "beat2" / "2_scott_0_1_1.wav"
+ENGLISH = (TAKE_WAV, DATA / "audio" / "12_zhao_2_3_3.wav")  # two real speakers, 120 s
+GOAL = 0.9
+"""Issue 29: voiced-frame correlation on non-English speech at least 0.9x English's."""
+
+# language: (floor the model meets on voiced frames, the measured ratio to English if under GOAL)
+# measured (seed 0; English 0.40 over the two English recordings): de 0.14 (0.34x English),
+# es 0.37 (0.93x), fr 0.55, hi 0.31 (0.77x), ja 0.30 (0.73x), ru 0.54, sv 0.55, zh 0.73
+LANGUAGES = {"de": (0.08, 0.34), "es": (0.3, None), "fr": (0.4, None), "hi": (0.2, 0.77), "ja": (0.2, 0.73),
+             "ru": (0.4, None), "sv": (0.4, None), "zh": (0.55, None)}
+CLOSURES_MIN = 0.3
+"""Lip closures per second of voiced speech, a language's mean over its recordings, that every
+language reaches (English 0.95-1.3; lowest zh 0.5, whose zh_aishell_1 has no p/b/m and no
+closure at all, and fr 0.9)."""
+
+
+@pytest.fixture(scope="module")
+def generated() -> dict[str, tuple[Audio, Motion]]:
+    """File name -> (audio, motion of the bundled model, seed 0) for English and every language."""
+    bundle = load_model()
+    out = {}
+    for path in (*ENGLISH, *sorted(LANG.glob("*.wav"))):
+        audio = load_audio(path)
+        out[path.name] = audio, generate(audio, model=bundle, seed=0)
+    return out
+
+
+@pytest.fixture(scope="module")
+def measured(generated) -> dict[str, dict[str, list[float]]]:
+    """Per language ('en' too): voiced-frame correlations and closures per voiced second, one per recording."""
+    out: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+    english = [path.name for path in ENGLISH]
+    for name, (audio, motion) in generated.items():
+        lang = "en" if name in english else name.split("_", 1)[0]
+        voiced = voiced_frames(audio.samples, audio.sample_rate, motion.fps, motion.n_frames)
+        out[lang]["voiced"].append(voiced_mouth_voice_correlation(motion, audio.samples, audio.sample_rate))
+        out[lang]["closures"].append(
+            len(lip_closures(motion, audio.samples, audio.sample_rate)) / (voiced.sum() / motion.fps))
+    return out
+
+
+def test_every_language_is_measured(measured):
+    assert sorted(measured) == sorted(["en", *LANGUAGES])
+
+
+def _param(lang: str):
+    short = LANGUAGES[lang][1]
+    if short is None:
+        return lang
+    return pytest.param(lang, marks=pytest.mark.xfail(
+        strict=True, reason=f"{lang}: voiced-frame correlation {short:.2f}x English's (seed 0), goal {GOAL}x"))
+
+
+@pytest.mark.parametrize("lang", [_param(lang) for lang in LANGUAGES])
+def test_lips_follow_the_voice_while_it_speaks(measured, lang):
+    floor, _ = LANGUAGES[lang]
+    english = np.mean(measured["en"]["voiced"])
+    voiced = np.mean(measured[lang]["voiced"])
+    assert voiced > floor, (lang, measured[lang]["voiced"])
+    assert voiced >= GOAL * english, (lang, voiced, english)
+
+
+@pytest.mark.parametrize("lang", list(LANGUAGES))
+def test_lips_close_during_speech(measured, lang):
+    """A proxy for closing on p/b/m (no phone timings outside English): the lips shut often
+    while the voice sounds, as in English."""
+    rates = measured[lang]["closures"]
+    assert np.mean(rates) > CLOSURES_MIN, (lang, rates)
+
+
+def test_closures_fall_on_bilabials_in_the_english_take(generated):
+    """The proxy holds where phone timings exist: on the real take, the closures lie within a
+    frame of a p/b/m far more often than voiced frames do."""
+    audio, motion = generated[TAKE_WAV.name]
+    phones = phone_tier(read_textgrid(DATA / "beat2" / "2_scott_0_1_1.TextGrid"))
+    n, fps = motion.n_frames, motion.fps
+
+    near = np.zeros(n, bool)
+    for p in phones:
+        if base_phone(p.label) in BILABIALS:
+            near[max(0, int(np.ceil(p.start * fps)) - 1): int(p.end * fps) + 2] = True
+    closures = lip_closures(motion, audio.samples, audio.sample_rate)
+    voiced = voiced_frames(audio.samples, audio.sample_rate, fps, n)
+    assert near[closures].mean() > 2 * near[voiced].mean(), (near[closures].mean(), near[voiced].mean())
+
+
+def test_voiced_frames_on_real_phone_timings():
+    audio = load_audio(TAKE_WAV)
+    fps = 15.0
+    n = int(audio.duration * fps)
+    voiced = voiced_frames(audio.samples, audio.sample_rate, fps, n)
+    label = np.full(n, "", object)
+    for p in phone_tier(read_textgrid(DATA / "beat2" / "2_scott_0_1_1.TextGrid")):
+        label[int(np.ceil(p.start * fps)): int(np.ceil(p.end * fps))] = base_phone(p.label)
+    vowel = np.array([bool(x) and x[0] in "AEIOU" for x in label])
+    pause = np.array([x in ("", "SIL", "SP") for x in label])
+    assert voiced[vowel].mean() > 0.9 and voiced[pause].mean() < 0.05
+    # the recording's gain changes nothing, a DC offset (zh_thchs30's) next to nothing, and
+    # room noise alone is not voice
+    assert np.array_equal(voiced_frames(0.3 * audio.samples, audio.sample_rate, fps, n), voiced)
+    shifted = voiced_frames(audio.samples - 0.012, audio.sample_rate, fps, n)
+    assert (shifted == voiced).mean() > 0.98
+    noise = np.random.default_rng(0).normal(0, 0.05, len(audio.samples))
+    assert voiced_frames(noise, audio.sample_rate, fps, n).mean() < 0.02
+
+
+def test_a_face_shuffled_in_time_does_not_follow_the_voice(generated):
+    audio, motion = generated["sv_nst_2.wav"]
+    order = np.random.default_rng(0).permutation(motion.n_frames)
+    shuffled = Motion(motion.fps, motion.rig, motion.joint_names, motion.rotations, motion.face_names,
+                      motion.face[order])
+    real = voiced_mouth_voice_correlation(motion, audio.samples, audio.sample_rate)
+    assert voiced_mouth_voice_correlation(shuffled, audio.samples, audio.sample_rate) < real - 0.2
