@@ -17,7 +17,7 @@ import numpy as np
 
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.keyframes import ErrorFn, Keys, fit_keys, rotation_error, value_error
-from diffsheg_core.motion import Motion, resample_motion
+from diffsheg_core.motion import Motion, resample_motion, smooth_frames
 
 from . import takes
 from .keying import Channel, Undo, new_action, rotation_channels, shape_key_channel, undone_on_error, write_channels
@@ -172,7 +172,7 @@ def bone_channels(armature, mapping: ArmatureMapping, motion: Motion,
     out = []
     for bone, quats in bone_quaternions(motion, mapping).items():
         if smoothing > 0:
-            quats = smooth(quats, smoothing)
+            quats = smooth_frames(quats, smoothing)
             quats /= np.linalg.norm(quats, axis=1, keepdims=True)
         out.append((bone, rotation_channels(bone, armature.pose.bones[bone].rotation_mode, quats)))
     return out
@@ -181,7 +181,7 @@ def bone_channels(armature, mapping: ArmatureMapping, motion: Motion,
 def face_channels(mesh, keys: ShapeKeyMapping, face: np.ndarray, smoothing: float = 0.0) -> list[Channel]:
     """One channel per shape key of `mesh` that `keys` drives, from (T, C) face weights,
     within each key's slider range."""
-    face = smooth(face, smoothing) if smoothing > 0 else face
+    face = smooth_frames(face, smoothing) if smoothing > 0 else face
     blocks = mesh.data.shape_keys.key_blocks
     return [shape_key_channel(name, np.clip(weights, blocks[name].slider_min, blocks[name].slider_max))
             for name, weights in keys.curves(face)]
@@ -309,21 +309,6 @@ def check_preset_fits(preset: Preset, layout: str, armature) -> None:
             "no preset fits it better: write one for this rig (see presets/)")
     raise DiffshegError(f"preset '{preset.name}' finds only {fit.bones if fit else 0} of the model's "
                         f"{total or 'joints'} joints on armature '{armature.name}'; {hint}")
-
-
-def smooth(values: np.ndarray, sigma: float) -> np.ndarray:
-    """Gaussian smoothing along time (axis 0), edges held."""
-    radius = max(1, int(np.ceil(3 * sigma)))
-    x = np.arange(-radius, radius + 1)
-    kernel = np.exp(-0.5 * (x / sigma) ** 2)
-    kernel /= kernel.sum()
-    padded = np.concatenate([np.repeat(values[:1], radius, 0), values, np.repeat(values[-1:], radius, 0)])
-    out = np.empty(values.shape, dtype=np.float64)
-    flat_in = padded.reshape(len(padded), -1)
-    flat_out = out.reshape(len(values), -1)
-    for c in range(flat_in.shape[1]):
-        flat_out[:, c] = np.convolve(flat_in[:, c], kernel, mode="valid")
-    return out
 
 
 def _set_properties(armature, properties: dict, undo: list[Undo]) -> None:

@@ -412,3 +412,18 @@ def write_talkshow_npz(motion: Motion, path: str | Path) -> Path:
         write_npz(fh, {"pose": pose.reshape(motion.n_frames, -1), "expression": expression,
                        "fps": np.float64(motion.fps)})
     return path
+
+
+def smooth_frames(values: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing along time (axis 0) with a sigma of `sigma` frames, edges held."""
+    radius = max(1, int(np.ceil(3 * sigma)))
+    x = np.arange(-radius, radius + 1)
+    kernel = np.exp(-0.5 * (x / sigma) ** 2)
+    kernel /= kernel.sum()
+    padded = np.concatenate([np.repeat(values[:1], radius, 0), values, np.repeat(values[-1:], radius, 0)])
+    out = np.empty(values.shape, dtype=np.float64)
+    flat_in = padded.reshape(len(padded), -1)
+    flat_out = out.reshape(len(values), -1)
+    for c in range(flat_in.shape[1]):
+        flat_out[:, c] = np.convolve(flat_in[:, c], kernel, mode="valid")
+    return out

@@ -22,6 +22,7 @@ from .audio import (PIECE_SECONDS, Audio, AudioFile, SpeechEncoding, load_audio,
                     n_motion_frames, open_audio_file, require_hubert)
 from .checkpoints import ModelBundle, load_model
 from .diffusion import Schedule
+from .emotion import apply_emotion, emotion_track
 from .errors import DiffshegError
 from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, inpaint_range, with_overrides
 from .guidance import Guidance, step_eps
@@ -390,7 +391,9 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     meta = generation_meta(bundle, s, plan, network, speech)
     if pins:
         meta["pins"] = len(pins)
-    return to_motion(bundle, normalised, meta=meta)
+    motion = to_motion(bundle, normalised, meta=meta)
+    track = emotion_track(s.emotion, s.emotion_at, n_frames, bundle.config.fps)
+    return motion if track is None else apply_emotion(motion, track)
 
 
 def _sampling(bundle: ModelBundle, network, s: GenerateSettings, sampling: Optional[FoppasConfig],
@@ -409,6 +412,7 @@ def generation_meta(bundle: ModelBundle, s: GenerateSettings, plan: Plan, networ
         "audio_file": speech.path, "sample_rate": speech.sample_rate,
         **style_meta(bundle, plan.style_weights, plan.guidance.style),
         "style_at": [[t, named_weights(bundle, weights)] for t, weights in plan.style_at],
+        "emotion": s.emotion or {}, "emotion_at": [[t, spec] for t, spec in s.emotion_at or ()],
         "guidance": plan.guidance_scale,
         "skip_guidance": plan.guidance.skip,
         "steps": config.steps, "overlap": config.overlap, "candidates": config.candidates,
@@ -469,6 +473,12 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     rotations[start:end] = part.rotations
     if not keep_face:
         face[start:end] = part.face
+    if s.emotion is None and s.emotion_at is None:  # the range keeps the take's own emotion
+        s = replace(s, emotion=motion.meta.get("emotion") or None, emotion_at=motion.meta.get("emotion_at") or None)
+    track = emotion_track(s.emotion, s.emotion_at, motion.n_frames, bundle.config.fps)
+    if track is not None:
+        moved = apply_emotion(replace(motion, rotations=rotations, face=face), track, start, end)
+        rotations, face = moved.rotations, (face if keep_face else moved.face)
     record = {"start": int(start), "end": int(end), "keep_face": keep_face, "pins": len(pins),
               **generation_meta(bundle, s, plan, network, speech)}
     return replace(motion, rotations=rotations, face=face,

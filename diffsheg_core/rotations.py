@@ -48,7 +48,7 @@ def _check_order(order: str | None) -> str:
 
 # ---------------------------------------------------------------- quaternion algebra
 
-def _quaternion_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def quaternion_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product of (..., 4) scalar-first quaternions."""
     aw, ax, ay, az = np.moveaxis(a, -1, 0)
     bw, bx, by, bz = np.moveaxis(b, -1, 0)
@@ -58,7 +58,7 @@ def _quaternion_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      aw * bz + ax * by - ay * bx + az * bw], axis=-1)
 
 
-def _conjugate(q: np.ndarray) -> np.ndarray:
+def quaternion_conjugate(q: np.ndarray) -> np.ndarray:
     return q * np.array([1.0, -1.0, -1.0, -1.0])
 
 
@@ -154,7 +154,7 @@ def _euler_to_quaternion(angles: np.ndarray, order: str, degrees: bool) -> np.nd
         elementary.append(q)
     if order.islower():
         elementary.reverse()
-    return _quaternion_product(_quaternion_product(elementary[0], elementary[1]), elementary[2])
+    return quaternion_product(quaternion_product(elementary[0], elementary[1]), elementary[2])
 
 
 def _wrap_angle(a: np.ndarray) -> np.ndarray:
@@ -374,8 +374,8 @@ def slerp_resample(rotations: np.ndarray, src_fps: float, dst_fps: float,
     w = (pos - i0)[:, None, None]
     q = _axis_angle_to_quaternion(rotations)
     # relative rotation q0^-1 q1 as a vector of angle <= pi (the shortest arc), scaled by w
-    step = _quaternion_to_axis_angle(_quaternion_product(_conjugate(q[i0]), q[i1])) * w
-    return _quaternion_to_axis_angle(_quaternion_product(q[i0], _axis_angle_to_quaternion(step)))
+    step = _quaternion_to_axis_angle(quaternion_product(quaternion_conjugate(q[i0]), q[i1])) * w
+    return _quaternion_to_axis_angle(quaternion_product(q[i0], _axis_angle_to_quaternion(step)))
 
 
 def _pchip_end_slope(m0: np.ndarray, m1: np.ndarray) -> np.ndarray:

@@ -118,6 +118,8 @@ class GenerateSettings:
     style: StyleSpec | None = None      # a style index or name, or weights {name or index: weight}; None: the model's default
     style_at: tuple | None = None       # style changes over time: ((seconds, style), ...); before the first, `style`
     style_guidance: float | None = None  # style strength: eps_null + s (eps_style - eps_null); 1: off
+    emotion: str | dict | None = None   # 'happy', 'happy=0.6' or {name: intensity}; None: neutral (see emotion.py)
+    emotion_at: tuple | None = None     # emotion changes over time: ((seconds, emotion), ...); before the first, `emotion`
     guidance: float | None = None       # classifier-free guidance scale; 1: off
     skip_guidance: float | None = None  # gesture energy (skip guidance); 0: off
     device: str = "auto"
@@ -138,6 +140,13 @@ class GenerateSettings:
             self._set("style", _check_style(self.style))
         if self.style_at is not None:
             self._set("style_at", _check_style_at(self.style_at))
+        if self.emotion is not None or self.emotion_at is not None:
+            from .emotion import check_emotion, check_emotion_at  # numpy: only where an emotion is asked for
+
+            if self.emotion is not None:
+                self._set("emotion", check_emotion(self.emotion) or None)
+            if self.emotion_at is not None:
+                self._set("emotion_at", check_emotion_at(self.emotion_at))
         _check_choice("device", self.device, DEVICES)
         _check_choice("backend", self.backend, BACKENDS)
         _check_choice("precision", self.precision, PRECISIONS)
@@ -168,6 +177,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--style-at", type=parse_style_at, metavar="SECONDS=STYLE,...",
                    help="the style from given times on, blended over about one window: "
                         "--style-at 0=calm,12.5=animated (a mix: 12.5=calm=0.3,animated=0.7)")
+    g.add_argument("--emotion", type=_emotion_argument,
+                   help="emotion over the face and body: neutral, happy, sad, angry, surprised, fearful or "
+                        "disgusted, at an intensity from 0 to 1 (--emotion happy=0.6; default 1), or a mix "
+                        "(--emotion happy=0.5,surprised=0.3); default neutral")
+    g.add_argument("--emotion-at", type=parse_emotion_at, metavar="SECONDS=EMOTION,...",
+                   help="the emotion from given times on, eased in: --emotion-at 0=happy,12.5=sad=0.6")
     g.add_argument("--style-guidance", type=float,
                    help="style strength: 1 is the style as trained (default), above 1 goes beyond it "
                         "(models trained with a null style)")
@@ -226,3 +241,27 @@ def parse_style_at(text: str) -> tuple[tuple[float, StyleSpec], ...]:
             raise argparse.ArgumentTypeError(f"{part.strip()!r} in {text!r} is not SECONDS=STYLE "
                                              "(e.g. --style-at 0=calm,12.5=animated)")
     return tuple((seconds, parse_style(",".join(parts))) for seconds, parts in entries)
+
+
+def _emotion_argument(text: str) -> dict:
+    from .emotion import check_emotion
+
+    try:
+        return check_emotion(text)
+    except DiffshegError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def parse_emotion_at(text: str) -> tuple[tuple[float, str], ...]:
+    """'0=happy,12.5=sad=0.6' -> ((0.0, 'happy'), (12.5, 'sad=0.6'))."""
+    out = []
+    for part in text.split(","):
+        key, _, emotion = part.strip().partition("=")
+        try:
+            out.append((float(key), emotion.strip()))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{part.strip()!r} in {text!r} is not SECONDS=EMOTION "
+                                             "(e.g. --emotion-at 0=happy,12.5=sad=0.6)") from None
+        if not emotion.strip():
+            raise argparse.ArgumentTypeError(f"{part.strip()!r} in {text!r} names no emotion")
+    return tuple(out)
