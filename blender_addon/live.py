@@ -253,7 +253,7 @@ class LiveRun:
         scene, settings = context.scene, context.scene.diffsheg
         check_runtime()
         options = check_targets(settings)
-        generation = generate_settings(settings)
+        generation = replace(generate_settings(settings), emotion=None)  # live runs neutral (the panel says so)
         self.scene = scene
         self.record = settings.live_record
         self.start_frame = scene.frame_current
@@ -416,7 +416,7 @@ class LiveRun:
                 f"{baked.n_keys:,} keys; {summary}")
         if warnings:
             line += f"; {warnings} warning{'s' if warnings > 1 else ''}, see DiffSHEG report"
-        details = report_details(baked, time.monotonic() - self.started, settings.model_label)
+        details = report_details(baked, time.monotonic() - self.started, settings.model_label, motion.meta)
         write_report(details + "\n".join([f"live: {self.source.description}", f"audio: {path}", summary,
                                           *[f"- {p}" for p in problems]]) + "\n")
         return LiveOutcome(line, "WARNING" if warnings else "INFO", baked.take)

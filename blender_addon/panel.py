@@ -1,6 +1,6 @@
 """The View3D sidebar tab "DiffSHEG": the panel "Generate from audio" with what most runs
-need (audio, character, style, range, Generate, Generate for Strips where the scene has
-sound strips, takes, the report), and three collapsed sub-panels, "Sampling" (the model's
+need (audio, character, style, emotion, range, Generate, Generate for Strips where the scene
+has sound strips, takes, the report), and three collapsed sub-panels, "Sampling" (the model's
 options), "Keys" (how the motion is keyed) and "Live" (the character animated as the speech
 arrives, recorded as a take).
 
@@ -17,7 +17,7 @@ import textwrap
 import bpy
 
 from .preferences import runtime_problems, torch_installed
-from .properties import CUSTOM_PRESET, NO_MIX
+from .properties import CUSTOM_PRESET, NEUTRAL, NO_MIX
 
 
 def device_label(choice: str) -> str:
@@ -183,6 +183,11 @@ class DIFFSHEG_PT_generate(_Panel, bpy.types.Panel):
         mix = sub.row(align=True)
         mix.active = s.mix_style != NO_MIX
         mix.prop(s, "style_mix")
+        sub = col.column(align=True)
+        sub.prop(s, "emotion")
+        intensity = sub.row(align=True)
+        intensity.active = s.emotion != NEUTRAL
+        intensity.prop(s, "emotion_intensity", slider=True)
 
         col = layout.column()
         col.prop(s, "range_mode")
@@ -293,6 +298,9 @@ class DIFFSHEG_PT_live(_Panel, bpy.types.Panel):
             rate = f"{live.SOCKET_RATE / 1000:g}\u00a0kHz"  # a non-breaking space: "16 kHz" on one line
             wrapped_label(col, context, f"Listens on {live.SOCKET_HOST}:{s.live_port} for 16-bit mono PCM at {rate}")
         col.prop(s, "live_hop")
+        if s.emotion != NEUTRAL:  # an emotion is laid over a whole take: live cannot wait for it
+            wrapped_label(col, context, "Live runs without emotion: regenerate the recorded take to add it",
+                          icon="INFO")
         col.row(heading="Take").prop(s, "live_record")
         col.row(heading="VMC").prop(s, "live_vmc", text="Send")
         if s.live_vmc:  # the whole width: an address is longer than the value column shows

@@ -1,7 +1,7 @@
 """What the panel's settings ask for, checked before anything runs: the Request of a press of
 Generate (the whole clip, or a range of the take playing), and the checks and messages it
-needs (packages, audio, model, targets, preset, timeline style markers). Read on the main
-thread; the operators run what it returns (operators.py, job.py).
+needs (packages, audio, model, targets, preset, timeline style and emotion markers). Read
+on the main thread; the operators run what it returns (operators.py, job.py).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from diffsheg_core.errors import DiffshegError
 from . import preset
 from .job import Request
 from .preferences import INSTALL_GPU_HINT, RUNTIME, missing_runtime, runtime_fix, torch_installed
-from .properties import CUSTOM_PRESET, DEFAULT_STYLE, NO_MIX
+from .properties import CUSTOM_PRESET, DEFAULT_STYLE, NEUTRAL, NO_MIX
 from .report import model_label, report_details, report_line, write_report
 
 
@@ -43,7 +43,8 @@ def preset_of(settings) -> preset.Preset | None:
 
 def generate_settings(settings):
     """The panel's generation options as one `GenerateSettings` (checked there); a switched-off
-    "Set ..." toggle means the model's default."""
+    "Set ..." toggle means the model's default, emotion Neutral none (`prepare` adds the
+    timeline markers' changes)."""
     from diffsheg_core.settings import GenerateSettings
 
     return GenerateSettings(
@@ -55,6 +56,7 @@ def generate_settings(settings):
         overlap=settings.overlap if settings.set_overlap else None,
         style=panel_style(settings),
         style_guidance=settings.style_strength if settings.style_strength != 1.0 else None,
+        emotion=None if settings.emotion == NEUTRAL else {settings.emotion: round(settings.emotion_intensity, 3)},
         guidance=settings.guidance if settings.set_guidance else None,
         skip_guidance=settings.gesture_energy if settings.set_gesture_energy else None,
         device=settings.device_arg())
@@ -160,12 +162,14 @@ def check_targets(settings):
 def prepare(context) -> Request:
     """The panel's request, checked before anything runs (main thread): the whole clip of
     the panel's audio, or a range of the take playing (with the take's own audio). Timeline
-    markers named 'style:...' change the style from their frame on."""
+    markers named 'style:...' and 'emotion:...' change the style and the emotion from their
+    frame on. A range with emotion Neutral keeps its take's emotion: without emotion markers
+    all of it (the core's regenerate does), with them the take's emotion until the first."""
     settings, scene = context.scene.diffsheg, context.scene
     path, options = check_ready(settings)
     generation = generate_settings(settings)
     if settings.range_mode == "WHOLE":
-        generation = replace(generation, style_at=marker_styles(scene, options.start_frame))
+        generation = with_markers(generation, scene, options.start_frame)
         pins = ()
         if settings.start_from_pose:
             if options.armature is None:
@@ -183,35 +187,64 @@ def prepare(context) -> Request:
     path = check_audio_path(request.source.audio_path) if request.source.audio_path else None
     if path is None:
         raise DiffshegError(f"take '{request.take}' was made without an audio file: it cannot be regenerated")
-    generation = replace(generation, style_at=marker_styles(scene, request.source.start_frame))
+    generation = with_markers(generation, scene, request.source.start_frame)
+    if generation.emotion is None and generation.emotion_at is not None:
+        generation = replace(generation, emotion=request.source.motion.meta.get("emotion") or None)
     return Request(path, options, generation, keep_face=settings.keep_face, range=request)
 
 
-STYLE_MARKER = "style:"
+def with_markers(generation, scene, start_frame: int):
+    """`generation` with the style and emotion changes of the scene's timeline markers, in
+    seconds from `start_frame`."""
+    return replace(generation, style_at=marker_styles(scene, start_frame),
+                   emotion_at=marker_emotions(scene, start_frame))
+
+
+STYLE_MARKER, EMOTION_MARKER = "style:", "emotion:"
 
 
 def marker_styles(scene, start_frame: int) -> tuple | None:
     """The style changes the scene's timeline markers name ('style:calm',
-    'style:calm=0.7,animated=0.3'), as (seconds from `start_frame`, style); a marker before
-    the start frame applies from the start. None where there are none."""
-    import argparse
-
+    'style:calm=0.7,animated=0.3'), as (seconds from `start_frame`, style). None where
+    there are none."""
     from diffsheg_core.settings import parse_style
+
+    return marker_changes(scene, start_frame, STYLE_MARKER, parse_style,
+                          "style:calm or style:calm=0.7,animated=0.3")
+
+
+def marker_emotions(scene, start_frame: int) -> tuple | None:
+    """The emotion changes the scene's timeline markers name ('emotion:sad', 'emotion:sad=0.5',
+    'emotion:happy=0.5,surprised=0.3', 'emotion:neutral'), as (seconds from `start_frame`,
+    {name: intensity}). None where there are none."""
+    from diffsheg_core.emotion import check_emotion
+
+    return marker_changes(scene, start_frame, EMOTION_MARKER, check_emotion,
+                          "emotion:sad or emotion:happy=0.5,surprised=0.3")
+
+
+def marker_changes(scene, start_frame: int, prefix: str, parse, example: str) -> tuple | None:
+    """The changes of the scene's timeline markers named `prefix` + value, as (seconds from
+    `start_frame`, parse(value)) sorted by time; a marker before the start frame applies from
+    the start, the later of two at one time wins. A marker whose value is missing or does not
+    parse is a DiffshegError naming it and its frame (a missing one, `example` too). None
+    where there are none."""
+    import argparse
 
     from .bake import scene_fps
 
     changes = {}
     for marker in sorted(scene.timeline_markers, key=lambda m: m.frame):
-        if not marker.name.startswith(STYLE_MARKER):
+        if not marker.name.startswith(prefix):
             continue
+        value = marker.name[len(prefix):]
+        where = f"timeline marker '{marker.name}' at frame {marker.frame}"
+        if not value.strip():
+            raise DiffshegError(f"{where} names no {prefix.rstrip(':')}: rename it like {example}")
         try:
-            style = parse_style(marker.name[len(STYLE_MARKER):])
-        except argparse.ArgumentTypeError as exc:
-            raise DiffshegError(f"timeline marker '{marker.name}' at frame {marker.frame}: {exc}") from None
-        if style == "":
-            raise DiffshegError(f"timeline marker '{marker.name}' at frame {marker.frame} names no style: "
-                                "rename it like style:calm or style:calm=0.7,animated=0.3")
-        changes[max(0.0, (marker.frame - start_frame) / scene_fps(scene))] = style  # the later of two at one time
+            changes[max(0.0, (marker.frame - start_frame) / scene_fps(scene))] = parse(value)
+        except (argparse.ArgumentTypeError, DiffshegError) as exc:
+            raise DiffshegError(f"{where}: {exc}") from None
     return tuple(changes.items()) or None
 
 
@@ -236,7 +269,7 @@ def apply_result(context, settings, motion, request: Request, seconds: float) ->
     meta = request.made_with(motion)
     settings.model_label = model_label(meta)
     line = report_line(result, seconds)
-    write_report(report_details(result, seconds, settings.model_label))
+    write_report(report_details(result, seconds, settings.model_label, meta))
     settings.last_report, settings.last_failed = line, False
     return line
 

@@ -79,6 +79,20 @@ def _style_items(self, _context):
     return _style_items_cache["style"]
 
 
+# diffsheg_core.emotion.NAMES, in its order (a test checks): that module needs numpy, which
+# the add-on registers without.
+EMOTIONS = [
+    ("neutral", "Neutral", "No emotion: the face and body as generated"),
+    ("happy", "Happy", "Cheeks raised and a smile, livelier gestures, the head up"),
+    ("sad", "Sad", "Inner brows up and mouth corners down, less movement, the head and chest lowered"),
+    ("angry", "Angry", "Brows down, eyes narrowed, lips pressed, sharper strokes"),
+    ("surprised", "Surprised", "Brows up and eyes wide, the head back"),
+    ("fearful", "Fearful", "Brows raised together, eyes wide, lips stretched"),
+    ("disgusted", "Disgusted", "Nose wrinkled and upper lip raised, the head back"),
+]
+NEUTRAL = EMOTIONS[0][0]
+
+
 def _mix_items(self, context):
     _style_items_cache["mix"] = [(NO_MIX, "None", "no second style")] + list(_style_items(self, context))[1:]
     return _style_items_cache["mix"]
@@ -148,6 +162,12 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
                                   description="Style strength: 1 is the style as learned, higher exaggerates it "
                                               "(livelier than lively, calmer than calm; models trained to "
                                               "allow it)")
+    emotion: EnumProperty(name="Emotion", default=NEUTRAL, items=EMOTIONS,
+                          description="A mood laid over the face and body; Neutral: none, and Regenerate "
+                                      "Range keeps the take's own. Timeline markers emotion:sad or "
+                                      "emotion:sad=0.5 change it from their frame; Live runs neutral")
+    emotion_intensity: FloatProperty(name="Intensity", default=1.0, min=0.0, max=1.0, subtype="FACTOR",
+                                     description="How strongly the emotion shows: 1 is full, 0 is none")
     set_guidance: BoolProperty(name="Set guidance", default=False,
                                description="Use your own guidance instead of the model's default")
     guidance: FloatProperty(name="Guidance", default=1.0, min=GUIDANCE[0], max=GUIDANCE[1],

@@ -35,13 +35,28 @@ def model_label(meta: dict) -> str:
     return label
 
 
-def report_details(result, seconds: float, model: str) -> str:
-    lines = [report_line(result, seconds), "", f"model: {model}", f"actions: {', '.join(result.actions)}",
+def report_details(result, seconds: float, model: str, meta: dict) -> str:
+    """The report's Text: its line, the model, the style and emotion the take was made with
+    (`meta`: what made it, a range's own record), the Actions, the sound strip, the preset's
+    notes and the warnings."""
+    lines = [report_line(result, seconds), "", f"model: {model}",
+             f"style: {changes_text(meta.get('style_weights') or {}, meta.get('style_at'), 'default')}",
+             f"emotion: {changes_text(meta.get('emotion') or {}, meta.get('emotion_at'), 'neutral')}",
+             f"actions: {', '.join(result.actions)}",
              f"sound strip: {result.sound_strip or 'none'}", *result.preset_notes]
     warnings = warning_lines(result)
     if warnings:
         lines += ["", "warnings:"] + [f"- {w}" for w in warnings]
     return "\n".join(lines) + "\n"
+
+
+def changes_text(weights: dict, changes: list | None, none: str) -> str:
+    """'calm 0.7, animated 0.3; from 10 s: sad': a mix of weights by name, then its changes
+    over time ([[seconds, weights], ...]); `none` for empty weights."""
+    def mix(w: dict) -> str:
+        return ", ".join(name if value == 1 else f"{name} {value:g}" for name, value in w.items()) or none
+
+    return "; ".join([mix(weights)] + [f"from {seconds:g} s: {mix(w)}" for seconds, w in changes or ()])
 
 
 def write_report(text: str):

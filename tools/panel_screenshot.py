@@ -10,7 +10,7 @@ its default width with the panel (before 4.1 on the first tab, see show_tab) and
 3D view area as OUT.png, then quits. With --open the
 sub-panels (Sampling, Keys, Live) are registered open (Blender has no Python switch for a
 panel's open state); with --range the other choices are drawn (a range of frames, a custom
-preset, a style mix, GPU; Live from a socket with VMC out).
+preset, a style mix, an emotion (Sad at 0.6), GPU; Live from a socket with VMC out).
 Open sub-panels need a taller screen (1600x1900) to be seen whole.
 """
 
@@ -60,10 +60,11 @@ def character():
     s.last_report = ("talk take 2: 288 frames, preset readyplayerme, 41/41 joints, 1,204 keys, 3.1 s, "
                      "4 warnings: see DiffSHEG report")
     s.model_label = "diffsheg-beat-small 0.1.0 (bundled)"
-    if RANGE:  # the other choices drawn: a range of frames, a custom preset, a style mix
+    if RANGE:  # the other choices drawn: a range of frames, a custom preset, a style mix, an emotion
         s.range_mode, s.range_start, s.range_end = "FRAMES", 1048, 1120
         s.preset, s.preset_file = "__custom__", "//presets/my_rig.json"
         s.mix_style, s.style_mix = "0", 0.3
+        s.emotion, s.emotion_intensity = "sad", 0.6
         s.device, s.key_mode, s.keep_face = "GPU", "EVERY_FRAME", True
         s.live_source, s.live_vmc = "SOCKET", True
 
