@@ -226,6 +226,11 @@ def parse_style(text: str) -> StyleSpec:
 def parse_style_at(text: str) -> tuple[tuple[float, StyleSpec], ...]:
     """'0=calm,12.5=animated' -> ((0.0, 'calm'), (12.5, 'animated')); an item whose key is a
     name adds to the mix of the time before it: '0=calm,12.5=calm=0.3,animated=0.7'."""
+    return _parse_changes(text, "SECONDS=STYLE", "--style-at 0=calm,12.5=animated")
+
+
+def _parse_changes(text: str, form: str, example: str) -> tuple[tuple[float, StyleSpec], ...]:
+    """Changes over time, SECONDS=NAME[=WEIGHT], an item without seconds joining the mix before it."""
     entries: list[list] = []
     for part in text.split(","):
         key, _, rest = part.strip().partition("=")
@@ -238,8 +243,7 @@ def parse_style_at(text: str) -> tuple[tuple[float, StyleSpec], ...]:
         elif entries and rest:
             entries[-1][1].append(part.strip())
         else:
-            raise argparse.ArgumentTypeError(f"{part.strip()!r} in {text!r} is not SECONDS=STYLE "
-                                             "(e.g. --style-at 0=calm,12.5=animated)")
+            raise argparse.ArgumentTypeError(f"{part.strip()!r} in {text!r} is not {form} (e.g. {example})")
     return tuple((seconds, parse_style(",".join(parts))) for seconds, parts in entries)
 
 
@@ -252,16 +256,7 @@ def _emotion_argument(text: str) -> dict:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def parse_emotion_at(text: str) -> tuple[tuple[float, str], ...]:
-    """'0=happy,12.5=sad=0.6' -> ((0.0, 'happy'), (12.5, 'sad=0.6'))."""
-    out = []
-    for part in text.split(","):
-        key, _, emotion = part.strip().partition("=")
-        try:
-            out.append((float(key), emotion.strip()))
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{part.strip()!r} in {text!r} is not SECONDS=EMOTION "
-                                             "(e.g. --emotion-at 0=happy,12.5=sad=0.6)") from None
-        if not emotion.strip():
-            raise argparse.ArgumentTypeError(f"{part.strip()!r} in {text!r} names no emotion")
-    return tuple(out)
+def parse_emotion_at(text: str) -> tuple[tuple[float, StyleSpec], ...]:
+    """'0=happy,12.5=sad=0.6' -> ((0.0, 'happy'), (12.5, {'sad': 0.6})); a mix as for styles:
+    '12.5=happy=0.5,surprised=0.3'. Emotion names are checked by GenerateSettings."""
+    return _parse_changes(text, "SECONDS=EMOTION", "--emotion-at 0=happy,12.5=sad=0.6")

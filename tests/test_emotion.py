@@ -134,8 +134,10 @@ def test_bad_emotions_are_refused_by_name(emotion, match):
 def test_the_command_line_and_live(bundle):
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    s = from_arguments(parser.parse_args(["--emotion", "sad=0.6", "--emotion-at", "0=happy,12.5=angry=0.5"]))
-    assert s.emotion == {"sad": 0.6} and s.emotion_at == ((0.0, {"happy": 1.0}), (12.5, {"angry": 0.5}))
+    s = from_arguments(parser.parse_args(["--emotion", "sad=0.6", "--emotion-at",
+                                          "0=happy,12.5=angry=0.5,20=happy=0.5,surprised=0.3"]))
+    assert s.emotion == {"sad": 0.6} and s.emotion_at == ((0.0, {"happy": 1.0}), (12.5, {"angry": 0.5}),
+                                                          (20.0, {"happy": 0.5, "surprised": 0.3}))
     assert GenerateSettings(emotion="neutral").emotion is None
     with pytest.raises(SystemExit):
         parser.parse_args(["--emotion", "joyful"])
