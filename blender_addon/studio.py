@@ -10,7 +10,10 @@ output asked for atomically, and takes the take back out, so the next line on th
 worker starts from the same character: each worker opens a character file and loads a
 model once, not once per line. A worker that dies is retried by Ray and its line redone
 from scratch; a line that fails (bad audio, a character without a camera for a video)
-fails alone. The driver records a line as done only once all its outputs are written, and
+fails alone. A task writes its line's outputs to a staging folder of its own; the driver
+records the line as done and then moves them into place (diffsheg_core.manifest.Ledger),
+so a driver or worker killed at any moment leaves in the output folder only outputs of
+lines recorded done, and the next run finishes or removes what it left. The driver
 writes the QC report (diffsheg_core.qc) at the end.
 """
 
@@ -41,11 +44,16 @@ _models: dict = {}                # model path (None: bundled) -> loaded ModelBu
 
 
 def process_line(line, out_dir: str) -> dict:
-    """Generate, key and export one manifest line in this (bpy) process; returns what the
-    driver records and reports. Raises DiffshegError for a line that cannot be done."""
+    """Generate, key and export one manifest line in this (bpy) process, its outputs
+    written to a staging folder of its own; returns what the driver records and reports
+    (the outputs' final paths in `out_dir`, the staging folder). Raises DiffshegError for a
+    line that cannot be done."""
+    import shutil
+
     import bpy
 
     import diffsheg_core
+    from diffsheg_core.manifest import staging_folder
 
     from .bake import BakeOptions, bake_motion
     from .preset import AUTO, load_preset
@@ -61,13 +69,18 @@ def process_line(line, out_dir: str) -> dict:
                           max_face_error=line.max_face_error)
     motion = diffsheg_core.generate(str(line.audio), settings=replace(line.settings, model=_model(line.settings.model)))
     undo: list = []
+    staged = staging_folder(out_dir, line.id)
     try:
         result = bake_motion(scene, motion, str(line.audio), options, undo)
-        written = write_outputs(line, Path(out_dir), scene, armature, faces, motion)
+        written = write_outputs(line, staged, scene, armature, faces, motion)
+    except BaseException:
+        shutil.rmtree(staged, ignore_errors=True)
+        raise
     finally:
         for step in reversed(undo):  # the character as it was, for the next line
             step()
-    return {"outputs": written, "frames": result.n_frames, "keys": result.n_keys, "worker": os.getpid(),
+    return {"outputs": [str(Path(out_dir) / Path(p).name) for p in written], "staged": str(staged),
+            "frames": result.n_frames, "keys": result.n_keys, "worker": os.getpid(),
             "qc": _measure(line, motion, time.perf_counter() - started)}
 
 
@@ -214,11 +227,13 @@ def run_manifest(manifest: Path, out_dir: Path, defaults: dict, address: str | N
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     ledger = Ledger(out_dir)
+    ledger.recover()  # what a killed driver or worker left
     rows = [qc.QcRow(id=line.id, status="skipped") for line in lines if ledger.done(line)]
     todo = [line for line in lines if not ledger.done(line)]
     log(f"{len(lines)} lines: {len(rows)} done before, {len(todo)} to do")
     if todo:
         rows += _run_on_ray(todo, out_dir, ledger, address, workers, log)
+        ledger.clean_staging()  # the staging folders of workers that died
     qc.write_report(rows, out_dir)
     failed = sum(r.status == "failed" for r in rows)
     log(f"{sum(r.status == 'done' for r in rows)} done, {sum(r.status == 'skipped' for r in rows)} skipped "
@@ -250,7 +265,7 @@ def _run_on_ray(lines: list, out_dir: Path, ledger, address: str | None, workers
                 rows.append(qc.QcRow(id=line.id, status="failed", error=_one_line(exc)))
                 log(f"[{len(lines) - len(pending)}/{len(lines)}] {line.id}: failed: {rows[-1].error}")
                 continue
-            ledger.record(line, result["outputs"])
+            ledger.commit(line, Path(result["staged"]), result["outputs"])
             rows.append(result["qc"])
             log(f"[{len(lines) - len(pending)}/{len(lines)}] {line.id}: done, {result['frames']} frames, "
                 f"{result['keys']:,} keys, {rows[-1].seconds:.1f} s")

@@ -37,6 +37,8 @@ import hashlib
 import json
 import math
 import os
+import shutil
+import tempfile
 import time
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -494,15 +496,24 @@ def _jsonable(value):
 
 class Ledger:
     """The lines done in a batch's output folder: `out_dir/done.jsonl`, one JSON object per
-    line done ({"id", "key", "outputs", "time"}), appended and fsynced by the one driver
-    process once all of a line's outputs are written. A line is done when the ledger holds
-    its id with its current key; a torn last line (a driver killed mid-write) is ignored."""
+    line done ({"id", "key", "outputs", "time"}, and "staged"), appended and fsynced by the
+    one driver process. A line is done when the ledger holds its id with its current key;
+    a torn last line (a driver killed mid-write) is ignored, so that line is redone.
+
+    A line's outputs are written whole into a folder of its own under `out_dir/.staging`
+    (`staging_folder`), and `commit` records the line (naming that folder) before moving
+    its files into place: the record is the commit point. A driver killed before it leaves
+    no output of the line in `out_dir`; killed after it, the next driver's `recover`
+    finishes the moves. Either way every output in `out_dir` belongs to a line recorded
+    done, and `recover` removes what unfinished lines left in the staging folder."""
 
     NAME = "done.jsonl"
+    STAGING = ".staging"
 
     def __init__(self, out_dir):
-        self.path = Path(out_dir) / self.NAME
-        self._done: dict[str, str] = {}
+        self.out_dir = Path(out_dir)
+        self.path = self.out_dir / self.NAME
+        self._done: dict[str, dict] = {}   # id -> its latest whole entry
         self._load()
 
     def _load(self) -> None:
@@ -519,22 +530,26 @@ class Ledger:
             except (UnicodeDecodeError, json.JSONDecodeError, TypeError, KeyError):
                 continue  # blank, or torn by a kill: that line was not recorded
             if isinstance(line_id, str) and isinstance(key, str):
-                self._done[line_id] = key
+                self._done[line_id] = entry
 
     def key(self, line_id: str) -> Optional[str]:
         """The key the line was last recorded with; None if never."""
-        return self._done.get(line_id)
+        entry = self._done.get(line_id)
+        return None if entry is None else entry["key"]
 
     def done(self, line: Line, key: Optional[str] = None) -> bool:
         """Whether `line` is recorded with the same id and key (`key`: its line_key, if known)."""
-        recorded = self._done.get(line.id)
+        recorded = self.key(line.id)
         return recorded is not None and recorded == (key if key is not None else line_key(line))
 
-    def record(self, line: Line, outputs: Iterable, key: Optional[str] = None) -> str:
-        """Record `line` as done with its `outputs` (paths); its key."""
+    def record(self, line: Line, outputs: Iterable, key: Optional[str] = None, staged: Optional[Path] = None) -> str:
+        """Record `line` as done with its `outputs` (paths; `staged`: the staging folder
+        they are still in, see `commit`); its key."""
         key = key if key is not None else line_key(line)
         entry = {"id": line.id, "key": key, "outputs": [str(o) for o in outputs],
                  "time": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        if staged is not None:
+            entry["staged"] = Path(staged).name
         data = (json.dumps(entry, ensure_ascii=False) + "\n").encode("utf-8")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         try:
@@ -549,13 +564,68 @@ class Ledger:
         except OSError as exc:
             raise DiffshegError(f"the ledger '{self.path}' could not be written ({exc.strerror or exc}): "
                                 "free some disk space; the line will be redone next run") from None
-        self._done[line.id] = key
+        self._done[line.id] = entry
         return key
 
     def _ends_with_newline(self) -> bool:
         with open(self.path, "rb") as fh:
             fh.seek(-1, os.SEEK_END)
             return fh.read(1) == b"\n"
+
+    def commit(self, line: Line, staged: Path, outputs: Iterable, key: Optional[str] = None) -> str:
+        """Record `line` as done, then move its `outputs` (their final paths in `out_dir`)
+        from `staged`, the staging folder they were written whole to, into place; its key."""
+        outputs = [Path(o) for o in outputs]
+        key = self.record(line, outputs, key, staged=staged)
+        self._move_in_place(Path(staged), outputs)
+        return key
+
+    def recover(self) -> None:
+        """Finish the moves of lines recorded before their driver was killed, then remove
+        what lines never recorded left in the staging folder (a killed driver's or worker's),
+        and the temporary files of writers killed mid-write (`.NAME.partial...`)."""
+        staging = self.out_dir / self.STAGING
+        if staging.is_dir():
+            for entry in self._done.values():
+                name = entry.get("staged")
+                if isinstance(name, str) and (staging / name).is_dir():
+                    self._move_in_place(staging / name, [Path(o) for o in entry["outputs"]])
+        self.clean_staging()
+        for tmp in self.out_dir.glob(".*.partial*"):
+            if tmp.is_file():
+                tmp.unlink(missing_ok=True)
+
+    def clean_staging(self) -> None:
+        """Remove the staging folder and all in it (no line is under way)."""
+        try:
+            shutil.rmtree(self.out_dir / self.STAGING)
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            raise DiffshegError(f"cannot remove the unfinished outputs in '{self.out_dir / self.STAGING}' "
+                                f"({exc.strerror or exc}): remove that folder by hand") from None
+
+    def _move_in_place(self, staged: Path, outputs: list[Path]) -> None:
+        """Each output found in `staged` to its place in `out_dir` (os.replace: atomic on
+        one file system), then the staging folder removed."""
+        try:
+            for output in outputs:
+                source = staged / output.name
+                if source.is_file():
+                    os.replace(source, self.out_dir / output.name)
+            shutil.rmtree(staged)
+        except OSError as exc:
+            raise DiffshegError(f"cannot move the outputs from '{staged}' into '{self.out_dir}' "
+                                f"({exc.strerror or exc}); they are recorded done and the next run "
+                                "puts them in place") from None
+
+
+def staging_folder(out_dir, line_id: str) -> Path:
+    """A new folder under `out_dir/.staging` for one attempt at line `line_id` to write its
+    outputs to (see Ledger); each attempt has its own, so a retried line starts clean."""
+    root = Path(out_dir) / Ledger.STAGING
+    root.mkdir(parents=True, exist_ok=True)
+    return Path(tempfile.mkdtemp(prefix=f"{line_id}.", dir=root))
 
 
 def with_settings(line: Line, **changes) -> Line:

@@ -6,7 +6,10 @@ network namespace of its own that has only the loopback interface (`unshare -n`)
 every connection stays on 127.0.0.1. Six short lines of real speech, one of them a
 corrupt audio file: five done with every output asked for, the sixth failed by name,
 exit code 1; a rerun skips the five and rewrites nothing; a worker killed in the middle
-of a line is retried and the batch ends with the outputs of a one-worker run."""
+of a line is retried and the batch ends with the outputs of a one-worker run; a driver
+killed (SIGKILL) in the middle of the batch leaves only outputs of lines recorded done,
+its Ray dies with it, and the next run does the rest, to the outputs of the batch that ran
+through."""
 
 from __future__ import annotations
 
@@ -15,6 +18,7 @@ import os
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -50,6 +54,94 @@ batch slow.csv killed --ray-address 127.0.0.1:$PORT > killed_run.log 2>&1; echo 
 wait
 batch slow.csv one --workers 1 > one.log 2>&1; echo $? > one.rc
 ray stop --force > ray_stop.log 2>&1
+"$PYTHON" kill_driver.py > driver_kill.log 2>&1; echo $? > driver_kill.rc
+"""
+
+# Runs lines.csv on a Ray of its own (two workers) into driver/, SIGKILLs the driver once
+# a line is recorded done, notes what is left, tears the ledger's last line as a kill in
+# the middle of an append would, runs the batch again, and waits for the killed driver's
+# Ray processes to end. Writes driver_kill.json.
+DRIVER_KILLER = r"""
+import json, os, signal, subprocess, sys, time
+from pathlib import Path
+
+out = Path("driver")
+command = [os.environ["PYTHON"], os.path.join(os.environ["REPO"], "batch_render.py"), "--manifest", "lines.csv",
+           "--output", str(out), "--workers", "2"]
+ledger = out / "done.jsonl"
+
+
+def recorded():
+    try:
+        return [json.loads(l)["id"] for l in ledger.read_text().splitlines() if l.strip()]
+    except (OSError, ValueError, KeyError):
+        return []
+
+
+def tree(root):
+    # pid -> name (its command line's first word) of `root` and every process under it
+    parents = {}
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_text()
+            name = os.path.basename(Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[0].decode())
+        except OSError:
+            continue
+        parents[int(pid)] = (int(stat.rsplit(")", 1)[1].split()[1]), name)
+    found, todo = {}, [root]
+    while todo:
+        pid = todo.pop()
+        found[pid] = parents.get(pid, (0, "?"))[1]
+        todo += [c for c, (p, _) in parents.items() if p == pid and c not in found]
+    return found
+
+
+def alive(pids):
+    left = []
+    for pid in pids:
+        try:
+            if Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] not in "ZX":
+                left.append(pid)
+        except OSError:
+            pass
+    return left
+
+
+def files():
+    return {str(p.relative_to(out)): [p.stat().st_mtime_ns, p.stat().st_size]
+            for p in sorted(out.rglob("*")) if p.is_file()}
+
+
+driver = subprocess.Popen(command, stdout=open("driver_first.log", "w"), stderr=subprocess.STDOUT)
+deadline = time.time() + 600
+while not recorded() and driver.poll() is None and time.time() < deadline:
+    time.sleep(0.02)
+ray = tree(driver.pid)
+report = {"finished_first": driver.poll() is not None}
+if not report["finished_first"]:
+    os.kill(driver.pid, signal.SIGKILL)
+killed_at = time.time()
+driver.wait()
+report.update(recorded=recorded(), ray=ray)
+core = [pid for pid, name in ray.items() if pid != driver.pid and "agent" not in name.lower()]
+while alive(core) and time.time() < killed_at + 30:
+    time.sleep(0.1)
+report["core_left"] = {pid: ray[pid] for pid in alive(core)}
+report["core_seconds"] = time.time() - killed_at
+report["after_kill"] = files()
+report["ledger_after_kill"] = ledger.read_text()
+with open(ledger, "ab") as fh:  # a driver killed while appending the next record
+    fh.write(b'{"id": "line9", "key": "0123')
+again = subprocess.run(command, capture_output=True, text=True)
+report["resumed_rc"], report["resumed_log"] = again.returncode, again.stdout + again.stderr
+report["after_resume"] = files()
+while alive(ray) and time.time() < killed_at + 120:  # Ray's agents wait 60 s on the dead GCS
+    time.sleep(0.5)
+report["left"] = {pid: ray[pid] for pid in alive(ray)}
+report["all_seconds"] = time.time() - killed_at
+for pid in alive(ray):
+    os.kill(pid, signal.SIGKILL)
+Path("driver_kill.json").write_text(json.dumps(report, indent=1))
 """
 
 # Kills the first worker seen running a line, once it has run for a second.
@@ -97,6 +189,7 @@ def studio(tmp_path_factory):
     (work / "slow.csv").write_text("id,audio,seed,blend,preset,outputs\n"
                                    f"slow1,audio/long1.wav,7,{character}\nslow2,audio/long2.wav,8,{character}\n")
     (work / "kill_one_worker.py").write_text(KILLER)
+    (work / "kill_driver.py").write_text(DRIVER_KILLER)
     (work / "scenario.sh").write_text(SCENARIO)
     env = {**os.environ, "PYTHON": sys.executable, "REPO": str(REPO), "PORT": str(PORT)}
     proc = subprocess.run(["unshare", "-n", "bash", "scenario.sh"], cwd=work, env=env, capture_output=True,
@@ -174,3 +267,57 @@ def test_the_check_pass_lists_every_bad_row_before_anything_runs(studio, tmp_pat
     proc = subprocess.run([sys.executable, str(REPO / "batch_render.py"), "--manifest", str(good), "--check"],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0 and "1 lines, all good" in proc.stdout, proc.stderr
+
+
+def test_a_killed_driver_leaves_only_done_lines_and_the_next_run_resumes(studio):
+    assert _rc(studio, "driver_kill") == 0, _log(studio, "driver_kill")[-2000:]
+    report = json.loads((studio / "driver_kill.json").read_text())
+    assert not report["finished_first"], (studio / "driver_first.log").read_text()[-2000:]
+    done = report["recorded"]
+    assert 1 <= len(done) < 5, done  # killed in the middle: some lines done, some not
+    names = {n for n in report["ray"].values()}
+    assert {"raylet", "gcs_server"} <= names, names  # it had started a Ray of its own
+    # its Ray died with it: nothing but the driver could still write into the folder
+    assert not report["core_left"], report["core_left"]
+    print(f"driver killed with {len(done)} lines done; its raylet, GCS and workers gone after "
+          f"{report['core_seconds']:.1f} s, all its Ray after {report['all_seconds']:.1f} s")
+    assert not report["left"], report["left"]  # Ray's agents end by themselves too
+
+    # what the kill left: outputs of recorded lines only, each line's all; unfinished
+    # lines' files only in the staging folder
+    ledger = [json.loads(l) for l in report["ledger_after_kill"].splitlines()]
+    assert [e["id"] for e in ledger] == done
+    outputs = {Path(o).name for e in ledger for o in e["outputs"]}
+    visible = {f for f in report["after_kill"] if not f.startswith(".staging/")}
+    assert visible - {"done.jsonl"} <= outputs, visible - outputs
+    staged = {f.split("/")[-1] for f in report["after_kill"] if f.startswith(".staging/")}
+    for e in ledger:  # recorded = every output in place (or, killed between the record and
+        for o in e["outputs"]:  # the moves, still staged: the next run moves it)
+            assert Path(o).name in visible or Path(o).name in staged, (e["id"], o)
+    assert not [f for f in visible if "partial" in f]
+
+    # the next run: the torn record ignored, the recorded lines skipped and untouched,
+    # the rest done; nothing staged or partial left
+    assert report["resumed_rc"] == 1, report["resumed_log"][-2000:]  # line2's audio is corrupt
+    log = report["resumed_log"]
+    assert f"6 lines: {len(done)} done before, {6 - len(done)} to do" in log, log[-2000:]
+    assert f"{5 - len(done)} done, {len(done)} skipped (done before), 1 failed" in log, log[-2000:]
+    after = report["after_resume"]
+    for name in outputs:
+        assert after[name] == report["after_kill"][name], name  # not written again
+    assert not [f for f in after if f.startswith(".") or "partial" in f], sorted(after)
+    out = studio / "driver"
+    records = (out / "done.jsonl").read_text().splitlines()
+    assert records[len(done)].startswith('{"id": "line9"') and len(records) == 6  # the torn line kept apart
+    assert sorted(json.loads(l)["id"] for i, l in enumerate(records) if i != len(done)) == \
+        ["line0", "line1", "line3", "line4", "line5"]
+    # the outputs of the batch that ran through (the same seeds; a cluster, not two workers)
+    for i in (0, 1, 3, 4, 5):
+        for suffix in (".json", ".csv"):
+            a, b = (out / f"line{i}{suffix}").read_bytes(), (studio / "first" / f"line{i}{suffix}").read_bytes()
+            assert a == b, (i, suffix)
+        with np.load(out / f"line{i}.npz") as a, np.load(studio / "first" / f"line{i}.npz") as b:
+            assert sorted(a.files) == sorted(b.files)
+            for member in a.files:
+                assert a[member].tobytes() == b[member].tobytes(), (i, member)
+    assert not list(out.glob("line2*"))
