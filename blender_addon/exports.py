@@ -31,15 +31,19 @@ ENGINES = ("unreal", "unity")
 
 # Transform settings of Blender's FBX exporter per engine (bpy.ops.export_scene.fbx).
 FBX_ENGINE_SETTINGS: dict[str, dict] = {
-    # Unreal is Z up and measures in centimetres. "All Local" with the unit applied
-    # writes centimetres (1 m in Blender = 100 Unreal units) at FBX scale 1.0, and the
-    # axes Y forward / Z up are no conversion at all: the file keeps Blender's Z-up frame,
-    # Unreal's own up axis; Unreal's importer mirrors Y into its left-handed frame, so a
-    # character facing Blender's -Y faces +Y as the UE mannequin does. These are the
-    # transform settings of Epic's own Blender add-on (Send to Unreal). Import in Unreal
-    # with the defaults: Convert Scene changes nothing on such a file, Convert Scene Unit
-    # off, Import Uniform Scale 1. The metres-to-centimetres factor sits on the armature's
-    # root node (scale 100), as in every "All Local" export of a rig at Blender's scale 1.
+    # Unreal is Z up and measures in centimetres. The file is written from a copy of the
+    # character 100 times its size in a scene measured in centimetres (unit scale 0.01,
+    # `_in_centimetres`): "All Local" with the unit applied then scales by 100 x 0.01 = 1,
+    # so the armature's root node has scale 1 and the bones, their animation and the
+    # meshes are in centimetres at FBX scale 1.0. (Written from the character at
+    # Blender's scale, "All Local" puts the factor 100 on the root node instead, which
+    # Unreal keeps on the skeleton's root; "FBX All" writes metres, scale 100 in the file,
+    # which Unreal's Convert Scene Unit again turns into a root scale.) The axes Y forward
+    # / Z up are no conversion at all: the file keeps Blender's Z-up frame, Unreal's own
+    # up axis; Unreal's importer mirrors Y into its left-handed frame, so a character
+    # facing Blender's -Y faces +Y as the UE mannequin does. Import in Unreal with the
+    # defaults: Convert Scene changes nothing on such a file, Convert Scene Unit off,
+    # Import Uniform Scale 1.
     "unreal": dict(axis_forward="Y", axis_up="Z", apply_unit_scale=True,
                    apply_scale_options="FBX_SCALE_NONE", global_scale=1.0),
     # Unity is Y up, +Z forward, and measures in metres. "FBX All" puts the unit in the
@@ -89,8 +93,20 @@ def export_fbx(path, armature, face_meshes, engine: str) -> Path:
     if engine not in ENGINES:
         raise DiffshegError(f"unknown engine {engine!r}: choose one of {', '.join(ENGINES)}")
     settings = {**FBX_COMMON_SETTINGS, **FBX_ENGINE_SETTINGS[engine]}
-    return _export(Path(path), ".fbx", armature, face_meshes,
-                   lambda tmp: bpy.ops.export_scene.fbx(filepath=str(tmp), check_existing=False, **settings))
+
+    def write(tmp: Path):
+        if engine != "unreal":
+            return bpy.ops.export_scene.fbx(filepath=str(tmp), check_existing=False, **settings)
+        with _in_centimetres(bpy.context.scene, export_objects(armature, face_meshes)) as (scene, copies):
+            view_layer = scene.view_layers[0]
+            for copy in copies:
+                copy.select_set(True, view_layer=view_layer)
+            view_layer.objects.active = copies[0]
+            with bpy.context.temp_override(scene=scene, view_layer=view_layer, selected_objects=copies,
+                                           active_object=copies[0], object=copies[0]):
+                return bpy.ops.export_scene.fbx(filepath=str(tmp), check_existing=False, **settings)
+
+    return _export(Path(path), ".fbx", armature, face_meshes, write)
 
 
 def export_glb(path, armature, face_meshes) -> Path:
@@ -211,6 +227,109 @@ def _selected(objects: list) -> Iterator[None]:
         view_layer.objects.active = active
         if active is not None and active.mode != mode and bpy.ops.object.mode_set.poll():
             bpy.ops.object.mode_set(mode=mode)
+
+
+CENTIMETRE = 0.01  # Unreal's unit, in metres
+
+
+@contextlib.contextmanager
+def _in_centimetres(scene, objects: list) -> Iterator[tuple]:
+    """A scene of its own measured in centimetres (unit scale 0.01) and in it copies of
+    `objects` (the armature first) 100 times their size, with the originals' names and
+    the animation `scene` plays over its frame range: the armature copy's bones keyed on
+    every frame from the evaluated pose (constraints, drivers and NLA included), the
+    meshes' shape keys playing as the originals' do. Meanwhile the originals (and the
+    scene) carry other names; afterwards the copies, their data and the scene are removed
+    and every name is back, so the user's file is as it was."""
+    from mathutils import Matrix
+
+    up, down = Matrix.Scale(1 / CENTIMETRE, 4), Matrix.Scale(CENTIMETRE, 4)
+    temp = bpy.data.scenes.new(scene.name)
+    temp.unit_settings.system, temp.unit_settings.scale_length = "METRIC", CENTIMETRE
+    temp.render.fps, temp.render.fps_base = scene.render.fps, scene.render.fps_base
+    temp.frame_start, temp.frame_end = scene.frame_start, scene.frame_end
+    made, renamed = [temp], []
+    try:
+        copies = {}
+        for ob in objects:
+            copy = ob.copy()
+            copy.data = ob.data.copy()
+            made += [copy, copy.data]
+            if getattr(copy.data, "shape_keys", None) is not None:
+                made.append(copy.data.shape_keys)
+            copy.animation_data_clear()
+            copy.data.animation_data_clear()
+            _clear_constraints(copy)
+            temp.collection.objects.link(copy)
+            copies[ob] = copy
+        for ob, copy in copies.items():
+            if ob.parent is not None and ob.parent not in copies:
+                copy.parent = None
+            elif ob.parent is not None:
+                copy.parent = copies[ob.parent]
+                copy.matrix_parent_inverse = up @ ob.matrix_parent_inverse @ down
+            copy.matrix_basis = up @ (ob.matrix_basis if copy.parent else ob.matrix_world) @ down
+            for modifier in copy.modifiers:
+                if modifier.type == "ARMATURE" and modifier.object in copies:
+                    modifier.object = copies[modifier.object]
+            if ob.type == "MESH":
+                copy.data.transform(up, shape_keys=True)
+            else:
+                copy.data.transform(up)
+        made.append(_bake_pose(scene, objects[0], copies[objects[0]], up, down))
+        for ob, copy in copies.items():  # the copies go by the originals' names
+            for original, duplicate in ((ob, copy), (ob.data, copy.data)):
+                name = original.name
+                renamed.append((original, name))
+                original.name = f"{name}.diffsheg-export"
+                duplicate.name = name
+        renamed.append((scene, scene.name))
+        scene.name, temp.name = f"{scene.name}.diffsheg-export", renamed[-1][1]
+        yield temp, list(copies.values())
+    finally:
+        bpy.data.batch_remove(made)
+        for original, name in renamed:
+            original.name = name
+
+
+def _bake_pose(scene, armature, copy, up, down):
+    """Key every pose bone of `copy` (`armature` scaled by `up`) on every frame of the
+    scene's range with the pose `armature` has there, constraints and drivers applied: its
+    local transform in the copy's units (`up` @ local @ `down`) as location, quaternion and
+    scale keys. Returns the new Action."""
+    import numpy as np
+
+    from .keying import Channel, new_action, write_channels
+
+    frames = range(scene.frame_start, scene.frame_end + 1)
+    bones = list(armature.pose.bones)
+    samples = np.empty((len(bones), len(frames), 10))  # location 3, quaternion 4, scale 3
+    for f, frame in enumerate(frames):
+        scene.frame_set(frame)
+        for b, bone in enumerate(bones):
+            local = armature.convert_space(pose_bone=bone, matrix=bone.matrix, from_space="POSE", to_space="LOCAL")
+            location, rotation, size = (up @ local @ down).decompose()
+            quaternion = np.array(rotation)
+            if f and quaternion @ samples[b, f - 1, 3:7] < 0:
+                quaternion = -quaternion  # the last key's hemisphere: no flip between frames
+            samples[b, f] = (*location, *quaternion, *size)
+    for bone in copy.pose.bones:
+        _clear_constraints(bone)
+        bone.rotation_mode = "QUATERNION"
+    channels = []
+    for b, bone in enumerate(bones):
+        base = f'pose.bones["{bpy.utils.escape_identifier(bone.name)}"]'
+        for path, first, width in (("location", 0, 3), ("rotation_quaternion", 3, 4), ("scale", 7, 3)):
+            channels += [Channel(f"{base}.{path}", i, samples[b, :, first + i], bone.name) for i in range(width)]
+    action, slot = new_action(copy, f"{armature.name} in centimetres", [])
+    write_channels(action, slot, channels, frames.start)
+    return action
+
+
+def _clear_constraints(owner) -> None:
+    """No constraints on `owner` (an object or pose bone): its motion is baked."""
+    for constraint in list(owner.constraints):
+        owner.constraints.remove(constraint)
 
 
 @contextlib.contextmanager

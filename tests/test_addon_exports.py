@@ -1,6 +1,7 @@
 """Engine-ready exports (issue 28, item 4) in headless Blender: FBX for Unreal and Unity
 re-imported into a fresh scene reproduce the keyed take (bone rotations within 0.5 degree
-on every frame, the shape-key curves); the glTF binary passes the Khronos validator with
+on every frame, the shape-key curves); the Unreal FBX's armature root has scale 1 with
+the skeleton and its animation in centimetres; the glTF binary passes the Khronos validator with
 animation channels for the joints and the morph-target weights; a failed export leaves no
 file and says why; exporting leaves the user's selection, active object, mode and frame."""
 
@@ -92,8 +93,21 @@ def _user_state(scene) -> dict:
             "active": active.name if active else None, "mode": active.mode if active else None,
             "frame": scene.frame_current, "range": (scene.frame_start, scene.frame_end),
             "actions": sorted(bpy.data.actions.keys()), "objects": sorted(bpy.data.objects.keys()),
+            "data": sorted(bpy.data.armatures.keys()) + sorted(bpy.data.meshes.keys()),
+            "scenes": sorted(bpy.data.scenes.keys()), "unit": scene.unit_settings.scale_length,
             "playing": {o.name: o.animation_data.action.name for o in scene.objects
                         if o.animation_data and o.animation_data.action}}
+
+
+def _fbx_model_scaling(path: Path, name: str) -> tuple:
+    """The "Lcl Scaling" of the file's Model node `name` (1, 1, 1 where it has none)."""
+    from io_scene_fbx import parse_fbx
+
+    root, _ = parse_fbx.parse(str(path))
+    objects = next(e for e in root.elems if e.id == b"Objects")
+    model = next(e for e in objects.elems if e.id == b"Model" and e.props[1].split(b"\x00")[0] == name.encode())
+    props = next(e for e in model.elems if e.id == b"Properties70")
+    return next((tuple(p.props[4:7]) for p in props.elems if p.props[0] == b"Lcl Scaling"), (1.0, 1.0, 1.0))
 
 
 def _fbx_global_settings(path: Path) -> dict:
@@ -114,6 +128,7 @@ def test_fbx_reimported_matches_the_take(speech, motion, tmp_path, engine):
     keys = [k.name for k in face.data.shape_keys.key_blocks[1:]]
     want_rot, want_keys = _bone_rotations(ob, bones, frames), _shape_key_values(face, keys, frames)
     want_heads = _bone_heads(ob, bones, frames)
+    names = (ob.name, face.name)
     scene.frame_set(30)
     face.select_set(True)
     bpy.context.view_layer.objects.active = face
@@ -126,8 +141,10 @@ def test_fbx_reimported_matches_the_take(speech, motion, tmp_path, engine):
     assert oct(path.stat().st_mode & 0o777) == oct(0o666 & ~_umask())
 
     axes = _fbx_global_settings(path)
-    if engine == "unreal":  # Z up, centimetres at FBX scale 1 (Unreal's unit)
+    unreal = engine == "unreal"
+    if unreal:  # Z up, centimetres at FBX scale 1 (Unreal's unit), the armature's root at scale 1
         assert (axes["UpAxis"], axes["UnitScaleFactor"]) == (2, 1.0)
+        assert _fbx_model_scaling(path, ob.name) == pytest.approx((1.0, 1.0, 1.0), abs=1e-9)
     else:                   # Y up, metres (FBX scale 100: Unity's Convert Units gives scale 1)
         assert (axes["UpAxis"], axes["UnitScaleFactor"]) == (1, 100.0)
 
@@ -135,17 +152,25 @@ def test_fbx_reimported_matches_the_take(speech, motion, tmp_path, engine):
     fresh = bpy.context.scene
     fresh.render.fps, fresh.frame_start, fresh.frame_end = 24, frames.start, frames.stop - 1
     # anim_offset=0: the file keeps the scene's frame times (its take starts at the frame
-    # the take does); the importer's default offset of 1 is for files that start at 0
+    # the take does); the importer's default offset of 1 is for files that start at 0.
+    # Unreal takes the file's numbers as its centimetres (Convert Scene Unit off, uniform
+    # scale 1): the Unreal file is read into a scene measured in centimetres as Unreal's
+    # world is (unit scale 0.01), where the importer converts nothing.
+    if unreal:
+        fresh.unit_settings.system, fresh.unit_settings.scale_length = "METRIC", 0.01
     assert bpy.ops.import_scene.fbx(filepath=str(path), anim_offset=0.0) == {"FINISHED"}
     assert sorted(o.type for o in fresh.objects) == ["ARMATURE", "MESH"]  # no light, no camera
     arm, mesh = (next(o for o in fresh.objects if o.type == t) for t in ("ARMATURE", "MESH"))
+    if unreal:  # the root as Unreal gets it: scale 1, no rotation; the skeleton in centimetres
+        assert np.allclose(np.array(arm.matrix_world), np.eye(4), atol=1e-6), arm.matrix_world
+        assert (arm.name, mesh.name) == names  # the names of the scene's objects, not of copies
 
     got_rot = _bone_rotations(arm, bones, frames)
     worst = float(_angles(got_rot, want_rot).max())
     print(f"{engine}: worst bone rotation after re-import {worst:.4f} degrees over {len(frames)} frames")
     assert worst < 0.5
     # the same places and size in Blender units: the unit and axis conversions undone
-    heads = _bone_heads(arm, bones, frames)
+    heads = _bone_heads(arm, bones, frames) * (0.01 if unreal else 1.0)
     assert np.abs(heads - want_heads).max() < 1e-4 * np.ptp(want_heads[..., 2])
 
     action = mesh.data.shape_keys.animation_data.action
