@@ -10,10 +10,11 @@ or empty; an empty cell takes the default from the command line, `defaults`):
     armature      armature object name (default: the scene's only armature)
     face          face mesh object names, separated by ';' (default: meshes with shape keys)
     preset        rig preset name, 'auto', or a preset .json file
-    style, style_at, seed, face_seed, steps, overlap, candidates, guidance,
-    skip_guidance (or gesture_energy), style_guidance
+    style, style_at, emotion, emotion_at, seed, face_seed, steps, overlap, candidates,
+    guidance, skip_guidance (or gesture_energy), style_guidance
                   the generation settings, spelt as on the command line (`--style calm=0.7,
-                  animated=0.3`, `--style-at 0=calm,12.5=animated`) and checked by
+                  animated=0.3`, `--style-at 0=calm,12.5=animated`, `--emotion sad=0.6`,
+                  `--emotion-at 0=happy,12.5=sad`) and checked by
                   diffsheg_core.settings as the command line's are, so a row means what the
                   command line means
     start_frame, max_error, max_face_error, every_frame
@@ -44,10 +45,11 @@ from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Collection, Iterable, Iterator, Mapping, Optional
 
+from .emotion import check_emotion, check_emotion_at
 from .errors import DiffshegError
 from .settings import (
     _NUMBERS as settings_numbers, GenerateSettings, _check_style, _check_style_at, check_number, parse_style,
-    parse_style_at, parse_whole,
+    parse_emotion_at, parse_style_at, parse_whole,
 )
 
 OUTPUTS = ("blend", "fbx_unreal", "fbx_unity", "glb", "npz", "arkit_json", "csv", "mp4")
@@ -57,8 +59,8 @@ NEEDS_CHARACTER = frozenset({"blend", "fbx_unreal", "fbx_unity", "glb", "mp4"})
 """Outputs that key the motion onto a character, so need its .blend."""
 
 CHARACTER = ("blend", "armature", "face", "preset")
-GENERATION = ("style", "style_at", "seed", "face_seed", "steps", "overlap", "candidates", "guidance",
-              "skip_guidance", "style_guidance")
+GENERATION = ("style", "style_at", "emotion", "emotion_at", "seed", "face_seed", "steps", "overlap",
+              "candidates", "guidance", "skip_guidance", "style_guidance")
 KEYING = ("start_frame", "max_error", "max_face_error", "every_frame")
 COLUMNS = ("id", "audio") + CHARACTER + GENERATION + KEYING + ("outputs",)
 ALIASES = {"gesture_energy": "skip_guidance"}
@@ -382,6 +384,10 @@ def _parse(name: str, value, folder: Path):
         return _check_style(_argument(parse_style, value) if isinstance(value, str) else value)
     if name == "style_at":
         return _check_style_at(_argument(parse_style_at, value) if isinstance(value, str) else value)
+    if name == "emotion":
+        return check_emotion(value)
+    if name == "emotion_at":
+        return check_emotion_at(_argument(parse_emotion_at, value) if isinstance(value, str) else value)
     if name in _NUMBERS:
         return _number(name, value)
     raise DiffshegError(f"unknown column {name}")

@@ -198,3 +198,22 @@ def test_the_ledger_skips_done_lines_redoes_changed_ones_and_survives_a_torn_las
 
 def test_the_output_kinds():
     assert OUTPUTS == ("blend", "fbx_unreal", "fbx_unity", "glb", "npz", "arkit_json", "csv", "mp4")
+
+
+def test_emotion_columns_are_read_and_checked_as_the_command_line_does(project):
+    manifest = write(project / "lines.csv", "id,audio,emotion,emotion_at,outputs\n"
+                     f"a,{SPEECH},sad=0.6,\"0=happy,2=angry=0.5\",npz\n"
+                     f"b,{SPEECH},,,npz\n"
+                     f"c,{SPEECH},joyful,,npz\n"
+                     f"d,{SPEECH},,0=sad=3,npz\n")
+    with pytest.raises(ManifestError) as caught:
+        read_manifest(manifest, {"emotion": "happy"}, PRESETS, STYLES)
+    text = str(caught.value)
+    assert "row 4, column emotion: unknown emotion 'joyful'" in text
+    assert "row 5, column emotion_at: the intensity of emotion 'sad' must be a number from 0 to 1" in text
+    good = write(project / "good.csv", "\n".join(manifest.read_text().splitlines()[:3]) + "\n")
+    a, b = read_manifest(good, {"emotion": "happy"}, PRESETS, STYLES)
+    assert a.settings.emotion == {"sad": 0.6} and a.settings.emotion_at == ((0.0, {"happy": 1.0}),
+                                                                           (2.0, {"angry": 0.5}))
+    assert b.settings.emotion == {"happy": 1.0}  # the command line's default
+    assert line_key(a) != line_key(replace(a, settings=replace(a.settings, emotion={"sad": 0.7})))
