@@ -21,6 +21,7 @@ from diffsheg_core.motion import Motion, resample_motion, smooth_frames
 
 from . import takes
 from .keying import Channel, Undo, new_action, rotation_channels, shape_key_channel, undone_on_error, write_channels
+from .feet import plant_foot, scene_spans
 from .preset import available_presets, choose_preset, load_preset, preset_fit
 from .retarget import ArmatureMapping, Preset, ShapeKeyMapping, bone_quaternions, map_armature, map_shape_keys
 from .sound import NO_AUDIO_NOTE, add_sound_strip, audio_supported, remove_strips, strips_added_for
@@ -125,6 +126,7 @@ class Plan:
     unmatched_shape_keys: dict[str, list[str]]
     notes: list[str]
     preset_notes: list[str]
+    keyed_joints: frozenset[str] = frozenset()   # the model's joints keyed on the armature
 
 
 @dataclass
@@ -168,14 +170,66 @@ def map_targets(motion: Motion, options: BakeOptions, preset_notes: list[str] = 
 def bone_channels(armature, mapping: ArmatureMapping, motion: Motion,
                   smoothing: float = 0.0) -> list[tuple[str, list[Channel]]]:
     """(bone, its rotation channels in the bone's own rotation mode) for every bone `mapping`
-    drives, one value per frame of `motion`."""
-    out = []
-    for bone, quats in bone_quaternions(motion, mapping).items():
-        if smoothing > 0:
+    drives, one value per frame of `motion`, the legs' with their feet planted on the rig."""
+    quaternions, _ = body_pose(mapping, motion, smoothing)
+    return [(bone, rotation_channels(bone, armature.pose.bones[bone].rotation_mode, quats))
+            for bone, quats in quaternions.items()]
+
+
+def body_pose(mapping: ArmatureMapping, motion: Motion,
+              smoothing: float = 0.0) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+    """Per driven bone its (T, 4) local quaternions, and the hips bone's (T, 3) location (None
+    where the mapping keys none); over the motion's contact spans (meta "contacts") each leg
+    is solved again on the rig's bones so the contact foot stays put (feet.py)."""
+    quaternions = bone_quaternions(motion, mapping)
+    if smoothing > 0:
+        for bone, quats in quaternions.items():
             quats = smooth_frames(quats, smoothing)
-            quats /= np.linalg.norm(quats, axis=1, keepdims=True)
-        out.append((bone, rotation_channels(bone, armature.pose.bones[bone].rotation_mode, quats)))
-    return out
+            quaternions[bone] = quats / np.linalg.norm(quats, axis=1, keepdims=True)
+    if mapping.root is None:
+        return quaternions, None
+    location = motion.root_translation.astype(np.float64) @ mapping.root.matrix.T
+    if smoothing > 0:
+        location = smooth_frames(location, smoothing)
+    contacts = motion.meta.get("contacts") or {}
+    displacement = location @ mapping.root.rest.T
+    for leg in mapping.legs:
+        spans = scene_spans(contacts.get(leg.side, []), motion.meta.get("source_fps", motion.fps),
+                            motion.fps, motion.n_frames)
+        if spans:
+            pose = {"hips": quaternions[mapping.root.bone], **{b: quaternions[b] for b in leg.bones}}
+            quaternions.update(plant_foot(leg, displacement, pose, spans, motion.fps))
+    return quaternions, location
+
+
+def location_channels(bone: str, location: np.ndarray) -> list[Channel]:
+    """The three channels of a pose bone's location."""
+    path = f'pose.bones["{bpy.utils.escape_identifier(bone)}"].location'
+    return [Channel(path, i, location[:, i], group=bone) for i in range(3)]
+
+
+FOOT_BOUND_M = 0.002  # metres: how far the keys of the hips or of a thigh or shin may move a foot
+
+
+def metres_per_unit(armature) -> float:
+    """Metres of the scene per armature-space unit (object scale and scene unit scale)."""
+    scale = np.linalg.norm(np.array(armature.matrix_world.to_3x3()), axis=0).mean()
+    return float(scale * bpy.context.scene.unit_settings.scale_length)
+
+
+def leg_bounds(armature, mapping: ArmatureMapping, max_error: float) -> tuple[dict[str, float], float]:
+    """Key error bounds that keep each foot within FOOT_BOUND_M of the motion's per keyed bone:
+    degrees for the hips, thighs and shins (by their reach to the ankle), and the hips
+    location's bound in its own units; other bones keep `max_error`."""
+    metres = metres_per_unit(armature)
+    reach: dict[str, float] = {}
+    for leg in mapping.legs:
+        for k, bone in enumerate((mapping.root.bone, *leg.bones[:2])):
+            lever = np.linalg.norm(leg.heads[3] - leg.heads[k]) * metres
+            reach[bone] = max(reach.get(bone, 0.0), lever)
+    degrees = {bone: min(max_error, float(np.degrees(FOOT_BOUND_M / lever))) for bone, lever in reach.items()}
+    location = FOOT_BOUND_M / (metres * np.linalg.norm(mapping.root.rest, axis=0).mean())
+    return degrees, float(location)
 
 
 def face_channels(mesh, keys: ShapeKeyMapping, face: np.ndarray, smoothing: float = 0.0) -> list[Channel]:
@@ -201,9 +255,16 @@ def plan_keys(scene, motion: Motion, options: BakeOptions) -> Plan:
     if matched.armature is not None:
         unmatched_bones, notes = matched.armature.unmatched, list(matched.armature.notes)
         groups = []
-        for bone, channels in bone_channels(options.armature, matched.armature, motion, options.smoothing):
+        quaternions, location = body_pose(matched.armature, motion, options.smoothing)
+        bounds, location_bound = (leg_bounds(options.armature, matched.armature, options.max_error)
+                                  if location is not None else ({}, 0.0))
+        for bone, quats in quaternions.items():
             mode = options.armature.pose.bones[bone].rotation_mode
-            groups.append(Group(channels, lambda v, m=mode: rotation_error(v, m), options.max_error))
+            groups.append(Group(rotation_channels(bone, mode, quats), lambda v, m=mode: rotation_error(v, m),
+                                bounds.get(bone, options.max_error)))
+        if location is not None:
+            groups.append(Group(location_channels(matched.armature.root.bone, location), value_error,
+                                location_bound))
         targets.append((options.armature, groups))
     unmatched_keys: dict[str, list[str]] = {}
     for mesh, keys in matched.faces:
@@ -217,7 +278,8 @@ def plan_keys(scene, motion: Motion, options: BakeOptions) -> Plan:
                   for channel in face_channels(mesh, keys, motion.face, options.smoothing)]
         targets.append((mesh.data.shape_keys, groups))
     notes += [f"warning: {w}" for w in motion.meta.get("warnings", [])]
-    return Plan(motion, options, targets, unmatched_bones, unmatched_keys, notes, matched.preset_notes)
+    keyed = frozenset(j for t in matched.armature.targets for j in t.joints) if matched.armature else frozenset()
+    return Plan(motion, options, targets, unmatched_bones, unmatched_keys, notes, matched.preset_notes, keyed)
 
 
 def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOptions,
@@ -247,7 +309,7 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
         takes.store_source(bpy.data.actions[actions[0]],
                            takes.TakeSource(motion, str(audio_path or ""), options.start_frame))
         if options.armature is not None:
-            _set_properties(options.armature, options.preset.properties, undo)
+            _set_properties(options.armature, options.preset.properties_for(plan.keyed_joints), undo)
         strip, notes, replaced = _sound_and_range(scene, audio_path, options, plan.motion.n_frames, undo)
     remove_strips(scene, replaced)  # only once everything else has succeeded
     return BakeResult(take=take, preset=options.preset.name, actions=actions, n_frames=plan.motion.n_frames,

@@ -6,7 +6,8 @@ A joint maps to one bone, or to a chain of bones (parent first) that share its r
 (a spine of three bones for the model's one). `bone_aliases` and `shape_key_aliases`
 give other names of the same bone or key (the first present wins); `also_drives` lists
 keys a face channel drives besides its own. A preset may also carry a jaw driven from a
-face weight, rest alignment and custom properties to set on the rig. Standard library
+face weight, rest alignment and custom properties to set on the rig (`joint_properties`: only
+where a joint is keyed, as Rigify's legs switched to FK). Standard library
 only, so the add-on can list presets before its Python dependencies are installed.
 """
 
@@ -98,6 +99,16 @@ class Preset:
     jaw: JawDrive | None = None
     align_rest: bool = False
     properties: dict = field(default_factory=dict)        # bone -> {custom prop: value}
+    joint_properties: dict = field(default_factory=dict)  # joint -> {bone -> {custom prop: value}}, where keyed
+
+    def properties_for(self, joints) -> dict:
+        """{bone: {custom prop: value}} to set on the rig when `joints` are keyed: `properties`,
+        and the `joint_properties` of those joints (Rigify's legs switched to FK only with legs)."""
+        out = {bone: dict(props) for bone, props in self.properties.items()}
+        for joint in joints:
+            for bone, props in self.joint_properties.get(joint, {}).items():
+                out.setdefault(bone, {}).update(props)
+        return out
 
     def joint_map(self, layout: str) -> dict[str, list[str]]:
         """{joint: its bones, parent first} for a model layout."""
@@ -146,6 +157,9 @@ def load_preset(name_or_path: str) -> Preset:
             align_rest=bool(data.get("align_rest", False)),
             properties={k: _names(f"properties.{k}", v)
                         for k, v in _names("properties", data.get("properties", {})).items()},
+            joint_properties={j: {k: _names(f"joint_properties.{j}.{k}", v)
+                                  for k, v in _names(f"joint_properties.{j}", bones).items()}
+                              for j, bones in _names("joint_properties", data.get("joint_properties", {})).items()},
         )
     except (ValueError, TypeError, AttributeError) as exc:
         raise DiffshegError(f"rig preset {path}: {exc}; fix the file (compare it with "

@@ -190,6 +190,9 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
         ("CPU", "CPU", "Always the CPU"),
         ("GPU", "GPU", "A CUDA GPU: needs the GPU support from the add-on's preferences")],
         description="Where the model runs")
+    upper_body_only: BoolProperty(name="Upper body only", default=False,
+                                  description="Leave the hips and legs unkeyed: for seated characters, "
+                                              "or legs you key yourself")
     smoothing: FloatProperty(name="Smoothing", default=0.0, min=0.0, max=10.0,
                              description="Smooth the motion over this many frames before keying; 0 is off")
     key_mode: EnumProperty(name="Keys", default="POSES", items=[

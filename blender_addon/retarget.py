@@ -49,7 +49,24 @@ ALIGN: dict[str, tuple[tuple[float, float, float], str]] = {
     **{f"{side}_{j}": (((-1.0 if side == "right" else 1.0), 0.0, 0.0), f"{side}_{child}")
        for side in ("right", "left")
        for j, child in (("shoulder", "elbow"), ("elbow", "wrist"), ("wrist", "middle1"))},
+    # the canonical body's legs point straight down at rest (lower_body's BEAT skeleton)
+    **{f"{side}{j}": ((0.0, -1.0, 0.0), f"{side}{child}")
+       for side in ("Right", "Left") for j, child in (("UpLeg", "Leg"), ("Leg", "Foot"))},
 }
+
+# Joints that keep the rig's rest orientation in the world when the model's is at rest,
+# whatever the correction of the bones above them: a foot stands flat on the floor as the
+# rig's does (its bone points at the toes, at a slope that depends on the ankle's height).
+LEVEL: frozenset[str] = frozenset({"RightFoot", "LeftFoot"})
+
+# The legs of the `beat` layout, (thigh, shin, foot) per side, and the root joint whose
+# translation (Motion.root_translation) moves the body.
+LEGS: dict[str, tuple[str, str, str]] = {"right": ("RightUpLeg", "RightLeg", "RightFoot"),
+                                         "left": ("LeftUpLeg", "LeftLeg", "LeftFoot")}
+ROOT = "Hips"
+LOWER_BODY: frozenset[str] = frozenset({ROOT, *(j for leg in LEGS.values() for j in leg), "RightToeBase", "LeftToeBase"})
+"""Joints turned about level axes (the world's up), so the feet stay on the floor of a rig
+whose spine leans otherwise than the model's."""
 
 
 def layout_parents(layout: str) -> dict[str, str | None]:
@@ -106,6 +123,30 @@ class BoneTarget:
 
 
 @dataclass
+class RootTarget:
+    """The hips bone's location from the motion's root translation: `matrix` (3x3) takes a
+    displacement in the canonical axes, in metres of the canonical body, to the pose bone's
+    location (its rest frame, armature units, scaled by the rig's legs over the body's)."""
+
+    bone: str
+    matrix: np.ndarray
+    rest: np.ndarray   # 3x3: the bone's location to a displacement in armature space
+
+
+@dataclass
+class LegRig:
+    """One leg of the rig, for planting its foot (feet.py): bone names, and at rest the hips
+    bone's and the leg's rest orientations (armature space, 3x3 with scale removed) and the
+    heads of the hips, thigh, knee and ankle (armature space)."""
+
+    side: str
+    bones: tuple[str, str, str]        # thigh, shin, foot
+    rest: tuple[np.ndarray, ...]       # hips, thigh, shin, foot orientations
+    heads: np.ndarray                  # (4, 3) hips, thigh, knee and ankle heads
+    left: np.ndarray                   # (3,) the canonical left in armature space
+
+
+@dataclass
 class ArmatureMapping:
     armature: str
     targets: list[BoneTarget]
@@ -113,6 +154,8 @@ class ArmatureMapping:
     jaw_source: int | None = None   # face channel driving the jaw target, if any
     jaw: JawDrive | None = None
     notes: list[str] = field(default_factory=list)
+    root: RootTarget | None = None  # the hips' location, where the motion moves the root
+    legs: list[LegRig] = field(default_factory=list)   # legs keyed whole (thigh, shin and foot)
 
 
 def map_armature(armature, preset: Preset, motion: Motion,
@@ -162,29 +205,89 @@ def map_armature(armature, preset: Preset, motion: Motion,
             f"(e.g. {', '.join(wanted[:3])}): pick the preset that fits the rig, or Auto")
 
     axes = _canonical_axes(armature, motion.rig, {j: c[0] for j, c in chains.items()})
+    level = _level_axes(armature, axes)
+    frames = {j: level if j in LOWER_BODY else axes for j in chains}
     keyed = [b for j in sources for b in chains[j]] + ([jaw_bone] if jaw_bone else [])
     rest = {name: _rest(bones[name]) for name in keyed}
-    directions = _rest_directions(bones, chains, axes) if preset.align_rest else {}
-    correction = _rest_corrections(bones, rest, directions)
+    directions = _rest_directions(bones, chains, frames) if preset.align_rest else {}
+    flat = {chains[j][0] for j in LEVEL if j in chains} if preset.align_rest else set()
+    correction = _rest_corrections(bones, rest, directions, flat)
 
-    def target(bone: str, joints: tuple[str, ...], share: float) -> BoneTarget:
+    def target(bone: str, joints: tuple[str, ...], share: float, frame: np.ndarray) -> BoneTarget:
         b = rest[bone]
         parent = _mapped_ancestor(bones[bone], correction)
         d_parent = correction[parent] if parent else np.eye(3)
         d_own = correction[bone]
         return BoneTarget(
             bone=bone, joints=joints, share=share,
-            left=b.T @ d_parent @ axes, right=axes.T @ d_own.T @ b,
+            left=b.T @ d_parent @ frame, right=frame.T @ d_own.T @ b,
             rotation_mode=armature.pose.bones[bone].rotation_mode)
 
-    targets = [target(bone, joints, 1.0 / len(chains[joint]))
+    targets = [target(bone, joints, 1.0 / len(chains[joint]), frames[joint])
                for joint, joints in sources.items() for bone in chains[joint]]
     if jaw_bone is not None:
-        targets.append(target(jaw_bone, (), 1.0))
+        targets.append(target(jaw_bone, (), 1.0, axes))
+    legs = _leg_rigs(bones, chains, sources, level)
+    root = _root_target(bones, chains, sources, level, legs, motion, notes)
     return ArmatureMapping(
         armature=armature.name, targets=targets, unmatched=unmatched,
         jaw_source=motion.face_names.index(preset.jaw.source) if jaw_bone else None,
-        jaw=preset.jaw if jaw_bone else None, notes=notes)
+        jaw=preset.jaw if jaw_bone else None, notes=notes, root=root, legs=legs)
+
+
+def _leg_rigs(bones, chains: dict, sources: dict, axes: np.ndarray) -> list[LegRig]:
+    """The rig's legs whose thigh, shin and foot are each one keyed bone, under a keyed hips."""
+    if ROOT not in sources or len(chains[ROOT]) != 1:
+        return []
+    hips = chains[ROOT][0]
+    out = []
+    for side, joints in LEGS.items():
+        if not all(j in sources and len(chains[j]) == 1 for j in joints):
+            continue
+        names = (hips, *(chains[j][0] for j in joints))
+        out.append(LegRig(side=side, bones=names[1:], rest=tuple(_rest(bones[n]) for n in names),
+                          heads=np.array([bones[n].head_local for n in names], dtype=np.float64),
+                          left=axes[:, 0].copy()))
+    return out
+
+
+def leg_length(leg: LegRig) -> float:
+    """Thigh and shin of a rig's leg together, hip to ankle at rest (armature units)."""
+    return float(np.linalg.norm(leg.heads[2] - leg.heads[1]) + np.linalg.norm(leg.heads[3] - leg.heads[2]))
+
+
+def canonical_leg_length(hips_height: float) -> float:
+    """Thigh and shin of the canonical body whose hips rest `hips_height` metres above the
+    floor: the BEAT skeleton's in proportion, its floor at its lowest joint (the fore-foot)."""
+    skeleton = beat_skeleton()
+    offsets = np.asarray(skeleton.offsets, dtype=np.float64)
+    heights = np.zeros(len(offsets))
+    for i, parent in enumerate(skeleton.parents):  # parents come before their children
+        heights[i] = (heights[parent] if parent >= 0 else 0.0) + offsets[i, 1]
+    names = list(skeleton.joint_names)
+    leg = sum(np.linalg.norm(offsets[names.index(j)]) for j in LEGS["right"][1:])
+    return float(hips_height * leg / (heights[names.index(ROOT)] - heights.min()))
+
+
+def _root_target(bones, chains: dict, sources: dict, axes: np.ndarray, legs: list[LegRig], motion: Motion,
+                 notes: list[str]) -> RootTarget | None:
+    """The hips bone's location target, where the motion has a root translation, the rig keys
+    the hips and has a leg to scale it by (the translation moves the body over its legs: in
+    proportion to their length the legs' turns keep the feet where the motion plants them)."""
+    if motion.root_translation is None or ROOT not in sources:
+        return None
+    if not legs:
+        notes.append(f"hips location not keyed: no leg of the rig to scale it by (thigh, shin and foot of "
+                     f"{' or '.join(' '.join(j) for j in LEGS.values())})")
+        return None
+    height = motion.meta.get("hips_height")
+    if not isinstance(height, (int, float)) or not height > 0:
+        raise DiffshegError("the motion has a root translation but no hips height (meta 'hips_height', "
+                            "metres): generate it again, or with upper_body_only")
+    scale = np.mean([leg_length(leg) for leg in legs]) / canonical_leg_length(float(height))
+    bone = bones[chains[ROOT][0]]
+    local = np.array(bone.matrix_local.to_3x3(), dtype=np.float64)
+    return RootTarget(bone=bone.name, matrix=np.linalg.solve(local, axes) * scale, rest=local)
 
 
 def _match_chains(preset: Preset, layout: str, parents: dict, bones) -> tuple[dict, dict]:
@@ -227,13 +330,20 @@ def _canonical_axes(armature, layout: str, matched: dict[str, str]) -> np.ndarra
     return rig @ model.T
 
 
+def _level_axes(armature, axes: np.ndarray) -> np.ndarray:
+    """The canonical axes on the rig made level: up is the world's up (Blender's Z) in the
+    armature's space, left the landmarks' left made horizontal, forward their cross."""
+    world = np.array(armature.matrix_world.to_3x3(), dtype=np.float64)
+    return _frame(axes[:, 0], np.linalg.solve(world, [0.0, 0.0, 1.0]))
+
+
 def _blender_axes() -> np.ndarray:
     """Columns: the canonical left, up, forward of a character standing on Blender's
     Z axis and facing -Y (front view), in world space."""
     return np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
 
 
-def _rest_directions(bones, chains: dict, axes: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def _rest_directions(bones, chains: dict, frames: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per aligned bone: (the model's T-pose direction, the rig's rest direction), both
     in armature space. The rig's is from the bone's head to its child's head, because a
     bone's own axis need not point at its child (FBX imports without automatic bone
@@ -248,17 +358,19 @@ def _rest_directions(bones, chains: dict, axes: np.ndarray) -> dict[str, tuple[n
                    if child_bone is not None and bone in child_bone.parent_recursive else None)
         if rig_dir is None or np.linalg.norm(rig_dir) < 1e-9:
             rig_dir = _rest(bone)[:, 1]
-        out[bone.name] = (axes @ np.array(model_dir), rig_dir)
+        out[bone.name] = (frames[joint] @ np.array(model_dir), rig_dir)
     return out
 
 
-def _rest_corrections(bones, rest: dict, directions: dict) -> dict[str, np.ndarray]:
-    """Per keyed bone, the rotation turning the model's rest pose into the rig's: a swing
-    from the model's T-pose direction where one is known, else the correction of the
-    nearest keyed ancestor (so a whole hand follows its wrist), else identity."""
+def _rest_corrections(bones, rest: dict, directions: dict, level: set[str] = frozenset()) -> dict[str, np.ndarray]:
+    """Per keyed bone, the rotation turning the model's rest pose into the rig's: identity for
+    the `level` bones, a swing from the model's T-pose direction where one is known, else the
+    correction of the nearest keyed ancestor (so a whole hand follows its wrist), else identity."""
     out: dict[str, np.ndarray] = {}
     for bone in sorted(rest, key=lambda name: len(bones[name].parent_recursive)):
-        if bone in directions:
+        if bone in level:
+            out[bone] = np.eye(3)
+        elif bone in directions:
             out[bone] = swing(*directions[bone])
         else:
             parent = _mapped_ancestor(bones[bone], out)

@@ -142,7 +142,7 @@ def test_generate_onto_smplx_armature_drives_the_jaw_bone_unless_a_jaw_shape_key
     face = append_face()
     settings.face_meshes.add().object = face
     n_frames = _run_operator(scene, settings)
-    _check_keys(ob, face, _bones(load_preset("smplx")), 1, n_frames)
+    _check_keys(ob, face, [b for b in _bones(load_preset("smplx")) if b in ob.pose.bones], 1, n_frames)  # no legs
     assert "jaw" not in _keyed_bones(ob)
     assert "jaw bone jaw left at rest: the jawOpen shape key of Neutral opens the mouth" in report_text()
 
