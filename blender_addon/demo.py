@@ -118,6 +118,10 @@ def setup_preview(scene, armature, resolution: tuple[int, int] = (640, 360)) -> 
     head = armature.matrix_world @ armature.data.bones["Head"].head_local
     wide = _camera(scene, "DemoCamera", (0.0, -2.6, head.z - 0.3), lens=40)
     close = _camera(scene, "DemoCloseUp", (0.0, -1.1, head.z + 0.05), lens=55)
+    hips = armature.matrix_world @ armature.data.bones["Hips"].head_local
+    close.location -= hips  # then kept this far from the hips as they shift their weight
+    walk = close.constraints.new("COPY_LOCATION")
+    walk.target, walk.subtarget, walk.use_offset = armature, "Hips", True
     follow = close.constraints.new("DAMPED_TRACK")  # keeps the moving head in frame
     follow.target, follow.subtarget, follow.track_axis = armature, "Head", "TRACK_NEGATIVE_Z"
     follow.head_tail = 1.0

@@ -57,6 +57,7 @@ def generate_settings(settings):
         style=panel_style(settings),
         style_guidance=settings.style_strength if settings.style_strength != 1.0 else None,
         emotion=None if settings.emotion == NEUTRAL else {settings.emotion: round(settings.emotion_intensity, 3)},
+        upper_body_only=settings.upper_body_only,
         guidance=settings.guidance if settings.set_guidance else None,
         skip_guidance=settings.gesture_energy if settings.set_gesture_energy else None,
         device=settings.device_arg())

@@ -25,6 +25,7 @@ import numpy as np
 
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.keyframes import Keys, fit_span, handles, to_quaternions
+from diffsheg_core.lower_body import upper_body
 from diffsheg_core.motion import Motion
 from diffsheg_core.pipeline import Pin
 from diffsheg_core.rotations import axis_angle_to_matrix, convert
@@ -136,9 +137,10 @@ def animator_pins(scene, options: BakeOptions, request: RangeRequest) -> tuple[t
 
 
 def _mapping(options: BakeOptions, motion: Motion):
-    """The options' armature matched to the model's joints (Auto: the preset its names fit)."""
+    """The options' armature matched to the model's joints (Auto: the preset its names fit):
+    not the hips and legs, which the model does not make and a pin cannot steer."""
     preset = options.preset or auto_preset(motion.rig, options.armature, options.face_meshes)[0]
-    return map_armature(options.armature, preset, motion)
+    return map_armature(options.armature, preset, upper_body(motion))
 
 
 def _animator_keys(armature, first: int, last: int) -> list[tuple[str, float]]:

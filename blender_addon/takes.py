@@ -270,6 +270,8 @@ def store_source(action, source: TakeSource) -> None:
         "meta": json.dumps(m.meta, default=str), "audio_path": source.audio_path,
         "start_frame": int(source.start_frame),
     }
+    if m.root_translation is not None:
+        action[SOURCE]["root_translation"] = m.root_translation.astype(np.float64).ravel().tolist()
 
 
 def source_of(take: str) -> TakeSource:
@@ -292,6 +294,8 @@ def _read_source(action) -> TakeSource:
         motion = Motion(fps=float(rec["fps"]), rig=str(rec["rig"]), joint_names=joints,
                         rotations=np.asarray(rec["rotations"], dtype=np.float64).reshape(n, len(joints), 3),
                         face_names=faces, face=np.asarray(rec["face"], dtype=np.float64).reshape(n, len(faces)),
+                        root_translation=(np.asarray(rec["root_translation"], dtype=np.float64).reshape(n, 3)
+                                          if "root_translation" in rec else None),
                         meta=json.loads(rec["meta"]))
         return TakeSource(motion, str(rec["audio_path"]), int(rec["start_frame"]))
     except (KeyError, TypeError, ValueError) as exc:

@@ -35,6 +35,7 @@ BEAT_SKELETON_PATH = Path(__file__).with_name("beat_skeleton.json")
 
 _ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
 _POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
+BVH_UNITS_PER_METRE = 100.0  # the BEAT skeleton is in centimetres; Motion.root_translation in metres
 _MOTION_LINE = re.compile(r"^\s*MOTION\s*$", re.MULTILINE)
 _FRAMES_LINE = re.compile(r"^\s*Frames:\s*(\d+)\s*$")
 _FRAME_TIME_LINE = re.compile(r"^\s*Frame\s+Time:\s*(\S+)\s*$")
@@ -486,7 +487,7 @@ def motion_to_bvh(motion: Motion, skeleton: BvhData | None = None) -> BvhData:
         if cols.size != 3:
             raise DiffshegError(f"the skeleton's root '{root}' has no X/Y/Z position channels "
                                 "for the motion's root translation")
-        frames[:, cols] = motion.root_translation[:, axes]
+        frames[:, cols] = template[cols] + motion.root_translation[:, axes] * BVH_UNITS_PER_METRE
     out = skeleton.copy()
     out.frames, out.frame_time = frames, 1.0 / motion.fps
     out.header_frames, out.header_frame_time, out.source = None, None, ""

@@ -42,7 +42,8 @@ class Motion:
 
     rotations: (T, J, 3) axis-angle radians, each joint in its parent's frame.
     face: (T, K) blendshape weights (ARKit, nominally 0..1) or expression coefficients.
-    root_translation: optional (T, 3).
+    root_translation: optional (T, 3) metres in the layout's canonical axes (x left, y up, z
+    forward), the root's displacement from where it stands at rest.
     meta: model id, seed, audio file, sample rate, software version, ...
     """
 

@@ -26,6 +26,7 @@ from .emotion import apply_emotion, emotion_track
 from .errors import DiffshegError
 from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, inpaint_range, with_overrides
 from .guidance import Guidance, step_eps
+from .lower_body import LAYOUTS as WHOLE_BODY_LAYOUTS, add_lower_body, upper_body
 from .motion import Motion
 from .phonetic import (PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel, recogniser_frames,
                        stack_posteriors)
@@ -393,7 +394,9 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
         meta["pins"] = len(pins)
     motion = to_motion(bundle, normalised, meta=meta)
     track = emotion_track(s.emotion, s.emotion_at, n_frames, bundle.config.fps)
-    return motion if track is None else apply_emotion(motion, track)
+    if track is not None:
+        motion = apply_emotion(motion, track)
+    return motion if s.upper_body_only or motion.rig not in WHOLE_BODY_LAYOUTS else add_lower_body(motion, s.seed)
 
 
 def _sampling(bundle: ModelBundle, network, s: GenerateSettings, sampling: Optional[FoppasConfig],
@@ -446,6 +449,7 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     s = replace(settings or GenerateSettings(), **options)
     bundle = s.model if isinstance(s.model, ModelBundle) else load_model(s.model)
     layout = bundle.layout
+    whole, motion = motion, upper_body(motion)  # the take's hips and legs stay as they are
     if motion.rig != layout.name or motion.fps != bundle.config.fps:
         raise DiffshegError(f"this motion is {motion.rig} at {motion.fps:g} fps, but model {bundle.model_id} "
                             f"makes {layout.name} at {bundle.config.fps:g} fps: regenerate with the model "
@@ -481,7 +485,8 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
         rotations, face = moved.rotations, (face if keep_face else moved.face)
     record = {"start": int(start), "end": int(end), "keep_face": keep_face, "pins": len(pins),
               **generation_meta(bundle, s, plan, network, speech)}
-    return replace(motion, rotations=rotations, face=face,
+    lower = whole.rotations[:, len(motion.joint_names):]
+    return replace(whole, rotations=np.concatenate([rotations, lower], axis=1), face=face,
                    meta={**motion.meta, "regenerated": list(motion.meta.get("regenerated", [])) + [record]})
 
 

@@ -120,6 +120,7 @@ class GenerateSettings:
     style_guidance: float | None = None  # style strength: eps_null + s (eps_style - eps_null); 1: off
     emotion: str | dict | None = None   # 'happy', 'happy=0.6' or {name: intensity}; None: neutral (see emotion.py)
     emotion_at: tuple | None = None     # emotion changes over time: ((seconds, emotion), ...); before the first, `emotion`
+    upper_body_only: bool = False       # no hips and legs (lower_body.py): for seated characters, or legs keyed by hand
     guidance: float | None = None       # classifier-free guidance scale; 1: off
     skip_guidance: float | None = None  # gesture energy (skip guidance); 0: off
     device: str = "auto"
@@ -147,6 +148,8 @@ class GenerateSettings:
                 self._set("emotion", check_emotion(self.emotion) or None)
             if self.emotion_at is not None:
                 self._set("emotion_at", check_emotion_at(self.emotion_at))
+        if not isinstance(self.upper_body_only, bool):
+            raise DiffshegError(f"upper_body_only must be True or False, got {self.upper_body_only!r}")
         _check_choice("device", self.device, DEVICES)
         _check_choice("backend", self.backend, BACKENDS)
         _check_choice("precision", self.precision, PRECISIONS)
@@ -183,6 +186,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(--emotion happy=0.5,surprised=0.3); default neutral")
     g.add_argument("--emotion-at", type=parse_emotion_at, metavar="SECONDS=EMOTION,...",
                    help="the emotion from given times on, eased in: --emotion-at 0=happy,12.5=sad=0.6")
+    g.add_argument("--upper-body-only", action="store_true",
+                   help="no hips and legs: for seated characters, or when you key the legs yourself "
+                        "(default: the whole body, on models of the beat layout)")
     g.add_argument("--style-guidance", type=float,
                    help="style strength: 1 is the style as trained (default), above 1 goes beyond it "
                         "(models trained with a null style)")

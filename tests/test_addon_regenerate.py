@@ -20,6 +20,7 @@ from blender_addon.keying import fcurves_of
 from blender_addon.preset import load_preset
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.keyframes import rotation_angle, to_quaternions
+from diffsheg_core.lower_body import JOINTS as LOWER_JOINTS
 
 FIRST, LAST = 200, 300  # scene frames at 24 fps: 8.3 s to 12.5 s of the 20 s take
 ARM = "RightArm"
@@ -136,7 +137,8 @@ def test_only_the_range_changes_within_the_bound_and_without_a_jump(motion, spee
 
 def _join_ratios(armature, frames) -> tuple[float, float]:
     curves = _evaluate(armature, frames)
-    rotations = np.stack([v for (path, _), v in curves.items() if path.endswith(".rotation_euler")], axis=1)
+    rotations = np.stack([v for (path, _), v in curves.items() if path.endswith(".rotation_euler")
+                          and path.split('"')[1] not in LOWER_JOINTS], axis=1)  # the legs are the take's
     acc = np.abs(np.diff(rotations, 2, axis=0)).mean(axis=1)  # entry i: frame i + 2
     inside = acc[FIRST + 2: LAST - 4].mean()
     return acc[FIRST - 5: FIRST + 1].mean() / inside, acc[LAST - 4: LAST + 2].mean() / inside

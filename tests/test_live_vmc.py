@@ -70,7 +70,7 @@ def receiver():
 
 @pytest.fixture(scope="module")
 def motion():
-    return generate(str(SAMPLE))
+    return generate(str(SAMPLE), upper_body_only=True)  # live sends the upper body
 
 
 def send_frames(receiver: Receiver, rotations, faces, **options) -> list[list[tuple[str, tuple]]]:

@@ -13,6 +13,7 @@ from conftest import random_bundle
 from diffsheg_core import AudioError, Cancelled, CheckpointError, DiffshegError, Motion, generate
 from diffsheg_core.checkpoints import load_model, save_checkpoint
 from diffsheg_core.foppas import PRESETS
+from diffsheg_core.lower_body import JOINTS as LOWER_JOINTS
 from diffsheg_core.prior import GesturePrior
 from diffsheg_core.training.data.beat import read_gesture
 from diffsheg_core.rigs import ARKIT51, BEAT_JOINTS, SMPLX_EXPRESSION
@@ -38,8 +39,12 @@ def test_motion_contract(speech, model):
     motion = generate(speech, model=model, steps=4, seed=1, device="cpu")
     assert isinstance(motion, Motion)
     assert motion.fps == 15.0 and motion.rig == "beat" and motion.n_frames == 60
-    assert motion.joint_names == list(BEAT_JOINTS) and motion.face_names == list(ARKIT51)
-    assert motion.rotations.shape == (60, 47, 3) and motion.face.shape == (60, 51)
+    assert motion.joint_names == list(BEAT_JOINTS) + list(LOWER_JOINTS) and motion.face_names == list(ARKIT51)
+    assert motion.rotations.shape == (60, 56, 3) and motion.face.shape == (60, 51)
+    assert motion.root_translation.shape == (60, 3) and motion.meta["hips_height"] > 0.8
+    upper = generate(speech, model=model, steps=4, seed=1, device="cpu", upper_body_only=True)
+    assert upper.joint_names == list(BEAT_JOINTS) and upper.root_translation is None
+    np.testing.assert_array_equal(upper.rotations, motion.rotations[:, :47])  # the model's to the bit
     assert np.isfinite(motion.rotations).all() and (0 <= motion.face).all() and (motion.face <= 1).all()
     assert motion.meta["trained"] is False and motion.meta["model_id"] == "random-small"
     assert motion.meta["backend"] == "onnx"
@@ -231,7 +236,7 @@ def test_streaming_foppas_in_small_pushes_matches_generate(speech, model, prior_
     stream = FoppasStream(*build_sampling(model, network, make_plan(model, GenerateSettings(model=model))), seed=5)
     frames = [stream.push(features[i:i + 15]) for i in range(0, len(features), 15)] + [stream.finish()]
     streamed = to_motion(model, np.concatenate(frames), meta={})
-    offline = generate(speech, model=model, seed=5, device="cpu")
+    offline = generate(speech, model=model, seed=5, device="cpu", upper_body_only=True)
     assert streamed.n_frames == offline.n_frames == 60
     assert np.array_equal(streamed.rotations, offline.rotations)
 

@@ -1,0 +1,421 @@
+"""The lower body: hips (rotation and translation) and legs under the generated upper body,
+with the feet planted.
+
+The diffusion model makes the upper body and face (its layouts stop at the waist). Below
+it, this module adds what a standing talker's hips and legs do: weight shifts, sway and
+turns, learnt from the real full-body capture of BEAT2 take 2_scott_0_1_1 (SMPL-X, with
+root translation) and stored beside the model (`assets/lower_body.npz`, a few thousand
+numbers). The flow is one way, as DiffSHEG's expression-to-gesture flow: the upper body
+the model made drives the lower body, never the reverse, so the upper body and face are
+the model's to the bit.
+
+The lower body is cut from that capture as the teacher's gestures are cut from the BEAT
+take: motion matching. The take is built segment by segment (1.5-4 s, drawn with the
+generation's seed); each segment is the stretch of the capture (less its last 20 s, held
+out as the gesture material is) whose arm energy (wrist speed, layout-free, `kinematics`)
+best matches the generated arms' over the same time and whose first pose best continues
+the last one, chosen at random among the few best; segments are cross-faded over half a
+second and the hips' translation continues across each join. So real weight shifts,
+sways, turns and steps come with the gestures that go with them.
+
+Feet: on the BEAT skeleton's legs (the canonical body: x left, y up, z forward; legs
+straight down at rest) each foot is in contact while it is low and slow; within a contact
+span the ankle's position and the foot's orientation are pinned (eased in and out over a
+few frames) and each leg is solved again with two-bone IK, so a contact foot does not
+slide. The hips' translation is kept within the capture's range.
+numpy only: it runs inside Blender.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DiffshegError
+from .kinematics import wrist_positions
+from .motion import Motion, smooth_frames
+from .rotations import (axis_angle_to_quaternion, quaternion_conjugate, quaternion_product,
+                        quaternion_sequence_continuous, quaternion_to_axis_angle, resample_positions,
+                        slerp_resample)
+
+JOINTS = ("Hips", "RightUpLeg", "RightLeg", "RightFoot", "RightToeBase",
+          "LeftUpLeg", "LeftLeg", "LeftFoot", "LeftToeBase")
+"""The joints added to a `beat` Motion, in its BEAT skeleton names."""
+SMPLX_INDEX = (0, 2, 5, 8, 11, 1, 4, 7, 10)  # pelvis, right hip, knee, ankle, foot, then left
+LEGS = {"right": ("RightUpLeg", "RightLeg", "RightFoot"), "left": ("LeftUpLeg", "LeftLeg", "LeftFoot")}
+ASSET = Path(__file__).with_name("assets") / "lower_body.npz"
+LAYOUTS = ("beat",)
+
+HELD_OUT_S = 20.0    # the capture's last seconds, left out of the fit (as the gesture material)
+SEGMENT = (1.5, 4.0)  # seconds: the shortest and longest segment cut from the capture
+FADE_S = 0.5         # seconds of cross-fade between segments
+CHOICES = 4          # a segment is drawn among this many best matches
+DRIFT_S = 4.0        # Gaussian sigma (s) of the hips' slow drift across joins, taken out
+ENERGY_S = 1.0       # Gaussian sigma of the arms' energy the segments are matched on
+CONTACT_HEIGHT = 0.03   # m above the floor a contact foot's sole may be
+CONTACT_SPEED = 0.15    # m/s a contact foot's ankle may move before pinning
+EASE = 3                # frames over which a pin eases in and out
+MIN_CONTACT = 4         # frames: a shorter low, slow stretch is a step, not a contact
+REACH_SLACK = 0.004     # m a pinned ankle may lie beyond the straight leg (IK stops 4 mm short)
+
+
+def _skeleton_offsets() -> dict[str, np.ndarray]:
+    """The BEAT skeleton's leg offsets in metres (the canonical body)."""
+    from .bvh import beat_skeleton
+
+    skeleton = beat_skeleton()
+    return {n: skeleton.offsets[i].astype(np.float64) / 100.0 for i, n in enumerate(skeleton.joint_names)}
+
+
+def _hips_height() -> float:
+    """Rest height of the hips above the floor (the sole, at the fore-foot) in metres."""
+    off = _skeleton_offsets()
+    return float(-sum(off[j][1] for j in ("RightLeg", "RightFoot", "RightForeFoot")))
+
+
+@dataclass(frozen=True)
+class LowerBodyLibrary:
+    """The capture's lower body to cut segments from, at `fps`: rotations (N, 9, 3),
+    hips translation (N, 3, metres about the standing hips) and arm energy (N,)."""
+
+    rotations: np.ndarray
+    translation: np.ndarray
+    energy: np.ndarray
+    fps: float
+
+    def save(self, path: Path) -> Path:
+        np.savez(path, rotations=self.rotations.astype(np.float32), translation=self.translation.astype(np.float32),
+                 energy=self.energy.astype(np.float32), fps=np.float64(self.fps))
+        return path
+
+    @classmethod
+    def load(cls, path: Path = ASSET) -> "LowerBodyLibrary":
+        try:
+            with np.load(path) as z:
+                return cls(z["rotations"].astype(np.float64), z["translation"].astype(np.float64),
+                           z["energy"].astype(np.float64), float(z["fps"]))
+        except (OSError, KeyError, ValueError) as exc:
+            raise DiffshegError(f"the lower-body library {path} cannot be read ({exc}): reinstall the package, "
+                                "or generate with upper_body_only") from None
+
+    @property
+    def translation_low(self) -> np.ndarray:
+        return self.translation.min(axis=0)
+
+    @property
+    def translation_high(self) -> np.ndarray:
+        return self.translation.max(axis=0)
+
+
+# ---------------------------------------------------------------- the capture
+
+def read_capture(path: Path, fps: float) -> tuple[np.ndarray, np.ndarray, Motion]:
+    """A BEAT2 SMPL-X take as (T, 9, 3) lower-body rotations, (T, 3) hips translation
+    (metres, canonical axes, about the standing hips) and its upper body as a Motion, at
+    `fps`, turned so that the speaker faces +z on average."""
+    from .rigs import SMPLX_JOINTS
+
+    with np.load(path, allow_pickle=True) as z:
+        poses, trans, rate = z["poses"].astype(np.float64), z["trans"].astype(np.float64), float(z["mocap_frame_rate"])
+    joints = poses.reshape(len(poses), -1, 3)
+    n = len(resample_positions(len(poses), rate, fps))
+    rotations = slerp_resample(joints, rate, fps, n)
+    trans = np.stack([np.interp(resample_positions(len(poses), rate, fps, n), np.arange(len(trans)), trans[:, k])
+                      for k in range(3)], axis=1)
+    # face +z on average: turn the world about y by minus the pelvis's mean heading
+    forward = _apply(axis_angle_to_quaternion(rotations[:, 0]), np.array([0.0, 0.0, 1.0]))
+    heading = float(np.arctan2(forward[:, 0].mean(), forward[:, 2].mean()))
+    turn = np.array([np.cos(-heading / 2), 0.0, np.sin(-heading / 2), 0.0])
+    rotations[:, 0] = quaternion_to_axis_angle(quaternion_product(turn, axis_angle_to_quaternion(rotations[:, 0])))
+    trans = _apply(np.broadcast_to(turn, (n, 4)), trans)
+    lower = rotations[:, list(SMPLX_INDEX)]
+    # the hips upright on average (the upper body sits on them): their mean tilt goes to the
+    # thighs, whose world orientation is unchanged
+    q = quaternion_sequence_continuous(axis_angle_to_quaternion(lower))
+    tilt = q[:, 0].mean(axis=0)
+    tilt /= np.linalg.norm(tilt)
+    q[:, 0] = quaternion_product(q[:, 0], quaternion_conjugate(tilt)[None])
+    for thigh in ("RightUpLeg", "LeftUpLeg"):
+        q[:, JOINTS.index(thigh)] = quaternion_product(tilt[None], q[:, JOINTS.index(thigh)])
+    lower = quaternion_to_axis_angle(q)
+    upper = Motion(fps=fps, rig="smplx", joint_names=list(SMPLX_JOINTS[:len(rotations[0])]), rotations=rotations,
+                   face_names=[], face=np.zeros((n, 0)))
+    # about the standing hips: x and z about their mean; y from the floor (the soles' low
+    # point over the take) less the canonical body's standing hips height
+    soles = foot_positions(lower, np.zeros((n, 3)))  # with the hips at their standing height
+    lowest = np.minimum(soles["right"][1][:, 1], soles["left"][1][:, 1])
+    floor = np.percentile(trans[:, 1] + lowest, 5)
+    trans = np.stack([trans[:, 0] - trans[:, 0].mean(), trans[:, 1] - floor,
+                      trans[:, 2] - trans[:, 2].mean()], axis=1)
+    return lower, trans, upper
+
+
+def arm_energy(motion: Motion) -> np.ndarray:
+    """(T,) the wrists' speed (arm lengths/s), smoothed: what drives the hips."""
+    wrists = wrist_positions(motion)
+    speed = np.linalg.norm(np.diff(wrists, axis=0, prepend=wrists[:1]), axis=-1).mean(axis=-1) * motion.fps
+    return smooth_frames(speed[:, None], ENERGY_S * motion.fps)[:, 0]
+
+
+def build(path: Path, fps: float = 15.0) -> LowerBodyLibrary:
+    """The lower-body library of a BEAT2 SMPL-X take, less its last HELD_OUT_S seconds."""
+    lower, trans, upper = read_capture(path, fps)
+    keep = len(lower) - int(HELD_OUT_S * fps)
+    if keep < 4 * SEGMENT[1] * fps:
+        raise DiffshegError(f"{path} holds {len(lower) / fps:.1f} s: the lower body needs at least "
+                            f"{4 * SEGMENT[1] + HELD_OUT_S:.0f} s of capture")
+    return LowerBodyLibrary(lower[:keep], trans[:keep], arm_energy(upper)[:keep], fps)
+
+
+def _apply(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate vectors `v` (..., 3) by quaternions `q` (..., 4), broadcast."""
+    v4 = np.concatenate([np.zeros(np.broadcast_shapes(q.shape[:-1], v.shape[:-1]) + (1,)),
+                         np.broadcast_to(v, np.broadcast_shapes(q.shape[:-1], v.shape[:-1]) + (3,))], axis=-1)
+    return quaternion_product(quaternion_product(q, v4), quaternion_conjugate(q))[..., 1:]
+
+
+# ---------------------------------------------------------------- the canonical body's legs
+
+def _world(lower: np.ndarray, trans: np.ndarray) -> dict:
+    """World rotations (T, 4) and positions (T, 3) of every lower joint, the fore-foot
+    (sole) and the toe's end, on the canonical body standing on the floor y = 0."""
+    off = _skeleton_offsets()
+    q = axis_angle_to_quaternion(lower)
+    hips = q[:, JOINTS.index("Hips")]
+    trans = trans + np.array([0.0, _hips_height(), 0.0])  # the floor at y = 0
+    out = {"Hips": (hips, trans)}
+    for side, prefix in (("right", "Right"), ("left", "Left")):
+        rot, pos = hips, trans
+        for joint in (f"{prefix}UpLeg", f"{prefix}Leg", f"{prefix}Foot"):
+            pos = pos + _apply(rot, off[joint])
+            rot = quaternion_product(rot, q[:, JOINTS.index(joint)])
+            out[joint] = (rot, pos)
+        sole = pos + _apply(rot, off[f"{prefix}ForeFoot"])
+        toe_rot = quaternion_product(rot, q[:, JOINTS.index(f"{prefix}ToeBase")])
+        toe = sole + _apply(rot, off[f"{prefix}ToeBase"])
+        out[f"{prefix}Sole"] = (rot, sole)
+        out[f"{prefix}ToeEnd"] = (toe_rot, toe + _apply(toe_rot, off[f"{prefix}ToeBaseEnd"]))
+    return out
+
+
+def foot_positions(lower: np.ndarray, trans: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """{"right"/"left": ((T, 3) ankle, (T, 3) sole)} world positions on the canonical body."""
+    world = _world(lower, trans)
+    return {side: (world[f"{p}Foot"][1], world[f"{p}Sole"][1]) for side, p in (("right", "Right"), ("left", "Left"))}
+
+
+def contacts(lower: np.ndarray, trans: np.ndarray, fps: float) -> dict[str, list[tuple[int, int]]]:
+    """Per foot, the [first, last] frame spans in which it is on the floor: its sole within
+    CONTACT_HEIGHT of the floor (y = 0) and its ankle slower than CONTACT_SPEED."""
+    spans = {}
+    for side, (ankle, sole) in foot_positions(lower, trans).items():
+        speed = np.linalg.norm(np.gradient(ankle, axis=0), axis=-1) * fps
+        down = (sole[:, 1] < CONTACT_HEIGHT) & (speed < CONTACT_SPEED)
+        spans[side] = [(a, b) for a, b in _runs(down) if b - a + 1 >= MIN_CONTACT]
+    return spans
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(int), [0]])))
+    return [(int(a), int(b) - 1) for a, b in zip(edges[::2], edges[1::2])]
+
+
+def foot_skating(lower: np.ndarray, trans: np.ndarray, fps: float, height: float = 0.05,
+                 slide: float = 0.025) -> float:
+    """The foot-skating ratio (as SpeechAct and GMD report it): the share of frames in which a
+    foot whose sole is below `height` m moves more than `slide` m per 1/30 s on the floor."""
+    ratios = []
+    for ankle, sole in foot_positions(lower, trans).values():
+        step = np.linalg.norm(np.diff(sole[:, [0, 2]], axis=0), axis=-1) * fps / 30.0
+        low = (sole[1:, 1] < height) & (sole[:-1, 1] < height)
+        ratios.append(low & (step > slide))
+    return float(np.mean(np.any(ratios, axis=0)))
+
+
+def plant_feet(lower: np.ndarray, trans: np.ndarray, fps: float) -> tuple[np.ndarray, dict]:
+    """`lower` with each contact foot's ankle and orientation pinned over its span (eased in
+    and out over EASE frames) by two-bone IK on each leg; returns it and the spans pinned.
+    A span is pinned where its foot stood in the middle of it; frames where the leg cannot
+    reach that spot split it (the foot steps there)."""
+    spans = contacts(lower, trans, fps)
+    world = _world(lower, trans)
+    off = _skeleton_offsets()
+    out, pinned = lower.copy(), {}
+    for side, (up, knee, foot) in LEGS.items():
+        ankle, foot_rot, hip = world[foot][1], world[foot][0], world[up][1]
+        reach = np.linalg.norm(off[knee]) + np.linalg.norm(off[foot]) + REACH_SLACK
+        pins = [_reachable(ankle, hip, span, reach) for span in spans[side]]
+        pinned[side] = [(a, b) for group in pins for a, b, _ in group]
+        weight = np.zeros(len(lower))
+        target, target_rot = ankle.copy(), foot_rot.copy()
+        for a, b, spot in (pin for group in pins for pin in group):
+            lo, hi = max(0, a - EASE), min(len(lower) - 1, b + EASE)
+            ramp = np.ones(hi - lo + 1)
+            ramp[:a - lo] = (np.arange(a - lo) + 1) / (EASE + 1)
+            ramp[len(ramp) - (hi - b):] = ((np.arange(hi - b) + 1) / (EASE + 1))[::-1]
+            frames = lo + np.flatnonzero(ramp > weight[lo:hi + 1])  # a neighbour's own span wins
+            target[frames], target_rot[frames] = spot, foot_rot[(a + b) // 2]
+            weight[frames] = ramp[frames - lo]
+        goal = ankle + weight[:, None] * (target - ankle)
+        _solve_leg(out, world, side, goal, _slerp(foot_rot, target_rot, weight))
+    return out, pinned
+
+
+def _reachable(ankle: np.ndarray, hip: np.ndarray, span: tuple[int, int], reach: float
+               ) -> list[tuple[int, int, np.ndarray]]:
+    """(first, last, spot) pins within `span`: the ankle's median position there, split
+    (and each part pinned anew) where the hip is further from it than the leg reaches."""
+    todo, done = [span], []
+    for _ in range(3):
+        later = []
+        for a, b in todo:
+            spot = np.median(ankle[a:b + 1], axis=0)
+            near = np.linalg.norm(spot - hip[a:b + 1], axis=-1) < reach
+            if near.all():
+                done.append((a, b, spot))
+                continue
+            later += [(a + x, a + y) for x, y in _runs(near) if y - x + 1 >= MIN_CONTACT]
+        todo = later
+    return sorted(done, key=lambda pin: pin[0])
+
+
+def _slerp(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
+    b = np.where((np.sum(a * b, axis=-1) < 0)[:, None], -b, b)
+    step = quaternion_to_axis_angle(quaternion_product(quaternion_conjugate(a), b)) * w[:, None]
+    return quaternion_product(a, axis_angle_to_quaternion(step))
+
+
+def _solve_leg(lower: np.ndarray, world: dict, side: str, goal: np.ndarray, goal_rot: np.ndarray) -> None:
+    """Two-bone IK: bend the knee so hip-to-ankle is as long as hip-to-goal, swing the thigh
+    onto the goal, then give the foot `goal_rot` in the world. Writes into `lower`."""
+    up, knee, foot = LEGS[side]
+    off = _skeleton_offsets()
+    thigh, shin = np.linalg.norm(off[knee]), np.linalg.norm(off[foot])
+    hips_rot = world["Hips"][0]
+    hip, knee_pos, ankle = world[up][1], world[knee][1], world[foot][1]
+    reach = np.clip(np.linalg.norm(goal - hip, axis=-1), abs(thigh - shin) + 1e-4, (thigh + shin) * 0.9999)
+    # the knee's interior angle now and wanted (law of cosines), turned about the knee's hinge
+    now = _angle(hip - knee_pos, ankle - knee_pos)
+    wanted = np.arccos(np.clip((thigh ** 2 + shin ** 2 - reach ** 2) / (2 * thigh * shin), -1.0, 1.0))
+    hinge = np.cross(knee_pos - hip, ankle - knee_pos)
+    fallback = _apply(hips_rot, np.array([1.0, 0.0, 0.0]))  # straight leg: bend forward about x
+    norm = np.linalg.norm(hinge, axis=-1, keepdims=True)
+    hinge = np.where(norm > 1e-6, hinge / np.maximum(norm, 1e-12), fallback)
+    bend = _about(hinge, now - wanted)
+    thigh_world, shin_world = world[up][0], world[knee][0]
+    new_shin = quaternion_product(bend, shin_world)
+    new_ankle = knee_pos + _apply(new_shin, off[foot])
+    swing = _between(new_ankle - hip, goal - hip)
+    thigh_world = quaternion_product(swing, thigh_world)
+    shin_world = quaternion_product(swing, new_shin)
+    j = {name: JOINTS.index(name) for name in (up, knee, foot)}
+    lower[:, j[up]] = quaternion_to_axis_angle(quaternion_product(quaternion_conjugate(hips_rot), thigh_world))
+    lower[:, j[knee]] = quaternion_to_axis_angle(quaternion_product(quaternion_conjugate(thigh_world), shin_world))
+    lower[:, j[foot]] = quaternion_to_axis_angle(quaternion_product(quaternion_conjugate(shin_world), goal_rot))
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    cos = np.sum(a * b, axis=-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1) + 1e-12)
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+def _about(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    return np.concatenate([np.cos(angle / 2)[:, None], axis * np.sin(angle / 2)[:, None]], axis=-1)
+
+
+def _between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(T, 4) the shortest rotation taking directions `a` onto `b`."""
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    q = np.concatenate([1.0 + np.sum(a * b, axis=-1, keepdims=True), np.cross(a, b)], axis=-1)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+# ---------------------------------------------------------------- generating
+
+def sample(library: LowerBodyLibrary, energy: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 9, 3) lower-body rotations and (T, 3) hips translation for the arms' `energy`
+    (arm_energy of the take), cut from `library` with `seed`; the translation kept within
+    the capture's range."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 29]))
+    n, fps = len(energy), library.fps
+    fade = int(round(FADE_S * fps))
+    lengths = (int(SEGMENT[0] * fps), int(SEGMENT[1] * fps))
+    q = quaternion_sequence_continuous(axis_angle_to_quaternion(library.rotations))
+    pose = library.rotations.reshape(len(q), -1)
+    rotations, trans = np.zeros((0, len(JOINTS), 4)), np.zeros((0, 3))
+    while len(rotations) < n:
+        length = int(rng.integers(lengths[0], lengths[1] + 1))
+        span = min(length + fade, len(q) - 1)
+        t0 = max(0, len(rotations) - fade)
+        want = energy[t0:t0 + span].mean() if t0 < n else energy[-1]
+        starts = np.arange(len(q) - span)
+        windows = np.convolve(library.energy, np.ones(span) / span, mode="valid")[:len(starts)]
+        cost = np.abs(windows - want) / (library.energy.std() + 1e-9)
+        if len(rotations):
+            last = quaternion_to_axis_angle(rotations[t0]).reshape(-1)
+            cost = cost + np.linalg.norm(pose[starts] - last, axis=1) / 0.2
+        best = np.argsort(cost)[:CHOICES]
+        s0 = int(rng.choice(best))
+        seg_q, seg_t = q[s0:s0 + span].copy(), library.translation[s0:s0 + span].copy()
+        if len(rotations):
+            seg_t[:, [0, 2]] += trans[t0, [0, 2]] - seg_t[0, [0, 2]]  # the hips go on from where they are
+            w = np.linspace(0.0, 1.0, fade + 2)[1:-1][:, None]
+            old_q, old_t = rotations[t0:], trans[t0:]
+            overlap = len(old_q)
+            flip = np.sign(np.sum(old_q * seg_q[:overlap], axis=-1, keepdims=True))
+            blended = (1 - w[:overlap, :, None]) * old_q + w[:overlap, :, None] * seg_q[:overlap] * flip
+            seg_q[:overlap] = blended / np.linalg.norm(blended, axis=-1, keepdims=True)
+            seg_t[:overlap] = (1 - w[:overlap]) * old_t + w[:overlap] * seg_t[:overlap]
+            rotations, trans = rotations[:t0], trans[:t0]
+        rotations = np.concatenate([rotations, seg_q])
+        trans = np.concatenate([trans, seg_t])
+    # the hips wander no further than the capture did: slow drift taken out, then the range kept
+    drift = smooth_frames(trans[:n, [0, 2]], DRIFT_S * fps) - library.translation[:, [0, 2]].mean(axis=0)
+    trans = trans[:n].copy()
+    trans[:, [0, 2]] -= drift
+    lower = quaternion_to_axis_angle(rotations[:n])
+    return lower, np.clip(trans, library.translation_low, library.translation_high)
+
+
+def add_lower_body(motion: Motion, seed: int, library: LowerBodyLibrary | None = None) -> Motion:
+    """`motion` (a `beat` upper body) with the hips and legs (JOINTS) after its joints,
+    `root_translation` (metres about the standing hips), and in its meta the hips' rest
+    height ("hips_height", metres) and the contact spans ("contacts", model frames)."""
+    if motion.rig not in LAYOUTS:
+        raise DiffshegError(f"the lower body is known for the {', '.join(LAYOUTS)} layout, not '{motion.rig}': "
+                            "generate with upper_body_only")
+    library = library or LowerBodyLibrary.load()
+    if abs(library.fps - motion.fps) > 1e-6:
+        raise DiffshegError(f"the lower-body library runs at {library.fps:g} fps, the motion at {motion.fps:g}")
+    lower, trans = sample(library, arm_energy(motion), seed)
+    lower, spans = plant_feet(lower, trans, motion.fps)
+    return replace(motion, joint_names=list(motion.joint_names) + list(JOINTS),
+                   rotations=np.concatenate([motion.rotations, lower.astype(motion.rotations.dtype)], axis=1),
+                   root_translation=trans.astype(np.float32),
+                   meta={**motion.meta, "hips_height": _hips_height(),
+                         "contacts": {side: [list(s) for s in v] for side, v in spans.items()}})
+
+
+def upper_body(motion: Motion) -> Motion:
+    """`motion` without the lower body (its model layout's joints only)."""
+    keep = [i for i, n in enumerate(motion.joint_names) if n not in JOINTS]
+    return replace(motion, joint_names=[motion.joint_names[i] for i in keep], rotations=motion.rotations[:, keep],
+                   root_translation=None)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m diffsheg_core.lower_body",
+                                     description="Build the lower-body library from a BEAT2 SMPL-X take.")
+    parser.add_argument("--capture", required=True, type=Path, help="a BEAT2 smplxflame_30 .npz with trans")
+    parser.add_argument("--out", type=Path, default=ASSET)
+    args = parser.parse_args(argv)
+    print(build(args.capture).save(args.out))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,127 @@
+"""Whole body on a real avatar (issue 29, item 1): the hips (rotation and location) and legs
+keyed on the Ready Player Me avatar, the contact feet planted and on the floor, and
+"Upper body only" keying no leg."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from addon_fixtures import bpy, exit_before_blender_teardown, import_readyplayerme, mocap_motion, reset_scene  # noqa: F401
+
+from diffsheg_core import lower_body
+
+LEG_BONES = [f"{side}{part}" for side in ("Right", "Left") for part in ("UpLeg", "Leg", "Foot", "ToeBase")]
+FEET = {"right": "RightFoot", "left": "LeftFoot"}
+
+
+def whole_body_motion(frames: int = 300):
+    """The real BEAT take's upper body with the core's lower body under it (15 fps)."""
+    return lower_body.add_lower_body(mocap_motion(frames), seed=0)
+
+
+def keyed_paths(ob) -> set[tuple[str, int]]:
+    from blender_addon.keying import fcurves_of
+
+    return {(fc.data_path, fc.array_index) for fc in fcurves_of(ob)}
+
+
+def foot_heads(scene, rig) -> dict[str, np.ndarray]:
+    """World positions of each foot bone's head (the ankle), scene frame by frame."""
+    out = {side: [] for side in FEET}
+    for frame in range(scene.frame_start, scene.frame_end + 1):
+        scene.frame_set(frame)
+        for side, bone in FEET.items():
+            out[side].append(np.array(rig.matrix_world @ rig.pose.bones[bone].head))
+    return {side: np.array(v) for side, v in out.items()}
+
+
+def test_whole_body_on_readyplayerme_keys_hips_and_legs_with_planted_feet():
+    from blender_addon.bake import BakeOptions, bake_motion
+    from blender_addon.feet import scene_spans
+    from blender_addon.keying import GENERATED_KEY, fcurves_of
+
+    scene = reset_scene(24.0)
+    rig, _ = import_readyplayerme()
+    motion = whole_body_motion()
+    bake_motion(scene, motion, None, BakeOptions(armature=rig))
+
+    paths = keyed_paths(rig)
+    assert {('pose.bones["Hips"].location', i) for i in range(3)} <= paths
+    assert ('pose.bones["Hips"].rotation_quaternion', 0) in paths
+    for bone in LEG_BONES:
+        assert (f'pose.bones["{bone}"].rotation_quaternion', 0) in paths, bone
+    assert {k.type for fc in fcurves_of(rig) for k in fc.keyframe_points} == {GENERATED_KEY}
+
+    heads = foot_heads(scene, rig)
+    rest = {side: np.array(rig.matrix_world @ rig.data.bones[bone].head_local) for side, bone in FEET.items()}
+    n = len(heads["left"])
+    in_contact = np.zeros(n, dtype=bool)
+    worst = 0.0
+    for side, spans in motion.meta["contacts"].items():
+        for a, b in scene_spans(spans, motion.fps, scene.render.fps, n):
+            span = heads[side][a:b + 1]
+            worst = max(worst, float(np.linalg.norm(span[:, None] - span[None], axis=-1).max()))
+            in_contact[a:b + 1] = True
+    assert in_contact.sum() > n // 4, "too few contact frames to judge the feet"
+    print(f"worst contact-foot slide on the Ready Player Me avatar: {100 * worst:.2f} cm")
+    assert worst < 0.01
+    lowest = np.minimum(heads["left"][:, 2], heads["right"][:, 2]) - rest["left"][2]
+    body = canonical_lowest_ankle(motion, n, scene.render.fps)
+    print(f"lowest foot against its rest height while a foot is in contact: "
+          f"{100 * lowest[in_contact].min():.2f} to {100 * lowest[in_contact].max():.2f} cm "
+          f"(the motion's canonical body: {100 * body[in_contact].min():.2f} to {100 * body[in_contact].max():.2f} cm)")
+    # the rig's contact feet are as high as the motion's at the rig's scale (legs 4 % longer),
+    # within the pins (a span holds its middle frame's ankle) and the rig's straightened rest legs ...
+    off = np.abs(lowest - 1.04 * body)[in_contact].max()
+    print(f"lowest contact foot against the motion's: {100 * off:.2f} cm")
+    assert off < 0.015
+    # ... on the floor wherever the motion has a foot there
+    grounded = in_contact & (np.abs(body) < 0.005)
+    assert grounded.sum() > n // 10 and np.abs(lowest[grounded]).max() < 0.02
+
+
+def canonical_lowest_ankle(motion, n: int, fps: float) -> np.ndarray:
+    """(n,) at the scene's frames: the motion's lower ankle against its rest height, on the
+    canonical body (metres)."""
+    lower = motion.rotations[:, [motion.joint_names.index(j) for j in lower_body.JOINTS]]
+    ankles = lower_body.foot_positions(lower, motion.root_translation.astype(np.float64))
+    rest = lower_body.foot_positions(np.zeros((1, *lower.shape[1:])), np.zeros((1, 3)))
+    low = np.minimum(*(ankles[s][0][:, 1] - rest[s][0][0, 1] for s in FEET))
+    return np.interp(np.arange(n) * motion.fps / fps, np.arange(len(low)), low)
+
+
+def test_upper_body_only_keys_no_leg_and_no_hips_location():
+    from blender_addon.bake import BakeOptions, bake_motion
+
+    scene = reset_scene(24.0)
+    rig, _ = import_readyplayerme()
+    bake_motion(scene, lower_body.upper_body(whole_body_motion(60)), None, BakeOptions(armature=rig))
+    bones = {path.split('"')[1] for path, _ in keyed_paths(rig)}
+    assert "RightArm" in bones
+    assert not bones & {"Hips", *LEG_BONES}
+
+
+def test_upper_body_only_checkbox_reaches_the_generate_settings():
+    from blender_addon.panel_settings import generate_settings
+
+    scene = reset_scene(24.0)
+    assert generate_settings(scene.diffsheg).upper_body_only is False
+    scene.diffsheg.upper_body_only = True
+    assert generate_settings(scene.diffsheg).upper_body_only is True
+
+
+def test_root_translation_without_hips_height_is_refused():
+    from dataclasses import replace
+
+    from blender_addon.bake import BakeOptions, bake_motion
+    from diffsheg_core.errors import DiffshegError
+
+    scene = reset_scene(24.0)
+    rig, _ = import_readyplayerme()
+    motion = whole_body_motion(30)
+    motion = replace(motion, meta={k: v for k, v in motion.meta.items() if k != "hips_height"})
+    before = set(bpy.data.actions.keys())
+    with pytest.raises(DiffshegError, match="hips height"):
+        bake_motion(scene, motion, None, BakeOptions(armature=rig))
+    assert set(bpy.data.actions.keys()) == before

@@ -1,0 +1,122 @@
+"""The whole body (issue 29, item 1): the bundled model's take gets hips (rotation and
+translation) and legs cut from the real SMPL-X capture of 2_scott_0_1_1 by the arms'
+energy, with the feet planted. Measured on the real take's speech against the capture,
+on its held-out last 20 s (never in the library) as on the whole take."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from diffsheg_core import lower_body as lb
+from diffsheg_core.audio import Audio, load_audio
+from diffsheg_core.checkpoints import load_model
+from diffsheg_core.errors import DiffshegError
+from diffsheg_core.pipeline import generate, regenerate
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+TAKE_WAV = DATA / "beat2" / "2_scott_0_1_1.wav"
+TAKE_NPZ = DATA / "beat2" / "2_scott_0_1_1.npz"
+FPS = 15.0
+
+
+@pytest.fixture(scope="module")
+def bundle():
+    return load_model()
+
+
+@pytest.fixture(scope="module")
+def capture():
+    return lb.read_capture(TAKE_NPZ, FPS)
+
+
+@pytest.fixture(scope="module")
+def take(bundle):
+    """The real take's last 30 s (its held-out 20 s and 10 s before), two seeds."""
+    audio = load_audio(TAKE_WAV)
+    tail = Audio(samples=audio.samples[-30 * audio.sample_rate:], sample_rate=audio.sample_rate, path=audio.path)
+    return tail, [generate(tail, model=bundle, seed=seed, device="cpu") for seed in (0, 1)]
+
+
+def _lower(motion):
+    return motion.rotations[:, [motion.joint_names.index(j) for j in lb.JOINTS]].astype(np.float64)
+
+
+def _figures(lower: np.ndarray, trans: np.ndarray) -> dict[str, float]:
+    knees = np.degrees(np.linalg.norm(lower[:, [lb.JOINTS.index("RightLeg"), lb.JOINTS.index("LeftLeg")]], axis=-1))
+    return {"sway speed": float(np.linalg.norm(np.diff(trans[:, [0, 2]], axis=0), axis=-1).mean() * FPS),
+            "sway range": float(np.ptp(trans[:, [0, 2]], axis=0).max()),
+            "knee range": float(np.ptp(knees, axis=0).mean()),
+            "skating": lb.foot_skating(lower, trans, FPS)}
+
+
+def test_the_library_is_the_capture_less_its_held_out_seconds(capture):
+    lower, trans, _ = capture
+    library = lb.LowerBodyLibrary.load()
+    assert len(library.rotations) == len(lower) - int(lb.HELD_OUT_S * FPS)
+    np.testing.assert_allclose(library.rotations, lower[:len(library.rotations)], atol=1e-5)
+    soles = lb.foot_positions(lower, trans)
+    lowest = np.minimum(soles["right"][1][:, 1], soles["left"][1][:, 1])
+    assert abs(np.percentile(lowest, 5)) < 1e-6  # the floor at y = 0
+    assert lb.foot_skating(lower, trans, FPS) < 0.01  # the capture's own: 0.6 %
+
+
+def test_the_take_stands_on_planted_feet_within_the_captures_range(take, capture):
+    _, motions = take
+    library = lb.LowerBodyLibrary.load()
+    for motion in motions:
+        assert motion.joint_names[-len(lb.JOINTS):] == list(lb.JOINTS)
+        lower, trans = _lower(motion), motion.root_translation.astype(np.float64)
+        assert np.all(trans >= library.translation_low - 1e-6) and np.all(trans <= library.translation_high + 1e-6)
+        soles = lb.foot_positions(lower, trans)
+        contacts = motion.meta["contacts"]
+        assert sum(b - a + 1 for spans in contacts.values() for a, b in spans) > 0.5 * motion.n_frames
+        for side, spans in contacts.items():
+            ankle, sole = soles[side]
+            for a, b in spans:  # a contact foot does not slide: < 1 cm from frame to frame
+                assert np.linalg.norm(np.diff(sole[a:b + 1], axis=0), axis=-1).max() < 0.01, (side, a, b)
+                assert np.abs(sole[a:b + 1, 1]).max() < lb.CONTACT_HEIGHT + 0.01  # and it is on the floor
+        assert lb.foot_skating(lower, trans, FPS) < 0.02
+
+
+def test_it_moves_as_the_capture_does(take, capture):
+    """Against the capture's held-out 20 s and its whole take (hips sway, knee bend, skating)."""
+    _, motions = take
+    lower, trans, _ = capture
+    held = int(lb.HELD_OUT_S * FPS)
+    real = _figures(lower, trans)
+    real_held = _figures(lower[-held:], trans[-held:])
+    made = [_figures(_lower(m), m.root_translation.astype(np.float64)) for m in motions]
+    for name in ("sway speed", "knee range"):
+        mean = np.mean([f[name] for f in made])
+        assert 0.4 * min(real[name], real_held[name]) < mean < 2.5 * max(real[name], real_held[name]), (name, mean)
+    assert np.mean([f["sway range"] for f in made]) <= real["sway range"]
+    assert made[0] != made[1]  # seeds differ
+
+
+def test_same_seed_same_legs_upper_body_only_and_regenerate_keeps_them(take, bundle):
+    tail, motions = take
+    short = Audio(samples=tail.samples[:6 * tail.sample_rate], sample_rate=tail.sample_rate, path=tail.path)
+    a, b = (generate(short, model=bundle, seed=3, device="cpu", steps=5) for _ in range(2))
+    np.testing.assert_array_equal(a.rotations, b.rotations)
+    np.testing.assert_array_equal(a.root_translation, b.root_translation)
+    only = generate(short, model=bundle, seed=3, device="cpu", steps=5, upper_body_only=True)
+    assert only.joint_names == a.joint_names[:-len(lb.JOINTS)] and only.root_translation is None
+    np.testing.assert_array_equal(only.rotations, a.rotations[:, :-len(lb.JOINTS)])
+    again = regenerate(a, short, model=bundle, start=20, end=50, seed=4, device="cpu", steps=5)
+    assert again.joint_names == a.joint_names
+    np.testing.assert_array_equal(again.rotations[:, -len(lb.JOINTS):], a.rotations[:, -len(lb.JOINTS):])
+    np.testing.assert_array_equal(again.root_translation, a.root_translation)
+    assert not np.array_equal(again.rotations[20:50, :5], a.rotations[20:50, :5])
+
+
+def test_only_the_beat_layout_gets_legs(take):
+    _, motions = take
+    from dataclasses import replace
+
+    with pytest.raises(DiffshegError, match="the lower body is known for the beat layout, not 'smplx'"):
+        lb.add_lower_body(replace(lb.upper_body(motions[0]), rig="smplx"), seed=0)
+    with pytest.raises(DiffshegError, match="cannot be read"):
+        lb.LowerBodyLibrary.load(Path("/nonexistent/lower_body.npz"))
