@@ -11,7 +11,7 @@ or empty; an empty cell takes the default from the command line, `defaults`):
     face          face mesh object names, separated by ';' (default: meshes with shape keys)
     preset        rig preset name, 'auto', or a preset .json file
     style, style_at, emotion, emotion_at, seed, face_seed, steps, overlap, candidates,
-    guidance, skip_guidance (or gesture_energy), style_guidance
+    guidance, skip_guidance (or gesture_energy), style_guidance, upper_body_only (1/0)
                   the generation settings, spelt as on the command line (`--style calm=0.7,
                   animated=0.3`, `--style-at 0=calm,12.5=animated`, `--emotion sad=0.6`,
                   `--emotion-at 0=happy,12.5=sad`) and checked by
@@ -60,7 +60,7 @@ NEEDS_CHARACTER = frozenset({"blend", "fbx_unreal", "fbx_unity", "glb", "mp4"})
 
 CHARACTER = ("blend", "armature", "face", "preset")
 GENERATION = ("style", "style_at", "emotion", "emotion_at", "seed", "face_seed", "steps", "overlap",
-              "candidates", "guidance", "skip_guidance", "style_guidance")
+              "candidates", "guidance", "skip_guidance", "style_guidance", "upper_body_only")
 KEYING = ("start_frame", "max_error", "max_face_error", "every_frame")
 COLUMNS = ("id", "audio") + CHARACTER + GENERATION + KEYING + ("outputs",)
 ALIASES = {"gesture_energy": "skip_guidance"}
@@ -373,13 +373,13 @@ def _parse(name: str, value, folder: Path):
         if not kinds:
             raise DiffshegError(f"no output named: give some of {', '.join(OUTPUTS)}, separated by ';'")
         return tuple(k for k in OUTPUTS if k in kinds)
-    if name == "every_frame":
+    if name in ("every_frame", "upper_body_only"):
         if isinstance(value, bool):
             return value
         text = str(value).strip().lower()
         if text in _TRUE or text in _FALSE:
             return text in _TRUE
-        raise DiffshegError(f"every_frame must be 1 or 0 (true/false, yes/no), got {value!r}")
+        raise DiffshegError(f"{name} must be 1 or 0 (true/false, yes/no), got {value!r}")
     if name == "style":
         return _check_style(_argument(parse_style, value) if isinstance(value, str) else value)
     if name == "style_at":

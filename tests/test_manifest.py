@@ -217,3 +217,12 @@ def test_emotion_columns_are_read_and_checked_as_the_command_line_does(project):
                                                                            (2.0, {"angry": 0.5}))
     assert b.settings.emotion == {"happy": 1.0}  # the command line's default
     assert line_key(a) != line_key(replace(a, settings=replace(a.settings, emotion={"sad": 0.7})))
+
+
+def test_upper_body_only_is_a_flag_column(project):
+    manifest = write(project / "lines.csv", f"id,audio,upper_body_only,outputs\na,{SPEECH},yes,npz\nb,{SPEECH},,npz\n")
+    a, b = read_manifest(manifest, {}, PRESETS, STYLES)
+    assert a.settings.upper_body_only and not b.settings.upper_body_only
+    bad = write(project / "bad.csv", f"id,audio,upper_body_only,outputs\na,{SPEECH},seated,npz\n")
+    with pytest.raises(ManifestError, match="row 2, column upper_body_only: upper_body_only must be 1 or 0"):
+        read_manifest(bad, {}, PRESETS, STYLES)
