@@ -428,3 +428,123 @@ def import_readyplayerme():
     bpy.ops.import_scene.gltf(filepath=str(READYPLAYERME))
     objects = bpy.context.scene.objects
     return objects["Armature"], [objects["Wolf3D_Head"], objects["Wolf3D_Teeth"]]
+
+
+# Whole-body rigs (test_addon_whole_body.py): the bones of a preset placed on the BEAT rest
+# skeleton (legs straight down), in the units and axes the rig's usual import gives.
+
+def build_armature(name: str, joints: dict, *, unit: float = 1.0, y_up: bool = False, object_scale: float = 1.0,
+                   facing_y: bool = False, axis_seed: int | None = None):
+    """An armature of `joints` ({bone: (parent or None, head in metres, Y up, facing +Z)}),
+    its data in units of `unit` metres: Z up facing -Y (facing +Y with `facing_y`), or Y up
+    under an object turned 90 degrees about X as FBX imports are (`y_up`), scaled by
+    `object_scale`. Each bone points at its children, or (`axis_seed`) anywhere with any
+    roll, as an FBX import without automatic bone orientation makes them."""
+    rng = np.random.default_rng(axis_seed or 0)
+
+    def data(p) -> np.ndarray:
+        x, y, z = np.asarray(p, dtype=np.float64) / unit
+        x, z = (-x, -z) if facing_y else (x, z)
+        return np.array([x, y, z] if y_up else [x, -z, y])
+
+    arm = bpy.data.armatures.new(name)
+    ob = bpy.data.objects.new(name, arm)
+    bpy.context.scene.collection.objects.link(ob)
+    ob.rotation_euler = (np.pi / 2, 0.0, 0.0) if y_up else (0.0, 0.0, 0.0)
+    ob.scale = (object_scale,) * 3
+    bpy.context.view_layer.objects.active = ob
+    bpy.ops.object.mode_set(mode="EDIT")
+    for n, (parent, pos) in joints.items():
+        eb = arm.edit_bones.new(n)
+        head = data(pos)
+        kids = [data(p) for c, (up, p) in joints.items() if up == n]
+        if axis_seed is not None:
+            direction = rng.normal(size=3)
+            tail = head + 0.05 / unit * direction / np.linalg.norm(direction)
+        elif kids:
+            tail = np.mean(kids, axis=0)
+        else:
+            tail = head + 0.5 * (head - data(joints[parent][1])) if parent else head + data((0, 0.1, 0))
+        if np.linalg.norm(tail - head) < 1e-3 / unit:
+            tail = head + data((0, 0.05, 0))
+        eb.head, eb.tail = head, tail
+        eb.roll = float(rng.uniform(-np.pi, np.pi)) if axis_seed is not None else 0.0
+    for n, (parent, _) in joints.items():
+        if parent:
+            arm.edit_bones[n].parent = arm.edit_bones[parent]
+    bpy.ops.object.mode_set(mode="OBJECT")
+    return ob
+
+
+def preset_joints(preset_name: str) -> dict:
+    """{bone: (parent, head in metres, Y up, facing +Z, feet on y = 0)} for the beat-layout
+    bones of a preset, on the BEAT rest skeleton; a chain (spine_01-05) spread evenly
+    from its joint to the next joint the preset maps."""
+    from blender_addon.preset import load_preset
+    from diffsheg_core.bvh import beat_skeleton
+
+    skel = beat_skeleton()
+    names, parents = list(skel.joint_names), list(skel.parents)
+    pos = np.zeros((len(names), 3))
+    for j, p in enumerate(parents):
+        pos[j] = (pos[p] if p >= 0 else 0.0) + 0.01 * np.asarray(skel.offsets[j])
+    pos[:, 1] -= pos[:, 1].min()
+    bones = load_preset(preset_name).joint_map("beat")
+
+    def mapped_above(j: int) -> int:
+        p = parents[j]
+        while p >= 0 and names[p] not in bones:
+            p = parents[p]
+        return p
+
+    out = {}
+    for j, joint in enumerate(names):
+        if joint not in bones:
+            continue
+        chain, above = bones[joint], mapped_above(j)
+        end = next((pos[c] for c, n in enumerate(names) if n in bones and mapped_above(c) == j), pos[j])
+        parent = bones[names[above]][-1] if above >= 0 else None
+        for k, bone in enumerate(chain):
+            out[bone] = (parent, pos[j] + (end - pos[j]) * k / len(chain))
+            parent = bone
+    return out
+
+
+def build_mixamo_armature():
+    """A Mixamo character as Blender's FBX importer makes it: centimetres, Y up under an
+    object turned 90 degrees and scaled 0.01, bone axes not at their children."""
+    return build_armature("Armature", preset_joints("mixamo"), unit=0.01, y_up=True, object_scale=0.01,
+                          axis_seed=3)
+
+
+def build_unreal_body_armature():
+    """A UE5 mannequin with legs under its floor-level root bone: centimetres in a scene of
+    unit scale 0.01, facing +Y, bone axes not at their children."""
+    bpy.context.scene.unit_settings.scale_length = 0.01
+    joints = {"root": (None, (0.0, 0.0, 0.0))}
+    for bone, (parent, pos) in preset_joints("unreal").items():
+        joints[bone] = (parent or "root", pos)
+    return build_armature("UE_Mannequin", joints, unit=0.01, facing_y=True, axis_seed=5)
+
+
+def build_vroid_armature():
+    """A VRoid avatar as the VRM add-on imports it: J_Bip_* bones under Root, metres, Z up."""
+    joints = {"Root": (None, (0.0, 0.0, 0.0))}
+    for bone, (parent, pos) in preset_joints("vrm").items():
+        joints[bone] = (parent or "Root", pos)
+    return build_armature("Armature", joints)
+
+
+# SMPL-X legs (neutral template, metres from the pelvis, Y up): splayed a little, not straight down.
+_SMPLX_LEFT_LEG = {"left_hip": ("pelvis", (0.071, -0.091, -0.005)), "left_knee": ("left_hip", (0.106, -0.451, -0.013)),
+                   "left_ankle": ("left_knee", (0.093, -0.886, -0.050)),
+                   "left_foot": ("left_ankle", (0.119, -0.940, 0.076))}
+
+
+def build_smplx_body_armature(name: str = "SMPLX-neutral"):
+    """An SMPL-X-named armature with legs (build_smplx_armature's upper body), Z up facing -Y."""
+    joints = dict(_smplx_layout())
+    for bone, (parent, (x, y, z)) in _SMPLX_LEFT_LEG.items():
+        joints[bone] = (parent, (x, y, z))
+        joints[bone.replace("left", "right")] = (parent.replace("left", "right"), (-x, y, z))
+    return build_armature(name, joints)
