@@ -152,14 +152,23 @@ def _write_keys(fc, keys: Keys | None, values: np.ndarray, start_frame: float) -
         points.add(n)
         points.foreach_set("co", np.column_stack([start_frame + keys.frames, keys.values[:, 0]])
                            .astype(np.float32).ravel())
+        points.foreach_set("interpolation", [_enum("interpolation", "BEZIER")] * n)
+        _align_handles(points)
         points.foreach_set("handle_left", (left[:, 0] + offset).astype(np.float32).ravel())
         points.foreach_set("handle_right", (right[:, 0] + offset).astype(np.float32).ravel())
-        points.foreach_set("interpolation", [_enum("interpolation", "BEZIER")] * n)
-        for side in ("handle_left_type", "handle_right_type"):
-            points.foreach_set(side, [_enum(side, "ALIGNED")] * n)
     points.foreach_set("type", [_enum("type", GENERATED_KEY)] * n)
     fc.update()
     return n
+
+
+def _align_handles(points) -> None:
+    """ALIGNED handles on every key, so the handles written next are kept (automatic ones are
+    computed again). Blender 3.4 ignores foreach_set on the handle types: there key by key."""
+    for side in ("handle_left_type", "handle_right_type"):
+        points.foreach_set(side, [_enum(side, "ALIGNED")] * len(points))
+    if len(points) and points[-1].handle_right_type != "ALIGNED":
+        for point in points:
+            point.handle_left_type = point.handle_right_type = "ALIGNED"
 
 
 def _fcurve_factory(action, slot):
