@@ -256,7 +256,8 @@ class DIFFSHEG_PT_keys(_Panel, bpy.types.Panel):
         errors.prop(s, "max_error")
         errors.prop(s, "max_face_error")
         col.prop(s, "smoothing")
-        col.prop(s, "upper_body_only")
+        body = layout.column(heading="Body")  # "Upper body only" is cut at the sidebar's default width
+        body.prop(s, "upper_body_only", text="Upper only")
 
         col = layout.column(heading="Start")
         col.prop(s, "start_at_scene_start")
