@@ -58,7 +58,7 @@ def test_folder_without_render_saves_keyed_scenes(clips, scene_blend, tmp_path):
         ob = scene.objects["2_scott_0_1_1"]
         assert ob.animation_data.action.name == f"{stem} take 1"
         curves = fcurves_of(ob)
-        assert len(curves) == 3 * 47  # the BVH importer makes Euler bones
+        assert len(curves) == 3 * (47 + 9) + 3  # Euler bones (the BVH importer's), hips and legs, hips' location
         assert curves[0].keyframe_points[-1].co[0] == round(seconds * 12)
         assert len(fcurves_of(scene.objects["Neutral"].data.shape_keys)) == 51
         # each file from the same start scene; no strip on a Blender without audio support

@@ -88,7 +88,7 @@ def test_the_main_panel_and_its_collapsed_sub_panels():
                         "keep_face", "face_seed", "device"}
     keys = {e[1] for e in draw(DIFFSHEG_PT_keys) if e[0] == "prop"}
     assert keys == {"key_mode", "max_error", "max_face_error", "smoothing", "start_at_scene_start",
-                    "start_frame", "add_sound", "set_frame_range"}
+                    "start_frame", "add_sound", "set_frame_range", "upper_body_only"}
     assert any(e[0] == "label" and e[1].startswith("Runs on: ") for e in draw(DIFFSHEG_PT_sampling))
 
     def generate_button():
