@@ -25,9 +25,9 @@ GOAL = 0.9
 
 # language: (floor the model meets on voiced frames, the measured ratio to English if under GOAL)
 # measured (seed 0; English 0.40 over the two English recordings): de 0.14 (0.34x English),
-# es 0.37 (0.93x), fr 0.55, hi 0.31 (0.77x), ja 0.30 (0.73x), ru 0.54, sv 0.55, zh 0.73
-LANGUAGES = {"de": (0.08, 0.34), "es": (0.3, None), "fr": (0.4, None), "hi": (0.2, 0.77), "ja": (0.2, 0.73),
-             "ru": (0.4, None), "sv": (0.4, None), "zh": (0.55, None)}
+# es 0.37 (0.93x), fr 0.35 (0.87x), hi 0.23 (0.58x), ja 0.32 (0.81x), ru 0.54, sv 0.57, zh 0.47
+LANGUAGES = {"de": (0.08, 0.34), "es": (0.3, None), "fr": (0.25, 0.87), "hi": (0.15, 0.58), "ja": (0.2, 0.81),
+             "ru": (0.4, None), "sv": (0.4, None), "zh": (0.35, None)}
 CLOSURES_MIN = 0.3
 """Lip closures per second of voiced speech, a language's mean over its recordings, that every
 language reaches (English 0.95-1.3; lowest zh 0.5, whose zh_aishell_1 has no p/b/m and no
@@ -115,13 +115,27 @@ def test_voiced_frames_on_real_phone_timings():
     vowel = np.array([bool(x) and x[0] in "AEIOU" for x in label])
     pause = np.array([x in ("", "SIL", "SP") for x in label])
     assert voiced[vowel].mean() > 0.9 and voiced[pause].mean() < 0.05
-    # the recording's gain changes nothing, a DC offset (zh_thchs30's) next to nothing, and
-    # room noise alone is not voice
+    # the recording's gain changes nothing, a DC offset (zh_thchs30's) next to nothing,
+    # room noise alone is not voice, and neither is mains hum in the pauses
     assert np.array_equal(voiced_frames(0.3 * audio.samples, audio.sample_rate, fps, n), voiced)
     shifted = voiced_frames(audio.samples - 0.012, audio.sample_rate, fps, n)
     assert (shifted == voiced).mean() > 0.98
     noise = np.random.default_rng(0).normal(0, 0.05, len(audio.samples))
     assert voiced_frames(noise, audio.sample_rate, fps, n).mean() < 0.02
+    hum = 0.018 * np.sin(2 * np.pi * 50 * np.arange(len(audio.samples)) / audio.sample_rate)
+    assert np.array_equal(voiced_frames(audio.samples + hum, audio.sample_rate, fps, n), voiced)
+
+
+def test_the_hum_of_a_real_recording_is_not_voice():
+    """zh_thchs30_1 hums at 50 Hz (a third of its energy lies under 80 Hz) about 17 dB under its
+    speech: its pauses, the first 0.7 s and the last 3.6 s, hold no voiced frame (before
+    voiced_frames heard only the audio above the lowest pitch, 51 of their frames were voiced
+    and lifted the file's voiced-frame correlation, seeds 0 and 1, from 0.55 to 0.84)."""
+    audio = load_audio(LANG / "zh_thchs30_1.wav")
+    fps = 15.0
+    voiced = voiced_frames(audio.samples, audio.sample_rate, fps, int(audio.duration * fps))
+    assert not voiced[: int(0.7 * fps)].any() and not voiced[int(9.2 * fps):].any()
+    assert voiced.sum() > 40
 
 
 def test_a_face_shuffled_in_time_does_not_follow_the_voice(generated):
