@@ -304,7 +304,10 @@ def test_a_killed_driver_leaves_only_done_lines_and_the_next_run_resumes(studio)
     assert f"{5 - len(done)} done, {len(done)} skipped (done before), 1 failed" in log, log[-2000:]
     after = report["after_resume"]
     for name in outputs:
-        assert after[name] == report["after_kill"][name], name  # not written again
+        if name in report["after_kill"]:
+            assert after[name] == report["after_kill"][name], name  # not written again
+        else:  # killed between its record and its moves: the next run moved it in from staging
+            assert name in after and name in staged, name
     assert not [f for f in after if f.startswith(".") or "partial" in f], sorted(after)
     out = studio / "driver"
     records = (out / "done.jsonl").read_text().splitlines()
