@@ -4,7 +4,8 @@ The motion plants its feet on the canonical body; on a rig whose legs, hips widt
 height differ, the same turns move the feet a little. Over each contact span of the motion
 (meta "contacts") the rig's ankle is pinned where it is at the span's middle frame and the
 foot keeps that frame's orientation (eased in and out), and each leg is solved with two-bone
-IK on the rig's own bone lengths. numpy only, fed with the rig's rest matrices (retarget.LegRig):
+IK on the rig's own bone lengths (diffsheg_core.leg_ik, as the canonical body's). numpy
+only, fed with the rig's rest matrices (retarget.LegRig):
 bones between the keyed ones are taken at rest.
 """
 
@@ -12,9 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from diffsheg_core.leg_ik import pin_goals, two_bone
 from diffsheg_core.rotations import convert, quaternion_sequence_continuous
 
-from .retarget import LegRig, swing
+from .retarget import LegRig
 
 EASE_S = 0.2   # seconds over which a pin eases in and out
 
@@ -62,56 +64,18 @@ def _pose(leg: LegRig, displacement: np.ndarray, quaternions: dict[str, np.ndarr
 def plant_foot(leg: LegRig, displacement: np.ndarray, quaternions: dict[str, np.ndarray],
                spans: list[tuple[int, int]], fps: float) -> dict[str, np.ndarray]:
     """New local quaternions of the leg's thigh, shin and foot (by bone name) that pin the
-    ankle and the foot's orientation over each span. `quaternions`: local (T, 4) of "hips"
-    and of the leg's bones."""
+    ankle and the foot's orientation over each span (diffsheg_core.leg_ik). `quaternions`:
+    local (T, 4) of "hips" and of the leg's bones."""
     (hips, thigh, shin, foot), (_, hip, knee, ankle) = _pose(leg, displacement, quaternions)
-    n = len(hips)
-    ease = max(1, int(round(EASE_S * fps)))
-    weight = np.zeros(n)
-    goal, goal_rot = ankle.copy(), foot.copy()
-    for a, b in spans:
-        mid = (a + b) // 2
-        lo, hi = max(0, a - ease), min(n - 1, b + ease)
-        frames = np.arange(lo, hi + 1)
-        ramp = np.clip(np.minimum(frames - a + ease + 1, b + ease + 1 - frames) / (ease + 1), 0.0, 1.0)
-        take = ramp >= weight[lo:hi + 1]
-        goal[frames[take]] = ankle[mid]
-        goal_rot[frames[take]] = foot[mid]
-        weight[lo:hi + 1] = np.maximum(weight[lo:hi + 1], ramp)
-    moving = weight > 0
-    goal = ankle + weight[:, None] * (goal - ankle)
-    goal_rot = _blend(foot, goal_rot, weight)
-    thigh_len = np.linalg.norm(leg.heads[2] - leg.heads[1])
-    shin_len = np.linalg.norm(leg.heads[3] - leg.heads[2])
-    new_thigh, new_shin = thigh.copy(), shin.copy()
-    for t in np.flatnonzero(moving):
-        new_thigh[t], new_shin[t] = _two_bone(hip[t], knee[t], ankle[t], goal[t], thigh[t], shin[t],
-                                              thigh_len, shin_len, hips[t] @ leg.left)
-    new_foot = np.where(moving[:, None, None], goal_rot, foot)
+    pins = [(a, b, ankle[(a + b) // 2], foot[(a + b) // 2]) for a, b in spans]
+    goal, goal_rot, weight = pin_goals(ankle, foot, pins, max(1, int(round(EASE_S * fps))))
+    turn, bend = two_bone(hip, knee, ankle, goal, float(np.linalg.norm(leg.heads[2] - leg.heads[1])),
+                          float(np.linalg.norm(leg.heads[3] - leg.heads[2])), hips @ leg.left)
+    held = (weight > 0)[:, None, None]
+    new_thigh = np.where(held, turn @ thigh, thigh)
+    new_shin = np.where(held, turn @ bend @ shin, shin)
+    new_foot = np.where(held, goal_rot, foot)
     thigh_bone, shin_bone, foot_bone = leg.bones
     return {thigh_bone: _local(leg.rest[1], new_thigh, hips),
             shin_bone: _local(leg.rest[2], new_shin, new_thigh),
             foot_bone: _local(leg.rest[3], new_foot, new_shin)}
-
-
-def _blend(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Per frame the rotation `w` of the way from rotation matrix `a` to `b`."""
-    step = convert(np.transpose(a, (0, 2, 1)) @ b, "matrix", "axis_angle") * w[:, None]
-    return a @ convert(step, "axis_angle", "matrix")
-
-
-def _two_bone(hip, knee, ankle, goal, thigh, shin, thigh_len: float, shin_len: float, left) -> tuple:
-    """Thigh and shin rotations (rest-relative, armature space) putting the ankle at `goal`:
-    the knee bent about its hinge to the hip-goal distance, then the leg swung onto the goal."""
-    reach = np.clip(np.linalg.norm(goal - hip), abs(thigh_len - shin_len) + 1e-6, 0.9999 * (thigh_len + shin_len))
-    now = _angle(hip - knee, ankle - knee)
-    wanted = np.arccos(np.clip((thigh_len ** 2 + shin_len ** 2 - reach ** 2) / (2 * thigh_len * shin_len), -1, 1))
-    hinge = np.cross(knee - hip, ankle - knee)
-    hinge = hinge / np.linalg.norm(hinge) if np.linalg.norm(hinge) > 1e-9 else left  # straight: bend forward
-    bend = convert(hinge * (now - wanted), "axis_angle", "matrix")
-    turn = swing(knee + bend @ (ankle - knee) - hip, goal - hip)
-    return turn @ thigh, turn @ bend @ shin
-
-
-def _angle(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1.0, 1.0)))

@@ -21,6 +21,7 @@ import numpy as np
 
 from diffsheg_core.bvh import beat_skeleton
 from diffsheg_core.errors import DiffshegError
+from diffsheg_core.leg_ik import swing
 from diffsheg_core.motion import Motion
 from diffsheg_core.rigs import SMPLX_JOINTS, SMPLX_PARENTS
 from diffsheg_core.rotations import axis_angle_to_matrix, convert, quaternion_sequence_continuous
@@ -82,20 +83,6 @@ def layout_parents(layout: str) -> dict[str, str | None]:
 
 
 # ---------------------------------------------------------------- rotation maths
-
-def swing(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Smallest rotation matrix turning direction `a` onto direction `b`."""
-    a = a / np.linalg.norm(a)
-    b = b / np.linalg.norm(b)
-    axis = np.cross(a, b)
-    s, c = np.linalg.norm(axis), float(np.dot(a, b))
-    if s < 1e-9:
-        if c > 0:
-            return np.eye(3)
-        perp = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-        return axis_angle_to_matrix(np.pi * perp / np.linalg.norm(perp))
-    return axis_angle_to_matrix(axis / s * np.arctan2(s, c))
-
 
 def _frame(left: np.ndarray, up: np.ndarray) -> np.ndarray:
     x = left / np.linalg.norm(left)

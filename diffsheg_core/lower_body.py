@@ -36,10 +36,11 @@ import numpy as np
 
 from .errors import DiffshegError
 from .kinematics import wrist_positions
+from .leg_ik import pin_goals, two_bone
 from .motion import Motion, smooth_frames
-from .rotations import (axis_angle_to_quaternion, quaternion_conjugate, quaternion_product,
-                        quaternion_sequence_continuous, quaternion_to_axis_angle, resample_positions,
-                        slerp_resample)
+from .rotations import (axis_angle_to_quaternion, convert, matrix_to_axis_angle, quaternion_conjugate,
+                        quaternion_product, quaternion_sequence_continuous, quaternion_to_axis_angle,
+                        resample_positions, slerp_resample)
 
 JOINTS = ("Hips", "RightUpLeg", "RightLeg", "RightFoot", "RightToeBase",
           "LeftUpLeg", "LeftLeg", "LeftFoot", "LeftToeBase")
@@ -237,30 +238,25 @@ def foot_skating(lower: np.ndarray, trans: np.ndarray, fps: float, height: float
 
 def plant_feet(lower: np.ndarray, trans: np.ndarray, fps: float) -> tuple[np.ndarray, dict]:
     """`lower` with each contact foot's ankle and orientation pinned over its span (eased in
-    and out over EASE frames) by two-bone IK on each leg; returns it and the spans pinned.
-    A span is pinned where its foot stood in the middle of it; frames where the leg cannot
-    reach that spot split it (the foot steps there)."""
+    and out over EASE frames) by two-bone IK on each leg (leg_ik); returns it and the spans
+    pinned. A span is pinned where its foot stood in the middle of it; frames where the leg
+    cannot reach that spot split it (the foot steps there)."""
     spans = contacts(lower, trans, fps)
-    world = _world(lower, trans)
+    world = {name: (convert(q, "quaternion", "matrix"), pos) for name, (q, pos) in _world(lower, trans).items()}
     off = _skeleton_offsets()
+    hips = world["Hips"][0]
     out, pinned = lower.copy(), {}
     for side, (up, knee, foot) in LEGS.items():
-        ankle, foot_rot, hip = world[foot][1], world[foot][0], world[up][1]
-        reach = np.linalg.norm(off[knee]) + np.linalg.norm(off[foot]) + REACH_SLACK
-        pins = [_reachable(ankle, hip, span, reach) for span in spans[side]]
-        pinned[side] = [(a, b) for group in pins for a, b, _ in group]
-        weight = np.zeros(len(lower))
-        target, target_rot = ankle.copy(), foot_rot.copy()
-        for a, b, spot in (pin for group in pins for pin in group):
-            lo, hi = max(0, a - EASE), min(len(lower) - 1, b + EASE)
-            ramp = np.ones(hi - lo + 1)
-            ramp[:a - lo] = (np.arange(a - lo) + 1) / (EASE + 1)
-            ramp[len(ramp) - (hi - b):] = ((np.arange(hi - b) + 1) / (EASE + 1))[::-1]
-            frames = lo + np.flatnonzero(ramp > weight[lo:hi + 1])  # a neighbour's own span wins
-            target[frames], target_rot[frames] = spot, foot_rot[(a + b) // 2]
-            weight[frames] = ramp[frames - lo]
-        goal = ankle + weight[:, None] * (target - ankle)
-        _solve_leg(out, world, side, goal, _slerp(foot_rot, target_rot, weight))
+        thigh, shin = np.linalg.norm(off[knee]), np.linalg.norm(off[foot])
+        (thigh_rot, hip), (shin_rot, knee_pos), (foot_rot, ankle) = world[up], world[knee], world[foot]
+        pins = [(a, b, spot, foot_rot[(a + b) // 2]) for span in spans[side]
+                for a, b, spot in _reachable(ankle, hip, span, thigh + shin + REACH_SLACK)]
+        pinned[side] = [(a, b) for a, b, _, _ in pins]
+        goal, goal_rot, _ = pin_goals(ankle, foot_rot, pins, EASE)
+        turn, bend = two_bone(hip, knee_pos, ankle, goal, thigh, shin, hips[:, :, 0])
+        thigh_rot, shin_rot = turn @ thigh_rot, turn @ bend @ shin_rot
+        for joint, parent, rotation in ((up, hips, thigh_rot), (knee, thigh_rot, shin_rot), (foot, shin_rot, goal_rot)):
+            out[:, JOINTS.index(joint)] = matrix_to_axis_angle(np.transpose(parent, (0, 2, 1)) @ rotation)
     return out, pinned
 
 
@@ -280,58 +276,6 @@ def _reachable(ankle: np.ndarray, hip: np.ndarray, span: tuple[int, int], reach:
             later += [(a + x, a + y) for x, y in _runs(near) if y - x + 1 >= MIN_CONTACT]
         todo = later
     return sorted(done, key=lambda pin: pin[0])
-
-
-def _slerp(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
-    b = np.where((np.sum(a * b, axis=-1) < 0)[:, None], -b, b)
-    step = quaternion_to_axis_angle(quaternion_product(quaternion_conjugate(a), b)) * w[:, None]
-    return quaternion_product(a, axis_angle_to_quaternion(step))
-
-
-def _solve_leg(lower: np.ndarray, world: dict, side: str, goal: np.ndarray, goal_rot: np.ndarray) -> None:
-    """Two-bone IK: bend the knee so hip-to-ankle is as long as hip-to-goal, swing the thigh
-    onto the goal, then give the foot `goal_rot` in the world. Writes into `lower`."""
-    up, knee, foot = LEGS[side]
-    off = _skeleton_offsets()
-    thigh, shin = np.linalg.norm(off[knee]), np.linalg.norm(off[foot])
-    hips_rot = world["Hips"][0]
-    hip, knee_pos, ankle = world[up][1], world[knee][1], world[foot][1]
-    reach = np.clip(np.linalg.norm(goal - hip, axis=-1), abs(thigh - shin) + 1e-4, (thigh + shin) * 0.9999)
-    # the knee's interior angle now and wanted (law of cosines), turned about the knee's hinge
-    now = _angle(hip - knee_pos, ankle - knee_pos)
-    wanted = np.arccos(np.clip((thigh ** 2 + shin ** 2 - reach ** 2) / (2 * thigh * shin), -1.0, 1.0))
-    hinge = np.cross(knee_pos - hip, ankle - knee_pos)
-    fallback = _apply(hips_rot, np.array([1.0, 0.0, 0.0]))  # straight leg: bend forward about x
-    norm = np.linalg.norm(hinge, axis=-1, keepdims=True)
-    hinge = np.where(norm > 1e-6, hinge / np.maximum(norm, 1e-12), fallback)
-    bend = _about(hinge, now - wanted)
-    thigh_world, shin_world = world[up][0], world[knee][0]
-    new_shin = quaternion_product(bend, shin_world)
-    new_ankle = knee_pos + _apply(new_shin, off[foot])
-    swing = _between(new_ankle - hip, goal - hip)
-    thigh_world = quaternion_product(swing, thigh_world)
-    shin_world = quaternion_product(swing, new_shin)
-    j = {name: JOINTS.index(name) for name in (up, knee, foot)}
-    lower[:, j[up]] = quaternion_to_axis_angle(quaternion_product(quaternion_conjugate(hips_rot), thigh_world))
-    lower[:, j[knee]] = quaternion_to_axis_angle(quaternion_product(quaternion_conjugate(thigh_world), shin_world))
-    lower[:, j[foot]] = quaternion_to_axis_angle(quaternion_product(quaternion_conjugate(shin_world), goal_rot))
-
-
-def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    cos = np.sum(a * b, axis=-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1) + 1e-12)
-    return np.arccos(np.clip(cos, -1.0, 1.0))
-
-
-def _about(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    return np.concatenate([np.cos(angle / 2)[:, None], axis * np.sin(angle / 2)[:, None]], axis=-1)
-
-
-def _between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(T, 4) the shortest rotation taking directions `a` onto `b`."""
-    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
-    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
-    q = np.concatenate([1.0 + np.sum(a * b, axis=-1, keepdims=True), np.cross(a, b)], axis=-1)
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
 # ---------------------------------------------------------------- generating
