@@ -113,12 +113,12 @@ CUT_SECONDS = 4.0  # the preview cuts between the wide shot and the face's close
 
 
 def setup_preview(scene, armature, resolution: tuple[int, int] = (640, 360)) -> None:
-    """A wide (upper body) and a close-up (face) camera, cut between every CUT_SECONDS
+    """A wide (whole body) and a close-up (face) camera, cut between every CUT_SECONDS
     through timeline markers, and a Workbench render to MP4 with the audio."""
     head = armature.matrix_world @ armature.data.bones["Head"].head_local
-    wide = _camera(scene, "DemoCamera", (0.0, -2.6, head.z - 0.3), lens=40)
-    close = _camera(scene, "DemoCloseUp", (0.0, -1.1, head.z + 0.05), lens=55)
     hips = armature.matrix_world @ armature.data.bones["Hips"].head_local
+    wide = _camera(scene, "DemoCamera", (0.0, -4.2, hips.z - 0.05), lens=40)
+    close = _camera(scene, "DemoCloseUp", (0.0, -1.1, head.z + 0.05), lens=55)
     close.location -= hips  # then kept this far from the hips as they shift their weight
     walk = close.constraints.new("COPY_LOCATION")
     walk.target, walk.subtarget, walk.use_offset = armature, "Hips", True
