@@ -13,7 +13,7 @@ import bpy
 from diffsheg_core.errors import DiffshegError
 
 from .job import Request, RequestQueue
-from .panel_settings import check_runtime, check_targets, error_message, generate_settings
+from .panel_settings import check_runtime, check_targets, error_message, generate_settings, with_markers
 from .report import MAX_LINE, REPORT_TEXT, model_label, report_line, warning_lines, write_report
 
 
@@ -59,8 +59,9 @@ class StripsRun:
     and `step` (main thread) keys each as soon as it is made. A strip that cannot be
     generated or keyed fails alone, with its own message; the others go on.
 
-    Kept simple: every strip uses the panel's style (timeline markers 'style:...' are not
-    read), the whole sound file from the strip's start (a trimmed strip's hidden part too,
+    Each strip takes the panel's style and emotion, changed by the timeline's 'style:' and
+    'emotion:' markers from their frames (those before the strip's start set how it starts).
+    Kept simple: the whole sound file from the strip's start (a trimmed strip's hidden part too,
     so the keys stay in step with the sound), never 'Start from pose', and adds no sound
     strip (the strip is there). The frame range covers all keyed strips, where the panel's
     'Set frame range' asks for it, once all have run."""
@@ -82,11 +83,12 @@ class StripsRun:
         self.takes: list[StripTake] = []
         for strip in sorted(strips, key=lambda s: (s.frame_start, s.channel, s.name)):
             take = StripTake(strip.name, int(round(strip.frame_start)))
+            changes = with_markers(generation, scene, take.start)  # a bad marker stops the run here
             try:
                 path = strip_audio(strip)
                 check_frames(take.start)
                 take.request = Request(path, replace(options, start_frame=take.start, nla_strip=strip.name),
-                                       generation)
+                                       changes)
             except Exception as exc:
                 take.error = error_message(exc)
             self.takes.append(take)
@@ -169,8 +171,8 @@ class StripsRun:
         return line
 
     def report_details(self, line: str, model: str) -> str:
-        lines = [line, "", f"model: {model}", "style: the panel's for every strip (timeline style markers "
-                 "are not read for strips)", ""]
+        lines = [line, "", f"model: {model}", "style and emotion: the panel's, changed from their frames by "
+                 "the timeline's style: and emotion: markers", ""]
         for t in self.takes:
             head = f"strip '{t.name}' at frame {t.start}: "
             if t.result is not None:

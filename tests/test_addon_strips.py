@@ -87,7 +87,7 @@ def test_one_take_per_strip_keyed_at_the_strips_frame(speech):
     for name, frame, take in (("Line A", 1, "talk take 1"), ("Line B", 200, "other take 1"),
                               ("Line C", 500, "talk take 2")):
         assert f"strip '{name}' at frame {frame}: {take}: {FRAMES} frames" in details
-    assert "style: the panel's" in details
+    assert "style and emotion: the panel's, changed from their frames" in details
 
 
 BONE = "RightArm"
@@ -286,3 +286,25 @@ def test_the_panel_offers_it_where_the_scene_has_sound_strips(speech):
     assert len(checkbox[2]) <= CHECKBOX and len(checkbox[4]) <= LABEL_COLUMN
     rna = type(scene.diffsheg).bl_rna.properties["strips_selected_only"]
     assert not rna.default and rna.description[0].isupper()
+
+
+def test_each_strip_reads_the_style_and_emotion_markers_from_its_own_frame(speech, monkeypatch):
+    import diffsheg_core
+
+    talk, other = speech
+    scene, ob, face = _scene([("Line A", talk, 1), ("Line B", other, 200)])
+    scene.timeline_markers.new("style:calm", frame=1)
+    scene.timeline_markers.new("emotion:sad=0.5", frame=150)  # before Line B: how it starts
+    scene.timeline_markers.new("emotion:happy", frame=224)     # 1 s into Line B
+    made = []
+    generate = diffsheg_core.generate
+    monkeypatch.setattr(diffsheg_core, "generate", lambda *a, **k: made.append(generate(*a, **k)) or made[-1])
+    assert bpy.ops.diffsheg.generate_strips() == {"FINISHED"}
+    line_a, line_b = sorted(made, key=lambda m: m.meta["audio_file"] != str(talk))
+    assert line_a.meta["style_at"] == [[0.0, {"calm": 1.0}]] and line_a.meta["emotion_at"] == [
+        [149 / 24, {"sad": 0.5}], [223 / 24, {"happy": 1.0}]]
+    assert line_b.meta["emotion_at"] == [[0.0, {"sad": 0.5}], [1.0, {"happy": 1.0}]]
+    assert "style and emotion: the panel's, changed from their frames" in report_text()
+    scene.timeline_markers.new("emotion:joyful", frame=300)
+    with pytest.raises(RuntimeError, match="timeline marker 'emotion:joyful' at frame 300: unknown emotion"):
+        bpy.ops.diffsheg.generate_strips()
