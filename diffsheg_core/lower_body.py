@@ -55,6 +55,8 @@ SEGMENT = (1.5, 4.0)  # seconds: the shortest and longest segment cut from the c
 FADE_S = 0.5         # seconds of cross-fade between segments
 CHOICES = 4          # a segment is drawn among this many best matches
 DRIFT_S = 4.0        # Gaussian sigma (s) of the hips' slow drift across joins, taken out
+GROUND_S = 0.25     # Gaussian sigma (s) of the lowest foot point the body is lowered onto the floor by
+TRAVEL_M = 0.15      # metres a segment's hips travel that cost as much as a poor energy match
 ENERGY_S = 1.0       # Gaussian sigma of the arms' energy the segments are matched on
 CONTACT_HEIGHT = 0.03   # m above the floor a contact foot's sole may be
 CONTACT_SPEED = 0.15    # m/s a contact foot's ankle may move before pinning
@@ -283,7 +285,7 @@ def _reachable(ankle: np.ndarray, hip: np.ndarray, span: tuple[int, int], reach:
 def sample(library: LowerBodyLibrary, energy: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """(T, 9, 3) lower-body rotations and (T, 3) hips translation for the arms' `energy`
     (arm_energy of the take), cut from `library` with `seed`; the translation kept within
-    the capture's range."""
+    the capture's range, then the body lowered or raised so its lowest foot is on the floor."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 29]))
     n, fps = len(energy), library.fps
     fade = int(round(FADE_S * fps))
@@ -299,6 +301,10 @@ def sample(library: LowerBodyLibrary, energy: np.ndarray, seed: int) -> tuple[np
         starts = np.arange(len(q) - span)
         windows = np.convolve(library.energy, np.ones(span) / span, mode="valid")[:len(starts)]
         cost = np.abs(windows - want) / (library.energy.std() + 1e-9)
+        # a talker mostly stands: a segment that walks off costs as much as a poor energy match
+        travel = np.linalg.norm(library.translation[starts + span - 1][:, [0, 2]]
+                                - library.translation[starts][:, [0, 2]], axis=1)
+        cost = cost + travel / TRAVEL_M
         if len(rotations):
             last = quaternion_to_axis_angle(rotations[t0]).reshape(-1)
             cost = cost + np.linalg.norm(pose[starts] - last, axis=1) / 0.2
@@ -322,7 +328,12 @@ def sample(library: LowerBodyLibrary, energy: np.ndarray, seed: int) -> tuple[np
     trans = trans[:n].copy()
     trans[:, [0, 2]] -= drift
     lower = quaternion_to_axis_angle(rotations[:n])
-    return lower, np.clip(trans, library.translation_low, library.translation_high)
+    trans = np.clip(trans, library.translation_low, library.translation_high)
+    # on the floor: segments stood a little higher or lower in the capture than its floor
+    world = _world(lower, trans)
+    lowest = np.min([world[f"{p}{point}"][1][:, 1] for p in ("Right", "Left") for point in ("Sole", "ToeEnd")], axis=0)
+    trans[:, 1] -= smooth_frames(lowest[:, None], GROUND_S * fps)[:, 0]
+    return lower, trans
 
 
 def add_lower_body(motion: Motion, seed: int, library: LowerBodyLibrary | None = None) -> Motion:
