@@ -7,6 +7,7 @@ import sys
 import threading
 import time
 import warnings
+from pathlib import Path
 from dataclasses import replace
 from typing import Optional, Sequence
 
@@ -60,6 +61,9 @@ def run_generate(args: argparse.Namespace) -> int:
     audio_path = args.audio or str(SAMPLE_SPEECH)
     if args.audio is None:
         print(f"no audio given: using the bundled sample speech {SAMPLE_SPEECH}")
+    if Path(args.output).suffix.lower() != ".npz":
+        raise DiffshegError(f"-o/--output writes the motion as .npz, not {Path(args.output).name}: give a .npz "
+                            "there, and --bvh, --arkit-json, --csv or --talkshow for the other formats")
     check_outputs([args.output, args.bvh, args.arkit_json, args.csv, args.talkshow],
                   inputs=[audio_path, *files_read(args.model, args.stats, args.hubert)])
     started = time.perf_counter()

@@ -136,3 +136,11 @@ def test_a_few_bytes_given_as_a_checkpoint_are_named_for_what_they_are(tmp_path)
         with pytest.raises(CheckpointError, match="cannot read this torch checkpoint .*damaged"):
             load_model(path)
     refused_by_the_cli(tmp_path / "three.pt", tmp_path, "damaged or cut short", "download it again")
+
+
+def test_an_output_that_is_not_npz_is_refused_naming_the_format_flags(tmp_path):
+    """-o writes the motion as .npz; a .bvh there once got an npz under that name, silently."""
+    result = cli("-o", str(tmp_path / "take.bvh"), cwd=tmp_path)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert "-o/--output writes the motion as .npz, not take.bvh" in result.stderr and "--bvh" in result.stderr
+    assert not (tmp_path / "take.bvh").exists()
