@@ -86,7 +86,7 @@ def measure(path: Path, motions: list[Motion]) -> Row:
         voiced.append(voiced_mouth_voice_correlation(m, audio.samples, audio.sample_rate))
         shut = len(lip_closures(m, audio.samples, audio.sample_rate))
         voiced_seconds = voiced_frames(audio.samples, audio.sample_rate, m.fps, m.n_frames).sum() / m.fps
-        rate.append(shut / voiced_seconds)
+        rate.append(shut / voiced_seconds if voiced_seconds else float("nan"))  # no voiced frame: no rate
         closures.append(shut)
     bilabials = transcript_bilabials(path)
     return Row(language(path), path.stem, audio.duration, float(np.mean(whole)), float(np.mean(voiced)),

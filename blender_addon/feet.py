@@ -42,12 +42,6 @@ def _local(rest: np.ndarray, world: np.ndarray, parent_world: np.ndarray) -> np.
     return quaternion_sequence_continuous(convert(local, "matrix", "quaternion"))
 
 
-def ankle_positions(leg: LegRig, displacement: np.ndarray, quaternions: dict[str, np.ndarray]) -> np.ndarray:
-    """(T, 3) armature-space ankle (the foot bone's head) for the hips' `displacement`
-    (T, 3 armature space) and the local quaternions of the hips and the leg's bones."""
-    return _pose(leg, displacement, quaternions)[1][-1]
-
-
 def _pose(leg: LegRig, displacement: np.ndarray, quaternions: dict[str, np.ndarray]):
     """Rest-relative armature rotations of hips, thigh, shin and foot, and the heads of hips,
     thigh, knee and ankle, per frame."""

@@ -161,9 +161,9 @@ def apply_emotion(motion: Motion, track: np.ndarray, start: int = 0, end: int | 
 def _face(motion: Motion, track: np.ndarray) -> np.ndarray:
     """The face with each emotion's channels raised and its opposed channels relaxed."""
     names = {n: i for i, n in enumerate(motion.face_names)}
-    face = motion.face.astype(np.float64).copy()
     if "mouthClose" not in names:  # not ARKit (an SMPL-X model's FLAME face): the body only
         return motion.face
+    face = motion.face.astype(np.float64)
     lips_open = 1.0 - np.clip(face[:, names["mouthClose"]] / CLOSED_LIPS, 0.0, 1.0)
     blink = {side: face[:, names[f"eyeBlink{side}"]] for side in ("Left", "Right") if f"eyeBlink{side}" in names}
     for k, name in enumerate(NAMES):

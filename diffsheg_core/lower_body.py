@@ -29,7 +29,7 @@ numpy only: it runs inside Blender.
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -215,7 +215,7 @@ def contacts(lower: np.ndarray, trans: np.ndarray, fps: float) -> dict[str, list
     CONTACT_HEIGHT of the floor (y = 0) and its ankle slower than CONTACT_SPEED."""
     spans = {}
     for side, (ankle, sole) in foot_positions(lower, trans).items():
-        speed = np.linalg.norm(np.gradient(ankle, axis=0), axis=-1) * fps
+        speed = np.linalg.norm(np.diff(ankle, axis=0, prepend=ankle[:1]), axis=-1) * fps
         down = (sole[:, 1] < CONTACT_HEIGHT) & (speed < CONTACT_SPEED)
         spans[side] = [(a, b) for a, b in _runs(down) if b - a + 1 >= MIN_CONTACT]
     return spans

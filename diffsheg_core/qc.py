@@ -212,7 +212,7 @@ def lip_closures(motion: Motion, audio_samples: np.ndarray, sample_rate: int,
     peak[1:-1] = (close[1:-1] >= LIP_CLOSED) & (close[1:-1] >= close[:-2]) & (close[1:-1] > close[2:])
     voiced = voiced_frames(audio_samples, int(sample_rate), motion.fps, len(close))
     span = int(round(reach * motion.fps))
-    in_speech = np.convolve(voiced.astype(np.float64), np.ones(2 * span + 1), "same") > 0
+    in_speech = np.convolve(voiced.astype(np.float64), np.ones(2 * span + 1), "full")[span:span + len(voiced)] > 0
     return np.flatnonzero(peak & in_speech)
 
 

@@ -145,3 +145,11 @@ def test_a_face_shuffled_in_time_does_not_follow_the_voice(generated):
                       motion.face[order])
     real = voiced_mouth_voice_correlation(motion, audio.samples, audio.sample_rate)
     assert voiced_mouth_voice_correlation(shuffled, audio.samples, audio.sample_rate) < real - 0.2
+
+
+def test_lip_closures_of_a_clip_shorter_than_their_reach():
+    """0.3 s (5 frames, fewer than the reach's 7): no broadcasting error."""
+    audio = load_audio(LANG / "de_thorsten_1.wav")
+    short = audio.samples[: int(0.3 * audio.sample_rate)]
+    motion = generate(Audio(samples=short, sample_rate=audio.sample_rate, path=None), steps=3, device="cpu")
+    assert len(lip_closures(motion, short, audio.sample_rate)) <= motion.n_frames

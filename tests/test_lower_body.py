@@ -120,3 +120,11 @@ def test_only_the_beat_layout_gets_legs(take):
         lb.add_lower_body(replace(lb.upper_body(motions[0]), rig="smplx"), seed=0)
     with pytest.raises(DiffshegError, match="cannot be read"):
         lb.LowerBodyLibrary.load(Path("/nonexistent/lower_body.npz"))
+
+
+def test_the_shortest_speech_still_gets_legs(bundle):
+    """A tenth of a second is one motion frame: legs, no contact span, no numpy error."""
+    speech = Audio(samples=np.zeros(1600, dtype=np.float32) + 0.01, sample_rate=16000, path=None)
+    motion = generate(speech, model=bundle, steps=3, device="cpu")
+    assert motion.n_frames == 1 and motion.joint_names[-len(lb.JOINTS):] == list(lb.JOINTS)
+    assert motion.meta["contacts"] == {"right": [], "left": []}
