@@ -92,6 +92,7 @@ def check_emotion(spec) -> dict[str, float]:
                             f"intensities of a mix ({{'happy': 0.5, 'surprised': 0.3}}), got {spec!r}")
     out: dict[str, float] = {}
     for name, value in spec.items():
+        name = name.lower() if isinstance(name, str) else name
         if name not in EMOTIONS:
             raise DiffshegError(f"unknown emotion {name!r}: choose one of {', '.join(NAMES)}")
         if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0.0 <= float(value) <= 1.0:
@@ -109,11 +110,12 @@ def parse_emotion(text: str) -> dict[str, float]:
     out: dict[str, float] = {}
     for part in text.split(","):
         name, sep, value = (p.strip() for p in part.partition("="))
+        name = name.lower()
         if not name or name in out:
             raise DiffshegError(f"emotion {text!r}: give each emotion once, as name or name=intensity "
                                 "(happy=0.6)")
         try:
-            out[name.lower()] = float(value) if sep else 1.0
+            out[name] = float(value) if sep else 1.0
         except ValueError:
             raise DiffshegError(f"emotion {part.strip()!r} is not name=intensity (happy=0.6)") from None
     return out

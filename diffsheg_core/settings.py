@@ -232,11 +232,12 @@ def parse_style(text: str) -> StyleSpec:
 def parse_style_at(text: str) -> tuple[tuple[float, StyleSpec], ...]:
     """'0=calm,12.5=animated' -> ((0.0, 'calm'), (12.5, 'animated')); an item whose key is a
     name adds to the mix of the time before it: '0=calm,12.5=calm=0.3,animated=0.7'."""
-    return _parse_changes(text, "SECONDS=STYLE", "--style-at 0=calm,12.5=animated")
+    return _parse_changes(text, "SECONDS=STYLE", "--style-at 0=calm,12.5=animated", parse_style)
 
 
-def _parse_changes(text: str, form: str, example: str) -> tuple[tuple[float, StyleSpec], ...]:
-    """Changes over time, SECONDS=NAME[=WEIGHT], an item without seconds joining the mix before it."""
+def _parse_changes(text: str, form: str, example: str, parse) -> tuple[tuple[float, StyleSpec], ...]:
+    """Changes over time, SECONDS=NAME[=WEIGHT], an item without seconds joining the mix before
+    it; each time's mix read by `parse` (which raises ArgumentTypeError)."""
     entries: list[list] = []
     for part in text.split(","):
         key, _, rest = part.strip().partition("=")
@@ -250,7 +251,7 @@ def _parse_changes(text: str, form: str, example: str) -> tuple[tuple[float, Sty
             entries[-1][1].append(part.strip())
         else:
             raise argparse.ArgumentTypeError(f"{part.strip()!r} in {text!r} is not {form} (e.g. {example})")
-    return tuple((seconds, parse_style(",".join(parts))) for seconds, parts in entries)
+    return tuple((seconds, parse(",".join(parts))) for seconds, parts in entries)
 
 
 def _emotion_argument(text: str) -> dict:
@@ -262,7 +263,7 @@ def _emotion_argument(text: str) -> dict:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def parse_emotion_at(text: str) -> tuple[tuple[float, StyleSpec], ...]:
-    """'0=happy,12.5=sad=0.6' -> ((0.0, 'happy'), (12.5, {'sad': 0.6})); a mix as for styles:
-    '12.5=happy=0.5,surprised=0.3'. Emotion names are checked by GenerateSettings."""
-    return _parse_changes(text, "SECONDS=EMOTION", "--emotion-at 0=happy,12.5=sad=0.6")
+def parse_emotion_at(text: str) -> tuple[tuple[float, dict], ...]:
+    """'0=happy,12.5=sad=0.6' -> ((0.0, {'happy': 1.0}), (12.5, {'sad': 0.6})); a mix as for
+    styles: '12.5=happy=0.5,surprised=0.3'. Each emotion checked as --emotion checks it."""
+    return _parse_changes(text, "SECONDS=EMOTION", "--emotion-at 0=happy,12.5=sad=0.6", _emotion_argument)

@@ -143,3 +143,18 @@ def test_the_command_line_and_live(bundle):
         parser.parse_args(["--emotion", "joyful"])
     with pytest.raises(DiffshegError, match="live runs neutral"):
         LiveEngine(bundle, open_network(bundle), GenerateSettings(emotion="happy"), 16000)
+
+
+@pytest.mark.parametrize("value, match", [
+    ("0=happy=0.5,happy=0.3", "give each emotion once"),
+    ("0=happy=x", "emotion 'happy=x' is not name=intensity"),
+    ("0=2", "unknown emotion '2'"),
+])
+def test_emotion_at_errors_speak_of_emotions_and_names_ignore_case(value, match, capsys):
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--emotion-at", value])
+    assert match in capsys.readouterr().err
+    upper = from_arguments(parser.parse_args(["--emotion", "Sad=0.5", "--emotion-at", "0=Happy=0.5"]))
+    assert upper.emotion == {"sad": 0.5} and upper.emotion_at == ((0.0, {"happy": 0.5}),)
