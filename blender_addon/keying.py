@@ -27,7 +27,7 @@ import bpy
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.keyframes import Keys, handles
 
-from .takes import assign, is_take, nla_strip, playing_action
+from .takes import assign, is_take, playing_action, push_to_nla
 
 try:
     from bpy_extras.anim_utils import action_ensure_channelbag_for_slot
@@ -88,7 +88,7 @@ def new_action(id_data, name: str, undo: list[Undo]):
     if is_take(previous):
         undo.append(lambda: assign(id_data, previous))
     elif previous is not None:
-        _push_to_nla(anim, previous, undo)
+        push_to_nla(anim, previous, undo)
     action = bpy.data.actions.new(name)
     undo.append(lambda: bpy.data.actions.remove(action))
     slot = None
@@ -98,22 +98,6 @@ def new_action(id_data, name: str, undo: list[Undo]):
     if slot is not None:
         anim.action_slot = slot
     return action, slot
-
-
-def _push_to_nla(anim, action, undo: list[Undo]) -> None:
-    slot = getattr(anim, "action_slot", None)
-    track = anim.nla_tracks.new()
-    track.name = action.name
-    nla_strip(track, action.name, action, slot)
-    anim.action = None
-
-    def restore() -> None:
-        anim.nla_tracks.remove(track)
-        anim.action = action
-        if slot is not None:
-            anim.action_slot = slot
-
-    undo.append(restore)
 
 
 def write_channels(action, slot, channels: list[Channel], start_frame: float) -> int:

@@ -108,7 +108,8 @@ def first_playing(targets, frame: float | None = None) -> str | None:
 def use_take(take: str, scene=None) -> list[str]:
     """Play take `take` on every datablock it animates; returns its Actions' names. A take on
     the sound-strips track plays from there (the active Action is cleared so the track
-    plays, and `scene` moves to its first frame); any other is assigned as the active Action."""
+    plays, and `scene` moves to its first frame); any other is assigned as the active Action.
+    An Action of the animator's that was playing keeps a fake user, so it stays in the file."""
     actions = [a for a in bpy.data.actions if is_take(a) and a[TAKE] == take]
     if not actions:
         raise DiffshegError(f"there is no take '{take}' in this file: choose one of the takes the panel lists")
@@ -116,6 +117,9 @@ def use_take(take: str, scene=None) -> list[str]:
         target = action.get(TARGET)
         if target is None:
             raise DiffshegError(f"take '{take}': the object that Action '{action.name}' animated is gone")
+        current = getattr(target.animation_data, "action", None)
+        if current is not None and not is_take(current):
+            current.use_fake_user = True  # the animator's own Action, unassigned: kept in the file
         strip = _sequence_strip_of(target, action)
         if strip is None:
             assign(target, action)
@@ -202,6 +206,24 @@ def _remove_strip(track, strip, undo: list) -> None:
 
     def restore() -> None:
         nla_strip(track, name, action, slot).extrapolation = extrapolation
+    undo.append(restore)
+
+
+def push_to_nla(anim, action, undo: list) -> None:
+    """Keep the animator's `action` playing from an NLA track of its own (it is no take, so
+    it has no fake user: unassigned, it would be lost on save); `undo` gets the step back."""
+    slot = getattr(anim, "action_slot", None)
+    track = anim.nla_tracks.new()
+    track.name = action.name
+    nla_strip(track, action.name, action, slot)
+    anim.action = None
+
+    def restore() -> None:
+        anim.nla_tracks.remove(track)
+        anim.action = action
+        if slot is not None:
+            anim.action_slot = slot
+
     undo.append(restore)
 
 

@@ -308,3 +308,13 @@ def test_each_strip_reads_the_style_and_emotion_markers_from_its_own_frame(speec
     scene.timeline_markers.new("emotion:joyful", frame=300)
     with pytest.raises(RuntimeError, match="timeline marker 'emotion:joyful' at frame 300: unknown emotion"):
         bpy.ops.diffsheg.generate_strips()
+
+
+def test_use_take_keeps_the_animators_own_action_in_the_file(speech):
+    talk, other = speech
+    scene, ob, face = _scene([("Line A", talk, 1)])
+    assert bpy.ops.diffsheg.generate_strips() == {"FINISHED"}
+    mine = bpy.data.actions.new("my blocking")
+    ob.animation_data.action = mine  # the animator's own, over the track
+    assert bpy.ops.diffsheg.use_take(take="talk take 1") == {"FINISHED"}
+    assert ob.animation_data.action is None and mine.use_fake_user  # the track plays; the Action stays
