@@ -32,8 +32,9 @@ ENGINES = ("unreal", "unity")
 # Transform settings of Blender's FBX exporter per engine (bpy.ops.export_scene.fbx).
 FBX_ENGINE_SETTINGS: dict[str, dict] = {
     # Unreal is Z up and measures in centimetres. The file is written from a copy of the
-    # character 100 times its size in a scene measured in centimetres (unit scale 0.01,
-    # `_in_centimetres`): "All Local" with the unit applied then scales by 100 x 0.01 = 1,
+    # character in centimetres (its units and the armature's object scale folded into its
+    # data) in a scene measured in centimetres (unit scale 0.01, `_in_centimetres`): "All
+    # Local" with the unit applied then scales by 1,
     # so the armature's root node has scale 1 and the bones, their animation and the
     # meshes are in centimetres at FBX scale 1.0. (Written from the character at
     # Blender's scale, "All Local" puts the factor 100 on the root node instead, which
@@ -235,19 +236,27 @@ CENTIMETRE = 0.01  # Unreal's unit, in metres
 @contextlib.contextmanager
 def _in_centimetres(scene, objects: list) -> Iterator[tuple]:
     """A scene of its own measured in centimetres (unit scale 0.01) and in it copies of
-    `objects` (the armature first) 100 times their size, with the originals' names and
-    the animation `scene` plays over its frame range: the armature copy's bones keyed on
-    every frame from the evaluated pose (constraints, drivers and NLA included), the
-    meshes' shape keys playing as the originals' do. Meanwhile the originals (and the
-    scene) carry other names; afterwards the copies, their data and the scene are removed
-    and every name is back, so the user's file is as it was."""
+    `objects` (the armature first) in centimetres: their data scaled by the centimetres in
+    one of `scene`'s units (its unit scale over 0.01), and the armature's by its world
+    scale too, so the armature copy's root has scale 1 whatever the character's units or
+    object scale. The copies have the originals' names and the animation `scene` plays
+    over its frame range, keyed on every frame: the armature's bones from the evaluated
+    pose (constraints, drivers and NLA included), every copy's object transform from the
+    original's (its world motion where its parent is not exported), the meshes' shape keys
+    playing as the originals' do. Meanwhile the originals (and the scene) carry other
+    names; afterwards the copies, their data and the scene are removed and every name is
+    back, so the user's file is as it was."""
     from mathutils import Matrix
 
-    up, down = Matrix.Scale(1 / CENTIMETRE, 4), Matrix.Scale(CENTIMETRE, 4)
+    factor = scene.unit_settings.scale_length / CENTIMETRE
+    up, down = Matrix.Scale(factor, 4), Matrix.Scale(1 / factor, 4)
+    armature = objects[0]
+    size = _uniform_scale(armature)
     temp = bpy.data.scenes.new(scene.name)
     temp.unit_settings.system, temp.unit_settings.scale_length = "METRIC", CENTIMETRE
     temp.render.fps, temp.render.fps_base = scene.render.fps, scene.render.fps_base
     temp.frame_start, temp.frame_end = scene.frame_start, scene.frame_end
+    temp.frame_current = scene.frame_current
     made, renamed = [temp], []
     try:
         copies = {}
@@ -260,6 +269,7 @@ def _in_centimetres(scene, objects: list) -> Iterator[tuple]:
             copy.animation_data_clear()
             copy.data.animation_data_clear()
             _clear_constraints(copy)
+            copy.rotation_mode = "QUATERNION"
             temp.collection.objects.link(copy)
             copies[ob] = copy
         for ob, copy in copies.items():
@@ -267,16 +277,17 @@ def _in_centimetres(scene, objects: list) -> Iterator[tuple]:
                 copy.parent = None
             elif ob.parent is not None:
                 copy.parent = copies[ob.parent]
-                copy.matrix_parent_inverse = up @ ob.matrix_parent_inverse @ down
-            copy.matrix_basis = up @ (ob.matrix_basis if copy.parent else ob.matrix_world) @ down
+                # under the armature copy, whose data carries the armature's scale
+                unscaled = Matrix.Scale(size, 4) if ob.parent is armature else Matrix()
+                copy.matrix_parent_inverse = unscaled @ up @ ob.matrix_parent_inverse @ down
             for modifier in copy.modifiers:
                 if modifier.type == "ARMATURE" and modifier.object in copies:
                     modifier.object = copies[modifier.object]
             if ob.type == "MESH":
                 copy.data.transform(up, shape_keys=True)
             else:
-                copy.data.transform(up)
-        made.append(_bake_pose(scene, objects[0], copies[objects[0]], up, down))
+                copy.data.transform(up @ Matrix.Scale(size, 4))
+        made += _bake(scene, copies, up, down, size)
         for ob, copy in copies.items():  # the copies go by the originals' names
             for original, duplicate in ((ob, copy), (ob.data, copy.data)):
                 name = original.name
@@ -292,38 +303,72 @@ def _in_centimetres(scene, objects: list) -> Iterator[tuple]:
             original.name = name
 
 
-def _bake_pose(scene, armature, copy, up, down):
-    """Key every pose bone of `copy` (`armature` scaled by `up`) on every frame of the
-    scene's range with the pose `armature` has there, constraints and drivers applied: its
-    local transform in the copy's units (`up` @ local @ `down`) as location, quaternion and
-    scale keys. Returns the new Action."""
-    import numpy as np
+def _uniform_scale(ob) -> float:
+    """`ob`'s world scale, one number: the Unreal copy folds it into the armature's data."""
+    scale = ob.matrix_world.to_scale()
+    if ob.matrix_world.is_negative or max(scale) > min(scale) * (1 + 1e-4):
+        raise DiffshegError(f"'{ob.name}' is scaled unevenly or mirrored (world scale "
+                            f"{', '.join(f'{s:g}' for s in scale)}): apply its scale (Object > Apply > Scale) "
+                            "or give it one positive scale before exporting for Unreal")
+    return sum(scale) / 3
 
-    from .keying import Channel, new_action, write_channels
+
+def _bake(scene, copies: dict, up, down, size: float) -> list:
+    """Key every copy of `copies` (original -> copy, the armature first) on every frame of
+    the scene's range as its original is there: the object transform (its local one under
+    an exported parent, else its world one; `up` @ matrix @ `down` in the copy's units, the
+    armature's without its world scale `size`) and the armature copy's pose bones (their
+    local transforms, constraints and drivers applied, in units of the armature's data:
+    `size` x `up`). Location, quaternion and scale keys; returns the new Actions."""
+    import numpy as np
+    from mathutils import Matrix
+
+    from .keying import new_action, write_channels
 
     frames = range(scene.frame_start, scene.frame_end + 1)
+    armature = next(iter(copies))
     bones = list(armature.pose.bones)
-    samples = np.empty((len(bones), len(frames), 10))  # location 3, quaternion 4, scale 3
+    data_up = up @ Matrix.Scale(size, 4)
+    data_down = Matrix.Scale(1 / size, 4) @ down
+    unscale = Matrix.Scale(1 / size, 4)
+    # (frames, channels owners, 10): location 3, quaternion 4, scale 3; the objects first
+    samples = np.empty((len(frames), len(copies) + len(bones), 10))
     for f, frame in enumerate(frames):
         scene.frame_set(frame)
-        for b, bone in enumerate(bones):
-            local = armature.convert_space(pose_bone=bone, matrix=bone.matrix, from_space="POSE", to_space="LOCAL")
-            location, rotation, size = (up @ local @ down).decompose()
+        matrices = [up @ ob.matrix_basis @ down if copy.parent else
+                    up @ ob.matrix_world @ down @ (unscale if ob is armature else Matrix())
+                    for ob, copy in copies.items()]
+        matrices += [data_up @ armature.convert_space(pose_bone=bone, matrix=bone.matrix, from_space="POSE",
+                                                      to_space="LOCAL") @ data_down for bone in bones]
+        for i, matrix in enumerate(matrices):
+            location, rotation, scale = matrix.decompose()
             quaternion = np.array(rotation)
-            if f and quaternion @ samples[b, f - 1, 3:7] < 0:
+            if f and quaternion @ samples[f - 1, i, 3:7] < 0:
                 quaternion = -quaternion  # the last key's hemisphere: no flip between frames
-            samples[b, f] = (*location, *quaternion, *size)
-    for bone in copy.pose.bones:
+            samples[f, i] = (*location, *quaternion, *scale)
+    for bone in copies[armature].pose.bones:
         _clear_constraints(bone)
         bone.rotation_mode = "QUATERNION"
-    channels = []
-    for b, bone in enumerate(bones):
-        base = f'pose.bones["{bpy.utils.escape_identifier(bone.name)}"]'
-        for path, first, width in (("location", 0, 3), ("rotation_quaternion", 3, 4), ("scale", 7, 3)):
-            channels += [Channel(f"{base}.{path}", i, samples[b, :, first + i], bone.name) for i in range(width)]
-    action, slot = new_action(copy, f"{armature.name} in centimetres", [])
-    write_channels(action, slot, channels, frames.start)
-    return action
+    actions = []
+    for i, (ob, copy) in enumerate(copies.items()):
+        channels = _transform_channels("", samples[:, i], "Object Transforms")
+        if ob is armature:
+            for b, bone in enumerate(bones):
+                base = f'pose.bones["{bpy.utils.escape_identifier(bone.name)}"].'
+                channels += _transform_channels(base, samples[:, len(copies) + b], bone.name)
+        action, slot = new_action(copy, f"{ob.name} in centimetres", [])
+        write_channels(action, slot, channels, frames.start)
+        actions.append(action)
+    return actions
+
+
+def _transform_channels(base: str, samples, group: str) -> list:
+    """Location, quaternion and scale channels at `base` of (frames, 10) `samples`."""
+    from .keying import Channel
+
+    return [Channel(f"{base}{path}", i, samples[:, first + i], group)
+            for path, first, width in (("location", 0, 3), ("rotation_quaternion", 3, 4), ("scale", 7, 3))
+            for i in range(width)]
 
 
 def _clear_constraints(owner) -> None:

@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from addon_fixtures import REPO, append_face, bpy, cut_speech, import_beat_armature, import_readyplayerme, reset_scene
+from addon_fixtures import (REPO, append_face, bpy, build_mixamo_armature, build_unreal_body_armature, cut_speech,
+                            import_beat_armature, import_readyplayerme, reset_scene)
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 
 import diffsheg_core
@@ -148,17 +149,7 @@ def test_fbx_reimported_matches_the_take(speech, motion, tmp_path, engine):
     else:                   # Y up, metres (FBX scale 100: Unity's Convert Units gives scale 1)
         assert (axes["UpAxis"], axes["UnitScaleFactor"]) == (1, 100.0)
 
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    fresh = bpy.context.scene
-    fresh.render.fps, fresh.frame_start, fresh.frame_end = 24, frames.start, frames.stop - 1
-    # anim_offset=0: the file keeps the scene's frame times (its take starts at the frame
-    # the take does); the importer's default offset of 1 is for files that start at 0.
-    # Unreal takes the file's numbers as its centimetres (Convert Scene Unit off, uniform
-    # scale 1): the Unreal file is read into a scene measured in centimetres as Unreal's
-    # world is (unit scale 0.01), where the importer converts nothing.
-    if unreal:
-        fresh.unit_settings.system, fresh.unit_settings.scale_length = "METRIC", 0.01
-    assert bpy.ops.import_scene.fbx(filepath=str(path), anim_offset=0.0) == {"FINISHED"}
+    fresh = _reimport(path, frames, unreal)
     assert sorted(o.type for o in fresh.objects) == ["ARMATURE", "MESH"]  # no light, no camera
     arm, mesh = (next(o for o in fresh.objects if o.type == t) for t in ("ARMATURE", "MESH"))
     if unreal:  # the root as Unreal gets it: scale 1, no rotation; the skeleton in centimetres
@@ -180,6 +171,79 @@ def test_fbx_reimported_matches_the_take(speech, motion, tmp_path, engine):
     curves = {fc.data_path for fc in fcurves_of(mesh.data.shape_keys)}
     assert {f'key_blocks["{k}"].value' for k in keys} <= curves
     assert np.abs(_shape_key_values(mesh, keys, frames) - want_keys).max() < 1e-3
+
+
+def _reimport(path: Path, frames: range, unreal: bool):
+    """A fresh scene with the FBX at `path` imported; the scene."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    fresh = bpy.context.scene
+    fresh.render.fps, fresh.frame_start, fresh.frame_end = 24, frames.start, frames.stop - 1
+    # anim_offset=0: the file keeps the scene's frame times (its take starts at the frame
+    # the take does); the importer's default offset of 1 is for files that start at 0.
+    # Unreal takes the file's numbers as its centimetres (Convert Scene Unit off, uniform
+    # scale 1): the Unreal file is read into a scene measured in centimetres as Unreal's
+    # world is (unit scale 0.01), where the importer converts nothing.
+    if unreal:
+        fresh.unit_settings.system, fresh.unit_settings.scale_length = "METRIC", 0.01
+    assert bpy.ops.import_scene.fbx(filepath=str(path), anim_offset=0.0) == {"FINISHED"}
+    return fresh
+
+
+def _walk(ob, frames: range) -> None:
+    """Key the armature object walking 1.5 m along X and turning 90 degrees about Z over
+    `frames` (its own units and parent: its location in the scene's units)."""
+    metres = bpy.context.scene.unit_settings.scale_length
+    start = ob.location.copy()
+    for frame, share in ((frames.start, 0.0), (frames.stop - 1, 1.0)):
+        ob.location = (start.x + share * 1.5 / metres, start.y, start.z)
+        ob.rotation_euler.z = share * np.pi / 2
+        ob.keyframe_insert("location", frame=frame)
+        ob.keyframe_insert("rotation_euler", frame=frame)
+
+
+UNREAL_RIGS = {  # rig, preset, object animated
+    "ue5_centimetre_scene": (build_unreal_body_armature, "unreal", False),
+    "mixamo_object_scale": (build_mixamo_armature, "mixamo", False),
+    "mixamo_walking": (build_mixamo_armature, "mixamo", True),
+}
+
+
+@pytest.mark.parametrize("rig_name", list(UNREAL_RIGS))
+def test_unreal_fbx_is_in_centimetres_whatever_the_rigs_units(motion, tmp_path, rig_name):
+    """A UE5 mannequin in a scene of unit scale 0.01 and a Mixamo import (object scale
+    0.01, Y up), keyed with a take (and one walking: its object animated): re-imported as
+    Unreal reads it, the root has scale 1, the hips are at the character's height in
+    centimetres on every frame, the bones turned within 0.5 degree of the take's."""
+    build, preset, walking = UNREAL_RIGS[rig_name]
+    scene = reset_scene(fps=24)
+    ob = build()
+    bake_motion(scene, motion, None, BakeOptions(armature=ob, preset=load_preset(preset), add_sound=False))
+    frames = range(scene.frame_start, scene.frame_end + 1)
+    if walking:
+        _walk(ob, frames)
+    bones = [b.name for b in ob.pose.bones]
+    hips = bones.index(load_preset(preset).find_bone(load_preset(preset).joint_map("beat")["Hips"][0], bones))
+    centimetres = scene.unit_settings.scale_length / 0.01
+    want_rot, want_heads = _bone_rotations(ob, bones, frames), _bone_heads(ob, bones, frames) * centimetres
+    scene.frame_set(frames.start)
+    path = exports.export_fbx(tmp_path / "talk.fbx", ob, [], "unreal")
+    assert _fbx_model_scaling(path, ob.name) == pytest.approx((1.0, 1.0, 1.0), abs=1e-6)
+
+    fresh = _reimport(path, frames, unreal=True)
+    arm = next(o for o in fresh.objects if o.type == "ARMATURE")
+    heads = _bone_heads(arm, bones, frames)
+    for frame in frames:
+        fresh.frame_set(frame)
+        assert np.allclose(arm.matrix_world.to_scale(), 1.0, atol=1e-5), (frame, arm.matrix_world)
+    height = heads[:, hips, 2]
+    print(f"{rig_name}: hips {height.min():.1f}-{height.max():.1f} cm high; moved "
+          f"{np.ptp(heads[:, hips, 0]):.1f} cm along X")
+    assert 60 < height.min() and height.max() < 140  # a person's hips, in centimetres
+    assert np.abs(heads - want_heads).max() < 1e-4 * np.ptp(want_heads[..., 2])
+    if walking:
+        assert np.ptp(heads[:, hips, 0]) > 100  # walked 1.5 m: the object's motion is in the file
+    worst = float(_angles(_bone_rotations(arm, bones, frames), want_rot).max())
+    assert worst < 0.5, worst
 
 
 def _umask() -> int:
