@@ -77,6 +77,7 @@ STROKE_FRAMES = 3.0  # Gaussian sigma, in model frames, of the unsharp mask's bl
 CLOSED_LIPS = 0.12   # mouthClose at which the emotion's mouth channels have given way entirely
 KEPT_MOUTH = ("mouthPress",)  # mouth channels that close the lips themselves: not given way
 RELAX = 0.8          # how far, at full intensity, an opposed channel is relaxed
+HOLD_S = 0.5         # seconds over which the emotion eases in around a pinned pose
 CHAINS = {"beat": {"head": (("Neck", 0.4), ("Neck1", 0.6)), "chest": (("Spine", 1.0),)},
           "smplx": {"head": (("neck", 0.4), ("head", 0.6)), "chest": (("spine3", 0.6), ("spine2", 0.4))}}
 """Per layout, the joints a head or chest pitch is spread over, with their shares."""
@@ -150,24 +151,49 @@ def emotion_track(emotion: dict[str, float] | None, changes, n_frames: int, fps:
     return _smooth(track, EASE_S * fps)
 
 
-def apply_emotion(motion: Motion, track: np.ndarray, start: int = 0, end: int | None = None) -> Motion:
+def apply_emotion(motion: Motion, track: np.ndarray, start: int = 0, end: int | None = None,
+                  held: tuple[tuple[int, str], ...] = ()) -> Motion:
     """`motion` with the emotions of `track` (emotion_track) laid over frames [start, end);
-    the frames outside are returned as they were."""
+    the frames outside are returned as they were. `held`: (frame, joint) a pin holds (a
+    pose the take must pass through): that joint keeps its pose at that frame, the emotion
+    eased in over HOLD_S around it."""
     end = motion.n_frames if end is None else end
+    body = _body(motion, track)
+    for joint in {j for _, j in held}:
+        k = motion.joint_names.index(joint)
+        frames = np.array([f for f, j in held if j == joint], dtype=np.float64)
+        away = np.abs(np.arange(motion.n_frames)[:, None] - frames[None]).min(axis=1)
+        body[:, k] = _toward(motion.rotations[:, k], body[:, k], np.clip(away / (HOLD_S * motion.fps), 0.0, 1.0))
     rotations, face = motion.rotations.copy(), motion.face.copy()
     face[start:end] = _face(motion, track)[start:end]
-    rotations[start:end] = _body(motion, track)[start:end]
+    rotations[start:end] = body[start:end]
     return replace(motion, rotations=rotations, face=face)
 
 
-def _face(motion: Motion, track: np.ndarray) -> np.ndarray:
-    """The face with each emotion's channels raised and its opposed channels relaxed."""
+def remove_emotion(motion: Motion, track: np.ndarray) -> Motion:
+    """About the motion `apply_emotion(·, track)` was given: the face and the head's and
+    chest's pitch exactly, the body's energy and sharpness to first order. A range is
+    regenerated against it, so that its emotion is laid over the new frames once."""
+    return replace(motion, rotations=_body(motion, track, inverse=True), face=_face(motion, track, inverse=True))
+
+
+def _toward(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(T, 3) axis-angle rotations the fraction `w` (T,) of the way from `a` to `b`."""
+    qa, qb = axis_angle_to_quaternion(a.astype(np.float64)), axis_angle_to_quaternion(b.astype(np.float64))
+    step = quaternion_to_axis_angle(quaternion_product(quaternion_conjugate(qa), qb)) * w[:, None]
+    return quaternion_to_axis_angle(quaternion_product(qa, axis_angle_to_quaternion(step))).astype(a.dtype)
+
+
+def _face(motion: Motion, track: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """The face with each emotion's channels raised and its opposed channels relaxed (with
+    `inverse`, the face those steps were taken from: each is undone, in reverse order)."""
     names = {n: i for i, n in enumerate(motion.face_names)}
     if "mouthClose" not in names:  # not ARKit (an SMPL-X model's FLAME face): the body only
         return motion.face
     face = motion.face.astype(np.float64)
-    lips_open = 1.0 - np.clip(face[:, names["mouthClose"]] / CLOSED_LIPS, 0.0, 1.0)
+    lips_open = 1.0 - np.clip(face[:, names["mouthClose"]] / CLOSED_LIPS, 0.0, 1.0)  # never changed
     blink = {side: face[:, names[f"eyeBlink{side}"]] for side in ("Left", "Right") if f"eyeBlink{side}" in names}
+    steps = []  # (column, gain a: raise f -> f + a (1 - f)) or (column, factor: relax f -> f * factor)
     for k, name in enumerate(NAMES):
         intensity = track[:, k]
         if not intensity.any():
@@ -178,10 +204,16 @@ def _face(motion: Motion, track: np.ndarray) -> np.ndarray:
                 gate = lips_open if channel.startswith("mouth") and channel not in KEPT_MOUTH else 1.0
                 if channel == "eyeWide" and side in blink:
                     gate = 1.0 - blink[side]
-                face[:, column] += intensity * weight * gate * np.clip(1.0 - face[:, column], 0.0, None)
+                steps.append(("raise", column, intensity * weight * gate))
         for channel in emotion.relaxed:
             for column, _ in _columns(channel, names):
-                face[:, column] *= 1.0 - RELAX * intensity
+                steps.append(("relax", column, 1.0 - RELAX * intensity))
+    for kind, column, value in (reversed(steps) if inverse else steps):
+        f = face[:, column]
+        if kind == "relax":
+            face[:, column] = f / value if inverse else f * value
+        else:
+            face[:, column] = (f - value) / (1.0 - value) if inverse else f + value * np.clip(1.0 - f, 0.0, None)
     return face.astype(motion.face.dtype)
 
 
@@ -192,25 +224,41 @@ def _columns(channel: str, names: dict[str, int]) -> list[tuple[int, str]]:
     return [(names[channel + side], side) for side in ("Left", "Right") if channel + side in names]
 
 
-def _body(motion: Motion, track: np.ndarray) -> np.ndarray:
-    """Rotations with energy and sharpness scaled around the slow posture, then pitched."""
+def _body(motion: Motion, track: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """Rotations with energy and sharpness scaled around the slow posture, then pitched (with
+    `inverse`, unpitched, then the scaling undone to first order)."""
     mix = np.array([[EMOTIONS[n].energy - 1.0, EMOTIONS[n].sharpness, EMOTIONS[n].head_pitch,
                      EMOTIONS[n].chest_pitch] for n in NAMES])
     energy, sharpness, head, chest = (track @ mix).T
     energy += 1.0
+    sign = -1.0 if inverse else 1.0
     q = quaternion_sequence_continuous(axis_angle_to_quaternion(motion.rotations.astype(np.float64)))
+    if inverse:
+        q = _pitched(motion, q, head, chest, sign)
     slow = _smooth(q, POSTURE_S * motion.fps)
     slow /= np.linalg.norm(slow, axis=-1, keepdims=True)
     movement = quaternion_to_axis_angle(quaternion_product(quaternion_conjugate(slow), q))  # (T, J, 3) around the posture
-    stroke = movement - _smooth(movement, STROKE_FRAMES)
-    movement = energy[:, None, None] * (movement + sharpness[:, None, None] * stroke)
+    gain, sharp = energy[:, None, None], sharpness[:, None, None]
+    if inverse:  # x = gain ((1 + sharp) m - sharp blur(m))  =>  m ~ (x / gain + sharp blur(x / gain)) / (1 + sharp)
+        x = movement / gain
+        movement = (x + sharp * _smooth(x, STROKE_FRAMES)) / (1.0 + sharp)
+    else:
+        movement = gain * (movement + sharp * (movement - _smooth(movement, STROKE_FRAMES)))
     out = quaternion_product(slow, axis_angle_to_quaternion(movement))
+    if not inverse:
+        out = _pitched(motion, out, head, chest, sign)
+    return quaternion_to_axis_angle(out).astype(motion.rotations.dtype)
+
+
+def _pitched(motion: Motion, q: np.ndarray, head: np.ndarray, chest: np.ndarray, sign: float) -> np.ndarray:
+    """(T, J, 4) `q` with the head's and chest's joints pitched by `sign` times their share."""
+    q = q.copy()
     for part, pitch in (("head", head), ("chest", chest)):
         for joint, share in CHAINS.get(motion.rig, {}).get(part, ()):
             if joint in motion.joint_names and pitch.any():
                 j = motion.joint_names.index(joint)
-                out[:, j] = quaternion_product(_pitch(np.radians(pitch * share)), out[:, j])
-    return quaternion_to_axis_angle(out).astype(motion.rotations.dtype)
+                q[:, j] = quaternion_product(_pitch(np.radians(sign * pitch * share)), q[:, j])
+    return q
 
 
 def _pitch(angle: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ from .audio import (PIECE_SECONDS, Audio, AudioFile, SpeechEncoding, load_audio,
                     n_motion_frames, open_audio_file, require_hubert)
 from .checkpoints import ModelBundle, load_model
 from .diffusion import Schedule
-from .emotion import apply_emotion, emotion_track
+from .emotion import NAMES as EMOTION_NAMES, apply_emotion, emotion_track, remove_emotion
 from .errors import DiffshegError
 from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, inpaint_range, with_overrides
 from .guidance import Guidance, step_eps
@@ -395,7 +395,7 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     motion = to_motion(bundle, normalised, meta=meta)
     track = emotion_track(s.emotion, s.emotion_at, n_frames, bundle.config.fps)
     if track is not None:
-        motion = apply_emotion(motion, track)
+        motion = apply_emotion(motion, track, held=tuple((p.frame, p.joint) for p in pins))
     return motion if s.upper_body_only or motion.rig not in WHOLE_BODY_LAYOUTS else add_lower_body(motion, s.seed)
 
 
@@ -464,7 +464,9 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
                             f"motion has {motion.n_frames}: regenerate with the audio it was made from")
     plan, sampler, make_eps_fn = _sampling(bundle, network, s, sampling, motion.n_frames)
     cond = np.concatenate(list(with_style(speech_chunks(bundle, network, speech), plan.track)))
-    normalised = bundle.normalise(layout.join(motion.rotations, motion.face)).astype(np.float32)
+    laid = take_emotion(motion)
+    base = motion if laid is None else remove_emotion(motion, laid)  # what the take's emotion was laid over
+    normalised = bundle.normalise(layout.join(base.rotations, base.face)).astype(np.float32)
     hold = np.zeros(normalised.shape, dtype=bool)
     if keep_face:
         hold[start:end, layout.gesture_dim:] = True
@@ -472,22 +474,36 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     new = inpaint_range(sampler, make_eps_fn, cond, normalised, start, end, s.seed, hold, progress, cancel,
                         face_seed=s.face_seed)
     check_finite(bundle, new)
-    part = to_motion(bundle, new, meta={})
-    rotations, face = motion.rotations.copy(), motion.face.copy()
-    rotations[start:end] = part.rotations
-    if not keep_face:
-        face[start:end] = part.face
+    made = to_motion(bundle, new, meta={})  # the range's frames
+    part = replace(base, rotations=base.rotations.copy(), face=base.face.copy())
+    part.rotations[start:end], part.face[start:end] = made.rotations, made.face
     if s.emotion is None and s.emotion_at is None:  # the range keeps the take's own emotion
         s = replace(s, emotion=motion.meta.get("emotion") or None, emotion_at=motion.meta.get("emotion_at") or None)
     track = emotion_track(s.emotion, s.emotion_at, motion.n_frames, bundle.config.fps)
     if track is not None:
-        moved = apply_emotion(replace(motion, rotations=rotations, face=face), track, start, end)
-        rotations, face = moved.rotations, (face if keep_face else moved.face)
+        part = apply_emotion(part, track, held=tuple((p.frame, p.joint) for p in pins))
+    rotations, face = motion.rotations.copy(), motion.face.copy()
+    rotations[start:end] = part.rotations[start:end]
+    if not keep_face:
+        face[start:end] = part.face[start:end]
     record = {"start": int(start), "end": int(end), "keep_face": keep_face, "pins": len(pins),
               **generation_meta(bundle, s, plan, network, speech)}
     lower = whole.rotations[:, len(motion.joint_names):]
     return replace(whole, rotations=np.concatenate([rotations, lower], axis=1), face=face,
                    meta={**motion.meta, "regenerated": list(motion.meta.get("regenerated", [])) + [record]})
+
+
+def take_emotion(motion: Motion) -> Optional[np.ndarray]:
+    """The emotion track laid over `motion` (emotion_track), from its meta: the emotion it was
+    generated with, then each regenerated range's own; None where it was all neutral."""
+    n, fps = motion.n_frames, motion.fps
+    track = emotion_track(motion.meta.get("emotion") or None, motion.meta.get("emotion_at") or None, n, fps)
+    for record in motion.meta.get("regenerated", []):
+        ranged = emotion_track(record.get("emotion") or None, record.get("emotion_at") or None, n, fps)
+        if ranged is not None or track is not None:
+            track = np.zeros((n, len(EMOTION_NAMES))) if track is None else track
+            track[record["start"]:record["end"]] = 0.0 if ranged is None else ranged[record["start"]:record["end"]]
+    return track if track is not None and track.any() else None
 
 
 def _hold_pins(bundle: ModelBundle, normalised: np.ndarray, hold: np.ndarray, pins, start: int, end: int) -> None:
