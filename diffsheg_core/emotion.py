@@ -151,6 +151,19 @@ def emotion_track(emotion: dict[str, float] | None, changes, n_frames: int, fps:
     return _smooth(track, EASE_S * fps)
 
 
+def take_emotion(motion: Motion) -> np.ndarray | None:
+    """The emotion track laid over `motion` (emotion_track), from its meta: the emotion it was
+    generated with, then each regenerated range's own; None where it was all neutral."""
+    n, fps = motion.n_frames, motion.fps
+    track = emotion_track(motion.meta.get("emotion") or None, motion.meta.get("emotion_at") or None, n, fps)
+    for record in motion.meta.get("regenerated", []):
+        ranged = emotion_track(record.get("emotion") or None, record.get("emotion_at") or None, n, fps)
+        if ranged is not None or track is not None:
+            track = np.zeros((n, len(NAMES))) if track is None else track
+            track[record["start"]:record["end"]] = 0.0 if ranged is None else ranged[record["start"]:record["end"]]
+    return track if track is not None and track.any() else None
+
+
 def apply_emotion(motion: Motion, track: np.ndarray, start: int = 0, end: int | None = None,
                   held: tuple[tuple[int, str], ...] = ()) -> Motion:
     """`motion` with the emotions of `track` (emotion_track) laid over frames [start, end);

@@ -22,7 +22,7 @@ from .audio import (PIECE_SECONDS, Audio, AudioFile, SpeechEncoding, load_audio,
                     n_motion_frames, open_audio_file, require_hubert)
 from .checkpoints import ModelBundle, load_model
 from .diffusion import Schedule
-from .emotion import NAMES as EMOTION_NAMES, apply_emotion, emotion_track, remove_emotion
+from .emotion import apply_emotion, emotion_track, remove_emotion, take_emotion
 from .errors import DiffshegError
 from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, inpaint_range, with_overrides
 from .guidance import Guidance, step_eps
@@ -491,19 +491,6 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     lower = whole.rotations[:, len(motion.joint_names):]
     return replace(whole, rotations=np.concatenate([rotations, lower], axis=1), face=face,
                    meta={**motion.meta, "regenerated": list(motion.meta.get("regenerated", [])) + [record]})
-
-
-def take_emotion(motion: Motion) -> Optional[np.ndarray]:
-    """The emotion track laid over `motion` (emotion_track), from its meta: the emotion it was
-    generated with, then each regenerated range's own; None where it was all neutral."""
-    n, fps = motion.n_frames, motion.fps
-    track = emotion_track(motion.meta.get("emotion") or None, motion.meta.get("emotion_at") or None, n, fps)
-    for record in motion.meta.get("regenerated", []):
-        ranged = emotion_track(record.get("emotion") or None, record.get("emotion_at") or None, n, fps)
-        if ranged is not None or track is not None:
-            track = np.zeros((n, len(EMOTION_NAMES))) if track is None else track
-            track[record["start"]:record["end"]] = 0.0 if ranged is None else ranged[record["start"]:record["end"]]
-    return track if track is not None and track.any() else None
 
 
 def _hold_pins(bundle: ModelBundle, normalised: np.ndarray, hold: np.ndarray, pins, start: int, end: int) -> None:
