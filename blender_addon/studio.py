@@ -10,11 +10,13 @@ output asked for atomically, and takes the take back out, so the next line on th
 worker starts from the same character: each worker opens a character file and loads a
 model once, not once per line. A worker that dies is retried by Ray and its line redone
 from scratch; a line that fails (bad audio, a character without a camera for a video)
-fails alone. A task writes its line's outputs to a staging folder of its own; the driver
-records the line as done and then moves them into place (diffsheg_core.manifest.Ledger),
-so a driver or worker killed at any moment leaves in the output folder only outputs of
-lines recorded done, and the next run finishes or removes what it left. The driver
-writes the QC report (diffsheg_core.qc) at the end.
+fails alone. A task writes its line's outputs as hidden staged files beside their final
+names (in the output folder itself, so the relative paths a .blend or FBX saves resolve
+from there); the driver records the line as done and then renames them into place
+(diffsheg_core.manifest.Ledger), so a driver or worker killed at any moment leaves under
+the outputs' names only outputs of lines recorded done, and the next run finishes or
+removes what it left. An output that cannot be put in place fails its line alone. The
+driver writes the QC report (diffsheg_core.qc) at the end.
 """
 
 from __future__ import annotations
@@ -45,15 +47,13 @@ _models: dict = {}                # model path (None: bundled) -> loaded ModelBu
 
 def process_line(line, out_dir: str) -> dict:
     """Generate, key and export one manifest line in this (bpy) process, its outputs
-    written to a staging folder of its own; returns what the driver records and reports
-    (the outputs' final paths in `out_dir`, the staging folder). Raises DiffshegError for a
-    line that cannot be done."""
-    import shutil
-
+    staged beside their final names in `out_dir` under a name of this attempt's own;
+    returns what the driver records and reports (the outputs' final paths, the attempt's
+    name). Raises DiffshegError for a line that cannot be done."""
     import bpy
 
     import diffsheg_core
-    from diffsheg_core.manifest import staging_folder
+    from diffsheg_core.manifest import stage_name, staged_path
 
     from .bake import BakeOptions, bake_motion
     from .preset import AUTO, load_preset
@@ -69,17 +69,20 @@ def process_line(line, out_dir: str) -> dict:
                           max_face_error=line.max_face_error)
     motion = diffsheg_core.generate(str(line.audio), settings=replace(line.settings, model=_model(line.settings.model)))
     undo: list = []
-    staged = staging_folder(out_dir, line.id)
+    staged = stage_name(line.id)
+    finals = {kind: output_path(out_dir, line.id, kind) for kind in line.outputs}
+    paths = {kind: staged_path(out_dir, staged, final.name) for kind, final in finals.items()}
     try:
         result = bake_motion(scene, motion, str(line.audio), options, undo)
-        written = write_outputs(line, staged, scene, armature, faces, motion)
+        write_outputs(paths, scene, armature, faces, motion)
     except BaseException:
-        shutil.rmtree(staged, ignore_errors=True)
+        for path in paths.values():
+            path.unlink(missing_ok=True)
         raise
     finally:
         for step in reversed(undo):  # the character as it was, for the next line
             step()
-    return {"outputs": [str(Path(out_dir) / Path(p).name) for p in written], "staged": str(staged),
+    return {"outputs": [str(p) for p in finals.values()], "staged": staged,
             "frames": result.n_frames, "keys": result.n_keys, "worker": os.getpid(),
             "qc": _measure(line, motion, time.perf_counter() - started)}
 
@@ -134,13 +137,12 @@ def find_targets(scene, armature_name: str | None, face_names) -> tuple:
     return armature, faces
 
 
-def write_outputs(line, out_dir: Path, scene, armature, faces, motion) -> list[str]:
-    """Every output the line asks for, each written whole or not at all; their paths."""
+def write_outputs(paths: dict[str, Path], scene, armature, faces, motion) -> None:
+    """Each output of `paths` (kind -> where), written whole or not at all."""
     from diffsheg_core.motion import write_arkit_json, write_livelink_csv
 
     from .exports import export_fbx, export_glb
 
-    out_dir.mkdir(parents=True, exist_ok=True)
     writers = {
         "npz": lambda p: motion.save_npz(p),
         "arkit_json": lambda p: write_arkit_json(motion, p),
@@ -151,12 +153,9 @@ def write_outputs(line, out_dir: Path, scene, armature, faces, motion) -> list[s
         "blend": lambda p: _save_blend(p),
         "mp4": lambda p: _render_video(scene, p),
     }
-    written = []
-    for kind in line.outputs:
-        path = output_path(out_dir, line.id, kind)
+    for kind, path in paths.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
         writers[kind](path)
-        written.append(str(path))
-    return written
 
 
 def _save_blend(path: Path) -> None:
@@ -227,13 +226,14 @@ def run_manifest(manifest: Path, out_dir: Path, defaults: dict, address: str | N
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     ledger = Ledger(out_dir)
-    ledger.recover()  # what a killed driver or worker left
+    for problem in ledger.recover():  # what a killed driver or worker left
+        log(problem)
     rows = [qc.QcRow(id=line.id, status="skipped") for line in lines if ledger.done(line)]
     todo = [line for line in lines if not ledger.done(line)]
     log(f"{len(lines)} lines: {len(rows)} done before, {len(todo)} to do")
     if todo:
         rows += _run_on_ray(todo, out_dir, ledger, address, workers, log)
-        ledger.clean_staging()  # the staging folders of workers that died
+        ledger.clean_staging()  # what workers that died left
     qc.write_report(rows, out_dir)
     failed = sum(r.status == "failed" for r in rows)
     log(f"{sum(r.status == 'done' for r in rows)} done, {sum(r.status == 'skipped' for r in rows)} skipped "
@@ -261,11 +261,11 @@ def _run_on_ray(lines: list, out_dir: Path, ledger, address: str | None, workers
             line = pending.pop(ready[0])
             try:
                 result = ray.get(ready[0])
-            except Exception as exc:  # the line's own error, or its worker lost RETRIES times
-                rows.append(qc.QcRow(id=line.id, status="failed", error=_one_line(exc)))
+                ledger.commit(line, result["staged"], result["outputs"])
+            except Exception as exc:  # the line's own error, its worker lost RETRIES times, or an output
+                rows.append(qc.QcRow(id=line.id, status="failed", error=_one_line(exc)))  # not put in place
                 log(f"[{len(lines) - len(pending)}/{len(lines)}] {line.id}: failed: {rows[-1].error}")
                 continue
-            ledger.commit(line, Path(result["staged"]), result["outputs"])
             rows.append(result["qc"])
             log(f"[{len(lines) - len(pending)}/{len(lines)}] {line.id}: done, {result['frames']} frames, "
                 f"{result['keys']:,} keys, {rows[-1].seconds:.1f} s")

@@ -38,8 +38,7 @@ import hashlib
 import json
 import math
 import os
-import shutil
-import tempfile
+import secrets
 import time
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -504,17 +503,22 @@ class Ledger:
     """The lines done in a batch's output folder: `out_dir/done.jsonl`, one JSON object per
     line done ({"id", "key", "outputs", "time"}, and "staged"), appended and fsynced by the
     one driver process. A line is done when the ledger holds its id with its current key;
-    a torn last line (a driver killed mid-write) is ignored, so that line is redone.
+    a torn last line (a driver killed mid-write) is ignored, so that line is redone, and
+    a record with key null (`forget`) undoes the ones before it.
 
-    A line's outputs are written whole into a folder of its own under `out_dir/.staging`
-    (`staging_folder`), and `commit` records the line (naming that folder) before moving
-    its files into place: the record is the commit point. A driver killed before it leaves
-    no output of the line in `out_dir`; killed after it, the next driver's `recover`
-    finishes the moves. Either way every output in `out_dir` belongs to a line recorded
-    done, and `recover` removes what unfinished lines left in the staging folder."""
+    Each attempt at a line writes its outputs whole as hidden files beside their final
+    names in `out_dir` (`staged_path`: the same folder, so relative paths saved in a .blend
+    or an FBX resolve alike from both names), and `commit` records the line (naming the
+    attempt) before renaming its files into place: the record is the commit point. A
+    driver killed before it leaves no output of the line under its final name; killed
+    after it, the next driver's `recover` finishes the renames. Either way every output in
+    `out_dir` belongs to a line recorded done, and `recover` removes what unfinished
+    attempts left. An output that cannot be put in place (a folder at its name) fails its
+    line alone: recorded, it is put in place by the next run, or the line is forgotten and
+    done again there when it still cannot be."""
 
     NAME = "done.jsonl"
-    STAGING = ".staging"
+    STAGED = ".staged-"
 
     def __init__(self, out_dir):
         self.out_dir = Path(out_dir)
@@ -537,6 +541,8 @@ class Ledger:
                 continue  # blank, or torn by a kill: that line was not recorded
             if isinstance(line_id, str) and isinstance(key, str):
                 self._done[line_id] = entry
+            elif isinstance(line_id, str) and key is None:
+                self._done.pop(line_id, None)  # forgotten
 
     def key(self, line_id: str) -> Optional[str]:
         """The key the line was last recorded with; None if never."""
@@ -548,14 +554,25 @@ class Ledger:
         recorded = self.key(line.id)
         return recorded is not None and recorded == (key if key is not None else line_key(line))
 
-    def record(self, line: Line, outputs: Iterable, key: Optional[str] = None, staged: Optional[Path] = None) -> str:
-        """Record `line` as done with its `outputs` (paths; `staged`: the staging folder
-        they are still in, see `commit`); its key."""
+    def record(self, line: Line, outputs: Iterable, key: Optional[str] = None, staged: Optional[str] = None) -> str:
+        """Record `line` as done with its `outputs` (paths; `staged`: the attempt whose
+        staged files they still are, see `commit`); its key."""
         key = key if key is not None else line_key(line)
         entry = {"id": line.id, "key": key, "outputs": [str(o) for o in outputs],
                  "time": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         if staged is not None:
-            entry["staged"] = Path(staged).name
+            entry["staged"] = staged
+        self._append(entry)
+        self._done[line.id] = entry
+        return key
+
+    def forget(self, line_id: str) -> None:
+        """Record line `line_id` as not done (a null key), so the next check redoes it."""
+        self._append({"id": line_id, "key": None, "time": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+        self._done.pop(line_id, None)
+
+    def _append(self, entry: dict) -> None:
+        """Append `entry` as one JSON line and fsync it."""
         data = (json.dumps(entry, ensure_ascii=False) + "\n").encode("utf-8")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         try:
@@ -570,68 +587,77 @@ class Ledger:
         except OSError as exc:
             raise DiffshegError(f"the ledger '{self.path}' could not be written ({exc.strerror or exc}): "
                                 "free some disk space; the line will be redone next run") from None
-        self._done[line.id] = entry
-        return key
 
     def _ends_with_newline(self) -> bool:
         with open(self.path, "rb") as fh:
             fh.seek(-1, os.SEEK_END)
             return fh.read(1) == b"\n"
 
-    def commit(self, line: Line, staged: Path, outputs: Iterable, key: Optional[str] = None) -> str:
-        """Record `line` as done, then move its `outputs` (their final paths in `out_dir`)
-        from `staged`, the staging folder they were written whole to, into place; its key."""
+    def commit(self, line: Line, staged: str, outputs: Iterable, key: Optional[str] = None) -> str:
+        """Record `line` as done, then rename its `outputs` (their final paths in
+        `out_dir`) from the files attempt `staged` wrote them whole to into place; its key.
+        DiffshegError naming the output if one cannot be put in place (see `recover`)."""
         outputs = [Path(o) for o in outputs]
         key = self.record(line, outputs, key, staged=staged)
-        self._move_in_place(Path(staged), outputs)
+        self._move_in_place(staged, outputs)
         return key
 
-    def recover(self) -> None:
-        """Finish the moves of lines recorded before their driver was killed, then remove
-        what lines never recorded left in the staging folder (a killed driver's or worker's),
-        and the temporary files of writers killed mid-write (`.NAME.partial...`)."""
-        staging = self.out_dir / self.STAGING
-        if staging.is_dir():
-            for entry in self._done.values():
-                name = entry.get("staged")
-                if isinstance(name, str) and (staging / name).is_dir():
-                    self._move_in_place(staging / name, [Path(o) for o in entry["outputs"]])
+    def recover(self) -> list[str]:
+        """Finish the renames of lines recorded before they were done (a killed driver, an
+        output that could not be put in place); a line whose outputs still cannot be is
+        forgotten, to be done again. Then `clean_staging`. Returns one message per line
+        forgotten."""
+        problems = []
+        for line_id, entry in list(self._done.items()):
+            staged = entry.get("staged")
+            if not isinstance(staged, str):
+                continue
+            try:
+                self._move_in_place(staged, [Path(o) for o in entry["outputs"]])
+            except DiffshegError as exc:
+                self.forget(line_id)
+                problems.append(f"{line_id}: {exc}; doing the line again")
         self.clean_staging()
-        for tmp in self.out_dir.glob(".*.partial*"):
-            if tmp.is_file():
-                tmp.unlink(missing_ok=True)
+        return problems
 
     def clean_staging(self) -> None:
-        """Remove the staging folder and all in it (no line is under way)."""
-        try:
-            shutil.rmtree(self.out_dir / self.STAGING)
-        except FileNotFoundError:
-            pass
-        except OSError as exc:
-            raise DiffshegError(f"cannot remove the unfinished outputs in '{self.out_dir / self.STAGING}' "
-                                f"({exc.strerror or exc}): remove that folder by hand") from None
+        """Remove the staged files of attempts not recorded and the temporary files of
+        writers killed mid-write (`.NAME.partial...`); no line may be under way. The staged
+        files of recorded lines stay for `recover` to put in place."""
+        kept = tuple(f"{self.STAGED}{e['staged']}." for e in self._done.values() if isinstance(e.get("staged"), str))
+        for path in [*self.out_dir.glob(f"{self.STAGED}*"), *self.out_dir.glob(".*.partial*")]:
+            if path.name.startswith(kept) or not path.is_file():
+                continue
+            try:
+                path.unlink(missing_ok=True)
+            except OSError as exc:
+                raise DiffshegError(f"cannot remove the unfinished output '{path}' ({exc.strerror or exc}): "
+                                    "remove it by hand") from None
 
-    def _move_in_place(self, staged: Path, outputs: list[Path]) -> None:
-        """Each output found in `staged` to its place in `out_dir` (os.replace: atomic on
-        one file system), then the staging folder removed."""
-        try:
-            for output in outputs:
-                source = staged / output.name
-                if source.is_file():
-                    os.replace(source, self.out_dir / output.name)
-            shutil.rmtree(staged)
-        except OSError as exc:
-            raise DiffshegError(f"cannot move the outputs from '{staged}' into '{self.out_dir}' "
-                                f"({exc.strerror or exc}); they are recorded done and the next run "
-                                "puts them in place") from None
+    def _move_in_place(self, staged: str, outputs: list[Path]) -> None:
+        """Each output attempt `staged` wrote to its final name (os.replace: atomic)."""
+        for output in outputs:
+            source, target = staged_path(self.out_dir, staged, output.name), self.out_dir / output.name
+            if not source.is_file():
+                continue  # put in place before
+            try:
+                os.replace(source, target)
+            except OSError as exc:
+                raise DiffshegError(f"cannot put {output.name} in place in '{self.out_dir}' "
+                                    f"({exc.strerror or exc}): remove or rename what is at '{target}'; "
+                                    "the next run puts it there") from None
 
 
-def staging_folder(out_dir, line_id: str) -> Path:
-    """A new folder under `out_dir/.staging` for one attempt at line `line_id` to write its
-    outputs to (see Ledger); each attempt has its own, so a retried line starts clean."""
-    root = Path(out_dir) / Ledger.STAGING
-    root.mkdir(parents=True, exist_ok=True)
-    return Path(tempfile.mkdtemp(prefix=f"{line_id}.", dir=root))
+def stage_name(line_id: str) -> str:
+    """A new name for one attempt at line `line_id` to stage its outputs under (see
+    Ledger); each attempt has its own, so a retried line starts clean."""
+    return f"{line_id}.{secrets.token_hex(6)}"
+
+
+def staged_path(out_dir, staged: str, name: str) -> Path:
+    """Where attempt `staged` writes the output `out_dir/name` before it is put in place:
+    a hidden file in the same folder."""
+    return Path(out_dir) / f"{Ledger.STAGED}{staged}.{name}"
 
 
 def with_settings(line: Line, **changes) -> Line:

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from diffsheg_core.manifest import OUTPUTS, Ledger, Line, ManifestError, line_key, read_manifest, with_settings
+from diffsheg_core.errors import DiffshegError
+from diffsheg_core.manifest import (OUTPUTS, Ledger, Line, ManifestError, line_key, read_manifest, stage_name,
+                                   staged_path, with_settings)
 from diffsheg_core.settings import GenerateSettings
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
@@ -194,6 +196,44 @@ def test_the_ledger_skips_done_lines_redoes_changed_ones_and_survives_a_torn_las
     assert not Ledger(out).done(first)  # its audio changed: redo
     ledger.record(first, [])
     assert Ledger(out).done(first)      # the latest record of an id wins
+
+
+def test_an_output_that_cannot_be_put_in_place_is_put_there_next_run_or_the_line_redone(project):
+    """Staged beside their final names; a folder at one output's name fails the commit by
+    name, the line stays recorded and its staged file kept; the next run's recovery puts it
+    in place, or (still blocked) forgets the line so it is done again; unrecorded attempts'
+    staged files and partial files are removed."""
+    out = project / "out"
+    out.mkdir()
+    line = line_of(project, SPEECH)
+    finals = [out / "l1.blend", out / "l1.npz"]
+    attempt, dead = stage_name("l1"), stage_name("l1")
+    assert attempt != dead
+    for name, staged in ((f.name, s) for f in finals for s in (attempt, dead)):
+        staged_path(out, staged, name).write_bytes(f"{staged} {name}".encode())
+        assert staged_path(out, staged, name).parent == out  # beside the final name
+    (out / ".l1.partial.blend").write_bytes(b"torn")
+    (out / "l1.npz").mkdir()  # something in the way of one output
+    ledger = Ledger(out)
+    with pytest.raises(DiffshegError, match=r"cannot put l1.npz in place .*Is a directory.*the next run puts it"):
+        ledger.commit(line, attempt, finals)
+    assert ledger.done(line) and (out / "l1.blend").read_bytes() == f"{attempt} l1.blend".encode()
+    ledger.clean_staging()  # the end of the run: the recorded attempt's file stays, the dead one's goes
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".staged-")) == \
+        [staged_path(out, attempt, "l1.npz").name]
+
+    problems = Ledger(out).recover()  # still blocked: forgotten, to be done again
+    assert len(problems) == 1 and problems[0].startswith("l1: cannot put l1.npz") and "again" in problems[0]
+    assert not Ledger(out).done(line)
+    assert sorted(p.name for p in out.iterdir()) == ["done.jsonl", "l1.blend", "l1.npz"]  # nothing staged
+    # done again, blocked again; the folder removed, the next run puts the output in place
+    staged_path(out, attempt, "l1.npz").write_bytes(b"again")
+    with pytest.raises(DiffshegError):
+        Ledger(out).commit(line, attempt, finals)
+    (out / "l1.npz").rmdir()
+    assert Ledger(out).recover() == []
+    assert Ledger(out).done(line) and (out / "l1.npz").read_bytes() == b"again"
+    assert sorted(p.name for p in out.iterdir()) == ["done.jsonl", "l1.blend", "l1.npz"]
 
 
 def test_the_output_kinds():

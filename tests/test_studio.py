@@ -9,7 +9,9 @@ exit code 1; a rerun skips the five and rewrites nothing; a worker killed in the
 of a line is retried and the batch ends with the outputs of a one-worker run; a driver
 killed (SIGKILL) in the middle of the batch leaves only outputs of lines recorded done,
 its Ray dies with it, and the next run does the rest, to the outputs of the batch that ran
-through."""
+through; a line's .blend finds the character's textures by their relative paths; a folder in
+the way of one output fails that line alone, and once it is gone the next run puts the
+output in place."""
 
 from __future__ import annotations
 
@@ -53,6 +55,12 @@ stamps > again.stamps
 batch slow.csv killed --ray-address 127.0.0.1:$PORT > killed_run.log 2>&1; echo $? > killed.rc
 wait
 batch slow.csv one --workers 1 > one.log 2>&1; echo $? > one.rc
+mkdir -p blocked/b0.csv
+for run in blocked still_blocked unblocked; do
+  [ $run = unblocked ] && rmdir blocked/b0.csv
+  batch two.csv blocked --ray-address 127.0.0.1:$PORT > $run.log 2>&1; echo $? > $run.rc
+  cp blocked/report.csv $run.report.csv
+done
 ray stop --force > ray_stop.log 2>&1
 "$PYTHON" kill_driver.py > driver_kill.log 2>&1; echo $? > driver_kill.rc
 """
@@ -175,7 +183,14 @@ def studio(tmp_path_factory):
     reset_scene(fps=24)
     import_beat_armature()
     append_face()
+    (work / "tex").mkdir()
+    skin = bpy.data.images.new("skin", 4, 4)
+    skin.filepath_raw, skin.file_format = str(work / "tex" / "skin.png"), "PNG"
+    skin.save()
+    skin.use_fake_user = True
     bpy.ops.wm.save_as_mainfile(filepath=str(work / "character.blend"))
+    skin.filepath = "//tex/skin.png"  # relative to the character's folder
+    bpy.ops.wm.save_mainfile()
     audio = work / "audio"
     audio.mkdir()
     for i in range(6):
@@ -188,6 +203,9 @@ def studio(tmp_path_factory):
     cut_speech(audio, seconds=8.0, source=SPEECH_2, offset=4.0, name="long2.wav")
     (work / "slow.csv").write_text("id,audio,seed,blend,preset,outputs\n"
                                    f"slow1,audio/long1.wav,7,{character}\nslow2,audio/long2.wav,8,{character}\n")
+    (work / "two.csv").write_text("id,audio,seed,blend,preset,outputs\n"
+                                  "b0,audio/l0.wav,1,character.blend,beat,npz;csv\n"
+                                  "b1,audio/l1.wav,2,character.blend,beat,npz;csv\n")
     (work / "kill_one_worker.py").write_text(KILLER)
     (work / "kill_driver.py").write_text(DRIVER_KILLER)
     (work / "scenario.sh").write_text(SCENARIO)
@@ -288,9 +306,11 @@ def test_a_killed_driver_leaves_only_done_lines_and_the_next_run_resumes(studio)
     ledger = [json.loads(l) for l in report["ledger_after_kill"].splitlines()]
     assert [e["id"] for e in ledger] == done
     outputs = {Path(o).name for e in ledger for o in e["outputs"]}
-    visible = {f for f in report["after_kill"] if not f.startswith(".staging/")}
+    visible = {f for f in report["after_kill"] if not f.startswith(".")}
     assert visible - {"done.jsonl"} <= outputs, visible - outputs
-    staged = {f.split("/")[-1] for f in report["after_kill"] if f.startswith(".staging/")}
+    hidden = {f for f in report["after_kill"] if f.startswith(".")}  # staged, or a staged file's temporary
+    assert all(f.startswith((".staged-", "..staged-")) for f in hidden), hidden
+    staged = {f.split(".", 3)[3] for f in hidden if f.startswith(".staged-")}  # .staged-<id>.<hex>.<name>
     for e in ledger:  # recorded = every output in place (or, killed between the record and
         for o in e["outputs"]:  # the moves, still staged: the next run moves it)
             assert Path(o).name in visible or Path(o).name in staged, (e["id"], o)
@@ -324,3 +344,37 @@ def test_a_killed_driver_leaves_only_done_lines_and_the_next_run_resumes(studio)
             for member in a.files:
                 assert a[member].tobytes() == b[member].tobytes(), (i, member)
     assert not list(out.glob("line2*"))
+
+
+def test_a_lines_blend_finds_the_characters_textures(studio):
+    """The character's image by a path relative to its .blend (//tex/skin.png): the line's
+    .blend, saved in another folder, still finds it."""
+    bpy.ops.wm.open_mainfile(filepath=str(studio / "first" / "line0.blend"))
+    skin = bpy.data.images["skin"]
+    assert skin.filepath.startswith("//"), skin.filepath
+    assert Path(bpy.path.abspath(skin.filepath)).resolve() == (studio / "tex" / "skin.png").resolve()
+    assert Path(bpy.path.abspath(skin.filepath)).is_file()
+
+
+def test_an_output_that_cannot_be_put_in_place_fails_its_line_alone(studio):
+    """A folder at b0.csv: b0 fails with that error and b1 is done; the next run (still
+    blocked) does b0 again, to the same error; the folder removed, the run after puts b0.csv
+    in place and everything is done."""
+    log = _log(studio, "blocked")
+    assert _rc(studio, "blocked") == 1, log[-2000:]
+    assert log.strip().splitlines()[-1].startswith("1 done, 0 skipped (done before), 1 failed"), log[-2000:]
+    assert "b0: failed: cannot put b0.csv in place" in log and "Is a directory" in log, log[-2000:]
+    row = next(r for r in (studio / "blocked.report.csv").read_text().splitlines() if r.startswith("b0,"))
+    assert "failed" in row and "b0.csv" in row, row
+    log = _log(studio, "still_blocked")
+    assert _rc(studio, "still_blocked") == 1, log[-2000:]
+    assert "b0: cannot put b0.csv in place" in log and "2 lines: 1 done before, 1 to do" in log, log[-2000:]
+    assert log.strip().splitlines()[-1].startswith("0 done, 1 skipped (done before), 1 failed"), log[-2000:]
+    log = _log(studio, "unblocked")
+    assert _rc(studio, "unblocked") == 0, log[-2000:]
+    assert "2 lines: 2 done before, 0 to do" in log, log[-2000:]
+    out = studio / "blocked"
+    for name in ("b0.npz", "b0.csv", "b1.npz", "b1.csv"):
+        assert (out / name).is_file() and (out / name).stat().st_size, name
+    assert (out / "b0.csv").read_text().splitlines()[0] == (out / "b1.csv").read_text().splitlines()[0]
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]
