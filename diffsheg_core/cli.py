@@ -61,11 +61,11 @@ def run_generate(args: argparse.Namespace) -> int:
     audio_path = args.audio or str(SAMPLE_SPEECH)
     if args.audio is None:
         print(f"no audio given: using the bundled sample speech {SAMPLE_SPEECH}")
+    check_outputs([args.output, args.bvh, args.arkit_json, args.csv, args.talkshow],
+                  inputs=[audio_path, *files_read(args.model, args.stats, args.hubert)])
     if Path(args.output).suffix.lower() != ".npz":
         raise DiffshegError(f"-o/--output writes the motion as .npz, not {Path(args.output).name}: give a .npz "
                             "there, and --bvh, --arkit-json, --csv or --talkshow for the other formats")
-    check_outputs([args.output, args.bvh, args.arkit_json, args.csv, args.talkshow],
-                  inputs=[audio_path, *files_read(args.model, args.stats, args.hubert)])
     started = time.perf_counter()
     settings = from_arguments(args)  # every option checked before the model loads
     speech = open_speech(audio_path)  # checked now, read piece by piece while generating
