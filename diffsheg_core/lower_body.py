@@ -30,17 +30,18 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass, replace
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
 from .errors import DiffshegError
-from .kinematics import wrist_positions
+from .kinematics import rest_offsets, wrist_positions
 from .leg_ik import pin_goals, two_bone
 from .motion import Motion, smooth_frames
 from .rotations import (axis_angle_to_quaternion, convert, matrix_to_axis_angle, quaternion_conjugate,
                         quaternion_product, quaternion_sequence_continuous, quaternion_to_axis_angle,
-                        resample_positions, slerp_resample)
+                        resample_positions, resample_weights, slerp_resample)
 
 JOINTS = ("Hips", "RightUpLeg", "RightLeg", "RightFoot", "RightToeBase",
           "LeftUpLeg", "LeftLeg", "LeftFoot", "LeftToeBase")
@@ -65,18 +66,15 @@ MIN_CONTACT = 4         # frames: a shorter low, slow stretch is a step, not a c
 REACH_SLACK = 0.004     # m a pinned ankle may lie beyond the straight leg (IK stops 4 mm short)
 
 
-def _skeleton_offsets() -> dict[str, np.ndarray]:
-    """The BEAT skeleton's leg offsets in metres (the canonical body)."""
-    from .bvh import beat_skeleton
-
-    skeleton = beat_skeleton()
-    return {n: skeleton.offsets[i].astype(np.float64) / 100.0 for i, n in enumerate(skeleton.joint_names)}
+@lru_cache(maxsize=None)
+def _offsets() -> dict[str, np.ndarray]:
+    """The BEAT skeleton's joint offsets in metres (the canonical body)."""
+    return {name: offset / 100.0 for name, offset in rest_offsets("beat").items()}
 
 
 def _hips_height() -> float:
     """Rest height of the hips above the floor (the sole, at the fore-foot) in metres."""
-    off = _skeleton_offsets()
-    return float(-sum(off[j][1] for j in ("RightLeg", "RightFoot", "RightForeFoot")))
+    return float(-sum(_offsets()[j][1] for j in ("RightLeg", "RightFoot", "RightForeFoot")))
 
 
 @dataclass(frozen=True)
@@ -126,8 +124,7 @@ def read_capture(path: Path, fps: float) -> tuple[np.ndarray, np.ndarray, Motion
     joints = poses.reshape(len(poses), -1, 3)
     n = len(resample_positions(len(poses), rate, fps))
     rotations = slerp_resample(joints, rate, fps, n)
-    trans = np.stack([np.interp(resample_positions(len(poses), rate, fps, n), np.arange(len(trans)), trans[:, k])
-                      for k in range(3)], axis=1)
+    trans = resample_weights(trans, rate, fps, "linear", n)
     # face +z on average: turn the world about y by minus the pelvis's mean heading
     forward = _apply(axis_angle_to_quaternion(rotations[:, 0]), np.array([0.0, 0.0, 1.0]))
     heading = float(np.arctan2(forward[:, 0].mean(), forward[:, 2].mean()))
@@ -185,7 +182,7 @@ def _apply(q: np.ndarray, v: np.ndarray) -> np.ndarray:
 def _world(lower: np.ndarray, trans: np.ndarray) -> dict:
     """World rotations (T, 4) and positions (T, 3) of every lower joint, the fore-foot
     (sole) and the toe's end, on the canonical body standing on the floor y = 0."""
-    off = _skeleton_offsets()
+    off = _offsets()
     q = axis_angle_to_quaternion(lower)
     hips = q[:, JOINTS.index("Hips")]
     trans = trans + np.array([0.0, _hips_height(), 0.0])  # the floor at y = 0
@@ -206,15 +203,22 @@ def _world(lower: np.ndarray, trans: np.ndarray) -> dict:
 
 def foot_positions(lower: np.ndarray, trans: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """{"right"/"left": ((T, 3) ankle, (T, 3) sole)} world positions on the canonical body."""
-    world = _world(lower, trans)
+    return _feet(_world(lower, trans))
+
+
+def _feet(world: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     return {side: (world[f"{p}Foot"][1], world[f"{p}Sole"][1]) for side, p in (("right", "Right"), ("left", "Left"))}
 
 
 def contacts(lower: np.ndarray, trans: np.ndarray, fps: float) -> dict[str, list[tuple[int, int]]]:
     """Per foot, the [first, last] frame spans in which it is on the floor: its sole within
     CONTACT_HEIGHT of the floor (y = 0) and its ankle slower than CONTACT_SPEED."""
+    return _contacts(_world(lower, trans), fps)
+
+
+def _contacts(world: dict, fps: float) -> dict[str, list[tuple[int, int]]]:
     spans = {}
-    for side, (ankle, sole) in foot_positions(lower, trans).items():
+    for side, (ankle, sole) in _feet(world).items():
         speed = np.linalg.norm(np.diff(ankle, axis=0, prepend=ankle[:1]), axis=-1) * fps
         down = (sole[:, 1] < CONTACT_HEIGHT) & (speed < CONTACT_SPEED)
         spans[side] = [(a, b) for a, b in _runs(down) if b - a + 1 >= MIN_CONTACT]
@@ -243,9 +247,10 @@ def plant_feet(lower: np.ndarray, trans: np.ndarray, fps: float) -> tuple[np.nda
     and out over EASE frames) by two-bone IK on each leg (leg_ik); returns it and the spans
     pinned. A span is pinned where its foot stood in the middle of it; frames where the leg
     cannot reach that spot split it (the foot steps there)."""
-    spans = contacts(lower, trans, fps)
-    world = {name: (convert(q, "quaternion", "matrix"), pos) for name, (q, pos) in _world(lower, trans).items()}
-    off = _skeleton_offsets()
+    world = _world(lower, trans)
+    spans = _contacts(world, fps)
+    world = {name: (convert(q, "quaternion", "matrix"), pos) for name, (q, pos) in world.items()}
+    off = _offsets()
     hips = world["Hips"][0]
     out, pinned = lower.copy(), {}
     for side, (up, knee, foot) in LEGS.items():
@@ -343,7 +348,7 @@ def add_lower_body(motion: Motion, seed: int, library: LowerBodyLibrary | None =
     if motion.rig not in LAYOUTS:
         raise DiffshegError(f"the lower body is known for the {', '.join(LAYOUTS)} layout, not '{motion.rig}': "
                             "generate with upper_body_only")
-    library = library or LowerBodyLibrary.load()
+    library = library or _bundled_library()
     if abs(library.fps - motion.fps) > 1e-6:
         raise DiffshegError(f"the lower-body library runs at {library.fps:g} fps, the motion at {motion.fps:g}")
     lower, trans = sample(library, arm_energy(motion), seed)
@@ -353,6 +358,12 @@ def add_lower_body(motion: Motion, seed: int, library: LowerBodyLibrary | None =
                    root_translation=trans.astype(np.float32),
                    meta={**motion.meta, "hips_height": _hips_height(),
                          "contacts": {side: [list(s) for s in v] for side, v in spans.items()}})
+
+
+@lru_cache(maxsize=1)
+def _bundled_library() -> LowerBodyLibrary:
+    """The library shipped with the package, read once per process (batches generate many takes)."""
+    return LowerBodyLibrary.load()
 
 
 def upper_body(motion: Motion) -> Motion:
