@@ -24,7 +24,6 @@ numpy only: it runs inside Blender.
 
 from __future__ import annotations
 
-import math
 import numbers
 from dataclasses import dataclass, field, replace
 
@@ -66,10 +65,6 @@ EMOTIONS: dict[str, Emotion] = {
 }
 NAMES = tuple(EMOTIONS)
 """The emotions, in the order of an emotion track's columns."""
-
-EmotionSpec = "str | dict[str, float]"
-"""An emotion: a name ('happy'), a name at an intensity ('happy=0.6'), or intensities of a
-mix ({'happy': 0.5, 'surprised': 0.3}); intensities from 0 to 1, adding up to at most 1."""
 
 EASE_S = 0.15        # Gaussian sigma of a change of emotion: eased in over about 0.35 s
 POSTURE_S = 0.5      # Gaussian sigma of the slow posture the energy scales movement around
@@ -120,20 +115,6 @@ def parse_emotion(text: str) -> dict[str, float]:
         except ValueError:
             raise DiffshegError(f"emotion {part.strip()!r} is not name=intensity (happy=0.6)") from None
     return out
-
-
-def check_emotion_at(changes) -> tuple[tuple[float, dict[str, float]], ...] | None:
-    """Emotion changes as ((seconds, {name: intensity}), ...) sorted by time; None for none."""
-    try:
-        items = [(float(t), check_emotion(spec))
-                 for t, spec in (changes.items() if isinstance(changes, dict) else changes)]
-    except (TypeError, ValueError):
-        raise DiffshegError(f"emotion_at must be (seconds, emotion) pairs, e.g. ((0, 'calm'), (12.5, 'sad')), "
-                            f"got {changes!r}") from None
-    times = [t for t, _ in items]
-    if any(not math.isfinite(t) or t < 0 for t in times) or len(set(times)) != len(times):
-        raise DiffshegError(f"emotion_at needs distinct times in seconds >= 0, got {sorted(times)}")
-    return tuple(sorted(items, key=lambda item: item[0])) or None
 
 
 def emotion_track(emotion: dict[str, float] | None, changes, n_frames: int, fps: float) -> np.ndarray | None:

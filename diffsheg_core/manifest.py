@@ -44,11 +44,11 @@ from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Collection, Iterable, Iterator, Mapping, Optional
 
-from .emotion import check_emotion, check_emotion_at
+from .emotion import check_emotion
 from .errors import DiffshegError
 from .settings import (
-    _NUMBERS as settings_numbers, GenerateSettings, _check_style, _check_style_at, check_number, parse_style,
-    parse_emotion_at, parse_style_at, parse_whole,
+    _NUMBERS as settings_numbers, GenerateSettings, _check_emotion_at, _check_style, _check_style_at, check_number,
+    parse_emotion_at, parse_style, parse_style_at, parse_whole,
 )
 
 OUTPUTS = ("blend", "fbx_unreal", "fbx_unity", "glb", "npz", "arkit_json", "csv", "mp4")
@@ -386,7 +386,7 @@ def _parse(name: str, value, folder: Path):
     if name == "emotion":
         return check_emotion(value)
     if name == "emotion_at":
-        return check_emotion_at(_argument(parse_emotion_at, value) if isinstance(value, str) else value)
+        return _check_emotion_at(_argument(parse_emotion_at, value) if isinstance(value, str) else value)
     if name in _NUMBERS:
         return _number(name, value)
     raise DiffshegError(f"unknown column {name}")

@@ -90,19 +90,29 @@ def _check_style(style) -> StyleSpec:
     return style
 
 
-def _check_style_at(changes) -> tuple[tuple[float, StyleSpec], ...] | None:
-    """Style changes as ((seconds, style), ...) sorted by time, each time a number >= 0 given
-    once; None for none."""
+def _check_changes(changes, name: str, check, example: str) -> tuple | None:
+    """Changes of `name` over time as ((seconds, check(value)), ...) sorted by time, each time
+    a number >= 0 given once; None for none."""
     try:
-        items = [(check_number("style change time (seconds)", t, (0.0, math.inf)), _check_style(style))
-                 for t, style in (changes.items() if isinstance(changes, dict) else changes)]
+        items = [(check_number(f"{name} change time (seconds)", t, (0.0, math.inf)), check(value))
+                 for t, value in (changes.items() if isinstance(changes, dict) else changes)]
     except (TypeError, ValueError):
-        raise DiffshegError(f"style_at must be (seconds, style) pairs, e.g. ((0, 'calm'), (12.5, 'animated')), "
-                            f"got {changes!r}") from None
+        raise DiffshegError(f"{name}_at must be (seconds, {name}) pairs, e.g. {example}, got {changes!r}") from None
     times = [t for t, _ in items]
     if len(set(times)) != len(times):
-        raise DiffshegError(f"style_at gives a style twice for the same time: {sorted(times)}")
+        raise DiffshegError(f"{name}_at gives {'an' if name[0] in 'aeiou' else 'a'} {name} twice for the same "
+                            f"time: {sorted(times)}")
     return tuple(sorted(items, key=lambda item: item[0])) or None
+
+
+def _check_style_at(changes) -> tuple[tuple[float, StyleSpec], ...] | None:
+    return _check_changes(changes, "style", _check_style, "((0, 'calm'), (12.5, 'animated'))")
+
+
+def _check_emotion_at(changes) -> tuple[tuple[float, dict], ...] | None:
+    from .emotion import check_emotion  # numpy: only where an emotion is asked for
+
+    return _check_changes(changes, "emotion", check_emotion, "((0, 'happy'), (12.5, 'sad'))")
 
 
 @dataclass(frozen=True)
@@ -141,13 +151,12 @@ class GenerateSettings:
             self._set("style", _check_style(self.style))
         if self.style_at is not None:
             self._set("style_at", _check_style_at(self.style_at))
-        if self.emotion is not None or self.emotion_at is not None:
-            from .emotion import check_emotion, check_emotion_at  # numpy: only where an emotion is asked for
+        if self.emotion is not None:
+            from .emotion import check_emotion  # numpy: only where an emotion is asked for
 
-            if self.emotion is not None:
-                self._set("emotion", check_emotion(self.emotion) or None)
-            if self.emotion_at is not None:
-                self._set("emotion_at", check_emotion_at(self.emotion_at))
+            self._set("emotion", check_emotion(self.emotion) or None)
+        if self.emotion_at is not None:
+            self._set("emotion_at", _check_emotion_at(self.emotion_at))
         if not isinstance(self.upper_body_only, bool):
             raise DiffshegError(f"upper_body_only must be True or False, got {self.upper_body_only!r}")
         _check_choice("device", self.device, DEVICES)
