@@ -22,6 +22,7 @@ import numpy as np
 from diffsheg_core.bvh import beat_skeleton
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.leg_ik import swing
+from diffsheg_core.lower_body import JOINTS as LOWER_JOINTS, LEGS, canonical_leg_length
 from diffsheg_core.motion import Motion
 from diffsheg_core.rigs import SMPLX_JOINTS, SMPLX_PARENTS
 from diffsheg_core.rotations import axis_angle_to_matrix, convert, quaternion_sequence_continuous
@@ -61,11 +62,9 @@ ALIGN: dict[str, tuple[tuple[float, float, float], str]] = {
 LEVEL: frozenset[str] = frozenset({"RightFoot", "LeftFoot"})
 
 # The legs of the `beat` layout, (thigh, shin, foot) per side, and the root joint whose
-# translation (Motion.root_translation) moves the body.
-LEGS: dict[str, tuple[str, str, str]] = {"right": ("RightUpLeg", "RightLeg", "RightFoot"),
-                                         "left": ("LeftUpLeg", "LeftLeg", "LeftFoot")}
-ROOT = "Hips"
-LOWER_BODY: frozenset[str] = frozenset({ROOT, *(j for leg in LEGS.values() for j in leg), "RightToeBase", "LeftToeBase"})
+# translation (Motion.root_translation) moves the body: the core's lower body.
+ROOT = LOWER_JOINTS[0]
+LOWER_BODY: frozenset[str] = frozenset(LOWER_JOINTS)
 """Joints turned about level axes (the world's up), so the feet stay on the floor of a rig
 whose spine leans otherwise than the model's."""
 
@@ -241,19 +240,6 @@ def _leg_rigs(bones, chains: dict, sources: dict, axes: np.ndarray) -> list[LegR
 def leg_length(leg: LegRig) -> float:
     """Thigh and shin of a rig's leg together, hip to ankle at rest (armature units)."""
     return float(np.linalg.norm(leg.heads[2] - leg.heads[1]) + np.linalg.norm(leg.heads[3] - leg.heads[2]))
-
-
-def canonical_leg_length(hips_height: float) -> float:
-    """Thigh and shin of the canonical body whose hips rest `hips_height` metres above the
-    floor: the BEAT skeleton's in proportion, its floor at its lowest joint (the fore-foot)."""
-    skeleton = beat_skeleton()
-    offsets = np.asarray(skeleton.offsets, dtype=np.float64)
-    heights = np.zeros(len(offsets))
-    for i, parent in enumerate(skeleton.parents):  # parents come before their children
-        heights[i] = (heights[parent] if parent >= 0 else 0.0) + offsets[i, 1]
-    names = list(skeleton.joint_names)
-    leg = sum(np.linalg.norm(offsets[names.index(j)]) for j in LEGS["right"][1:])
-    return float(hips_height * leg / (heights[names.index(ROOT)] - heights.min()))
 
 
 def _root_target(bones, chains: dict, sources: dict, axes: np.ndarray, legs: list[LegRig], motion: Motion,

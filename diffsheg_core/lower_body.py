@@ -77,6 +77,13 @@ def _hips_height() -> float:
     return float(-sum(_offsets()[j][1] for j in ("RightLeg", "RightFoot", "RightForeFoot")))
 
 
+def canonical_leg_length(hips_height: float) -> float:
+    """Thigh and shin (hip to ankle) of the canonical body in proportion to one whose hips
+    rest `hips_height` metres above the floor (a Motion's meta "hips_height")."""
+    off = _offsets()
+    return float(hips_height * (np.linalg.norm(off["RightLeg"]) + np.linalg.norm(off["RightFoot"])) / _hips_height())
+
+
 @dataclass(frozen=True)
 class LowerBodyLibrary:
     """The capture's lower body to cut segments from, at `fps`: rotations (N, 9, 3),

@@ -187,7 +187,8 @@ def test_whole_body_take_plants_the_feet_on_every_rig(rig_name, speech_take, req
     from blender_addon.bake import BakeOptions, bake_motion, metres_per_unit
     from blender_addon.feet import scene_spans
     from blender_addon.preset import load_preset
-    from blender_addon.retarget import canonical_leg_length, leg_length, map_armature
+    from blender_addon.retarget import leg_length, map_armature
+    from diffsheg_core.lower_body import canonical_leg_length
 
     preset_name, build = RIGS[rig_name]
     reset_scene(24.0)
