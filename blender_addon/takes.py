@@ -158,10 +158,25 @@ def sequence_strip_at(anim, frame: float):
     return None
 
 
-def _sequence_strip_of(id_data, action):
+def _sequence_strips(id_data) -> list:
+    """The strips of `id_data`'s sound-strips tracks (none where it has no animation)."""
     anim = getattr(id_data, "animation_data", None)
-    tracks = _sequence_tracks(anim) if anim is not None else []
-    return next((s for t in tracks for s in t.strips if s.action == action), None)
+    return [s for t in (_sequence_tracks(anim) if anim is not None else []) for s in t.strips]
+
+
+def _sequence_strip_of(id_data, action):
+    return next((s for s in _sequence_strips(id_data) if s.action == action), None)
+
+
+def _keep_active(anim, undo: list) -> None:
+    """Add to `undo` the step that puts `anim`'s active Action (and slot) back as they are now."""
+    action, slot = anim.action, getattr(anim, "action_slot", None)
+
+    def restore() -> None:
+        anim.action = action
+        if slot is not None:
+            anim.action_slot = slot
+    undo.append(restore)
 
 
 def nla_strip(track, name: str, action, slot=None):
@@ -195,8 +210,8 @@ def play_in_sequence(id_data, name: str, undo: list) -> None:
     strip = nla_strip(track, name, action, slot)
     strip.extrapolation = "HOLD_FORWARD" if track == _sequence_tracks(anim)[0] else "NOTHING"
     undo.append(lambda: track.strips.remove(strip))
+    _keep_active(anim, undo)
     anim.action = None
-    undo.append(lambda: assign(id_data, action))
 
 
 def _remove_strip(track, strip, undo: list) -> None:
@@ -212,19 +227,12 @@ def _remove_strip(track, strip, undo: list) -> None:
 def push_to_nla(anim, action, undo: list) -> None:
     """Keep the animator's `action` playing from an NLA track of its own (it is no take, so
     it has no fake user: unassigned, it would be lost on save); `undo` gets the step back."""
-    slot = getattr(anim, "action_slot", None)
+    _keep_active(anim, undo)
     track = anim.nla_tracks.new()
     track.name = action.name
-    nla_strip(track, action.name, action, slot)
+    undo.append(lambda: anim.nla_tracks.remove(track))
+    nla_strip(track, action.name, action, getattr(anim, "action_slot", None))
     anim.action = None
-
-    def restore() -> None:
-        anim.nla_tracks.remove(track)
-        anim.action = action
-        if slot is not None:
-            anim.action_slot = slot
-
-    undo.append(restore)
 
 
 def replace_playing(id_data, old, new, undo: list) -> None:
@@ -234,14 +242,8 @@ def replace_playing(id_data, old, new, undo: list) -> None:
     anim = id_data.animation_data_create()
     strip = _sequence_strip_of(id_data, old) if anim.action is None else None
     if strip is None:
-        previous, previous_slot = anim.action, getattr(anim, "action_slot", None)
+        _keep_active(anim, undo)
         assign(id_data, new)
-
-        def restore_active() -> None:
-            anim.action = previous
-            if previous_slot is not None:
-                anim.action_slot = previous_slot
-        undo.append(restore_active)
         return
     slot = getattr(strip, "action_slot", None)
     strip.action = new
@@ -259,8 +261,7 @@ def check_in_place(id_data, take: str) -> None:
     """Refuse where `id_data` plays take `take` from a sound-strips strip that no longer
     plays it at its own frames (moved, scaled or repeated in the NLA): regenerating a range
     maps scene frames to the take's."""
-    anim = getattr(id_data, "animation_data", None)
-    for strip in (s for t in (_sequence_tracks(anim) if anim is not None else []) for s in t.strips):
+    for strip in _sequence_strips(id_data):
         if not is_take(strip.action) or strip.action[TAKE] != take:
             continue
         first, last = strip.action.frame_range
