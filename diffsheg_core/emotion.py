@@ -129,7 +129,7 @@ def emotion_track(emotion: dict[str, float] | None, changes, n_frames: int, fps:
         track[min(n_frames, int(round(t * fps))):] = row
     if not track.any():
         return None
-    return _smooth(track, EASE_S * fps)
+    return smooth_frames(track, EASE_S * fps)
 
 
 def take_emotion(motion: Motion) -> np.ndarray | None:
@@ -229,15 +229,15 @@ def _body(motion: Motion, track: np.ndarray, inverse: bool = False) -> np.ndarra
     q = quaternion_sequence_continuous(axis_angle_to_quaternion(motion.rotations.astype(np.float64)))
     if inverse:
         q = _pitched(motion, q, head, chest, sign)
-    slow = _smooth(q, POSTURE_S * motion.fps)
+    slow = smooth_frames(q, POSTURE_S * motion.fps)
     slow /= np.linalg.norm(slow, axis=-1, keepdims=True)
     movement = quaternion_to_axis_angle(quaternion_product(quaternion_conjugate(slow), q))  # (T, J, 3) around the posture
     gain, sharp = energy[:, None, None], sharpness[:, None, None]
     if inverse:  # x = gain ((1 + sharp) m - sharp blur(m))  =>  m ~ (x / gain + sharp blur(x / gain)) / (1 + sharp)
         x = movement / gain
-        movement = (x + sharp * _smooth(x, STROKE_FRAMES)) / (1.0 + sharp)
+        movement = (x + sharp * smooth_frames(x, STROKE_FRAMES)) / (1.0 + sharp)
     else:
-        movement = gain * (movement + sharp * (movement - _smooth(movement, STROKE_FRAMES)))
+        movement = gain * (movement + sharp * (movement - smooth_frames(movement, STROKE_FRAMES)))
     out = quaternion_product(slow, axis_angle_to_quaternion(movement))
     if not inverse:
         out = _pitched(motion, out, head, chest, sign)
@@ -259,7 +259,3 @@ def _pitch(angle: np.ndarray) -> np.ndarray:
     """(T, 4) quaternions (w, x, y, z) turning about x, the canonical nod (z forward, y up):
     positive looks down."""
     return np.stack([np.cos(angle / 2), np.sin(angle / 2), np.zeros_like(angle), np.zeros_like(angle)], axis=-1)
-
-
-def _smooth(values: np.ndarray, sigma: float) -> np.ndarray:
-    return smooth_frames(values, sigma) if sigma > 0 and len(values) > 1 else values.astype(np.float64)
