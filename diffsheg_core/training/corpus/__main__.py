@@ -26,6 +26,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="synthesisers to use, comma-separated (default espeak,festival,flite; "
                         "each must be installed)")
     b.add_argument("--text", type=Path, nargs="*", help="text files instead of Debian's fortunes")
+    b.add_argument("--languages", default="",
+                   help="other languages espeak-ng speaks into the corpus, comma-separated codes or "
+                        "'all' (see training/corpus/languages.py); with --language-hours")
+    b.add_argument("--language-hours", type=float, default=0.0,
+                   help="hours of speech in those languages, beside --hours of English")
     b.add_argument("--mocap", type=Path, help="BEAT BVH take for gestures (default: shared/data/beat)")
     t = sub.add_parser("teach", help="teacher motion for a recording and its TextGrid")
     t.add_argument("--audio", type=Path, required=True)
@@ -41,9 +46,14 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "build":
             from .build import BuildConfig, build
 
+            from .languages import LANGUAGES, check_languages
+
+            codes = [c.strip() for c in args.languages.split(",") if c.strip()]
+            languages = LANGUAGES if codes == ["all"] else check_languages(codes)
             config = BuildConfig(out=args.out, hours=args.hours, jobs=args.jobs, seed=args.seed,
                                  engines=tuple(e.strip() for e in args.engines.split(",") if e.strip()),
-                                 text_files=tuple(args.text) if args.text else None, mocap=args.mocap)
+                                 text_files=tuple(args.text) if args.text else None, mocap=args.mocap,
+                                 languages=languages, language_hours=args.language_hours)
             s = build(config)
             print(f"corpus {args.out}: {s['utterances']} utterances, {s['hours']:.3f} h of speech, "
                   f"{s['size_bytes'] / 1e6:.1f} MB; this run made {s['speech_seconds_this_run']:.0f} s "

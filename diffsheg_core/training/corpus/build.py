@@ -19,7 +19,8 @@ import soundfile as sf
 from ...audio import Audio
 from ...errors import DiffshegError
 from .augment import SAMPLE_RATE, AugmentSpec, augment, random_augment
-from .synthesis import ENGINES, VoiceSpec, engine_available, random_voice, synthesize
+from .languages import Language, language_text
+from .synthesis import ENGINES, VoiceSpec, engine_available, espeak_voice, random_voice, synthesize
 from .teacher import TEACHER_VERSION, save_utterance, teach
 from .texts import load_texts
 
@@ -29,7 +30,8 @@ SUMMARY = "corpus.json"
 
 @dataclass(frozen=True)
 class BuildConfig:
-    """What to build: `hours` of speech into `out` with `jobs` worker processes."""
+    """What to build: `hours` of English speech and `language_hours` of speech in the
+    other `languages` into `out`, with `jobs` worker processes."""
 
     out: Path
     hours: float
@@ -38,6 +40,8 @@ class BuildConfig:
     engines: tuple[str, ...] = ENGINES
     text_files: tuple[Path, ...] | None = None
     mocap: Path | None = None
+    languages: tuple[Language, ...] = ()
+    language_hours: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -53,6 +57,11 @@ class UtteranceSpec:
     @property
     def name(self) -> str:
         return f"{self.index:06d}"
+
+    @property
+    def language(self) -> str:
+        """'en' for every English voice and accent, else the voice's language."""
+        return "en" if self.voice.language.startswith("en") else self.voice.language
 
     @property
     def folder(self) -> str:
@@ -73,6 +82,23 @@ def utterance_specs(texts: list[str], seed: int, engines: tuple[str, ...],
         index += 1
 
 
+LANGUAGE_INDEX_START = 500_000
+"""Utterances in other languages are numbered from here, apart from the English ones, so
+that asking for more of either leaves every utterance made as it was."""
+
+
+def language_specs(languages: tuple[Language, ...], seed: int) -> Iterator[UtteranceSpec]:
+    """Utterances LANGUAGE_INDEX_START, ...: language, words, espeak-ng voice, augmentation
+    and teacher seed drawn from (seed, index)."""
+    index = LANGUAGE_INDEX_START
+    while True:
+        rng = np.random.default_rng([seed, index])
+        language = languages[int(rng.integers(len(languages)))]
+        yield UtteranceSpec(index, language_text(language, rng), espeak_voice(rng, language.code),
+                            random_augment(rng), int(rng.integers(2**31)))
+        index += 1
+
+
 def make_utterance(spec: UtteranceSpec, out: Path, mocap: Path | None = None) -> dict:
     """Synthesise, augment, teach and write one utterance; its manifest record."""
     from .gestures import load_library
@@ -86,7 +112,7 @@ def make_utterance(spec: UtteranceSpec, out: Path, mocap: Path | None = None) ->
     motion = teach(Audio(samples, SAMPLE_RATE, str(wav.relative_to(out))), phones, seed=spec.teacher_seed,
                    library=load_library(str(mocap) if mocap else None))
     info = {"index": spec.index, "text": spec.text, "voice": asdict(spec.voice),
-            "augment": spec.augment.to_dict(), "teacher_seed": spec.teacher_seed,
+            "language": spec.language, "augment": spec.augment.to_dict(), "teacher_seed": spec.teacher_seed,
             "teacher_version": TEACHER_VERSION, "style": motion.meta["style"]["name"]}
     npz = save_utterance(folder / f"{spec.name}.npz", motion, phones, info)
     part = wav.with_name(wav.name + ".part")
@@ -141,12 +167,52 @@ def _size_bytes(out: Path) -> int:
 MAX_FAILURES_IN_A_ROW = 20
 
 
+def _make(pool: ProcessPoolExecutor, manifest, config: BuildConfig, specs: Iterator[UtteranceSpec],
+          indices: range, target: float, done: dict[int, dict], bar) -> float:
+    """Make utterances from `specs` (skipping finished ones) until `target` seconds of
+    utterances numbered in `indices` exist; the seconds made."""
+    specs = (s for s in specs if s.index not in done)
+    have = sum(r.get("duration", 0.0) for i, r in done.items() if i in indices)
+    bar.update(round(min(have, target)))
+    made, failed_in_a_row = 0.0, 0
+    pending: set[Future] = set()
+    while have < target or pending:
+        while have < target and len(pending) < 2 * config.jobs:
+            pending.add(pool.submit(_safe_make, next(specs), config.out, config.mocap))
+        finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+        for fut in finished:
+            if fut.cancelled():
+                continue
+            rec = fut.result()
+            manifest.write(json.dumps(rec) + "\n")
+            manifest.flush()
+            done[rec["index"]] = rec
+            failed_in_a_row = failed_in_a_row + 1 if "error" in rec else 0
+            if failed_in_a_row >= MAX_FAILURES_IN_A_ROW:  # a setup problem, not odd texts
+                for other in pending:
+                    other.cancel()
+                raise DiffshegError(f"the last {failed_in_a_row} utterances all failed, the last "
+                                    f"with: {rec['error']}")
+            if "error" not in rec:
+                have += rec["duration"]
+                made += rec["duration"]
+                bar.update(round(have) - round(have - rec["duration"]))
+        if have >= target:
+            for fut in pending:
+                fut.cancel()
+            pending = {f for f in pending if not f.cancelled()}
+    return made
+
+
 def build(config: BuildConfig, progress: bool = True) -> dict:
     """Build (or extend) the corpus; returns the summary also written to corpus.json."""
     from tqdm import tqdm
 
     if config.hours <= 0:
         raise DiffshegError(f"--hours must be positive, got {config.hours}")
+    if config.language_hours < 0 or (config.language_hours > 0) != bool(config.languages):
+        raise DiffshegError("--language-hours and --languages go together: name the languages and "
+                            "the hours of speech wanted in them")
     if config.jobs < 1:
         raise DiffshegError(f"--jobs must be at least 1, got {config.jobs}")
     engines = _engines(config)
@@ -154,40 +220,16 @@ def build(config: BuildConfig, progress: bool = True) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     texts = load_texts(list(config.text_files) if config.text_files else None)
     done = read_manifest(out)
-    target = config.hours * 3600.0
-    have = sum(r.get("duration", 0.0) for r in done.values())
     started = time.time()
-    made, failed_in_a_row = 0.0, 0
-    bar = tqdm(total=round(target), initial=min(round(have), round(target)), unit="s",
-               desc="speech", disable=not progress)
-    specs = (s for s in utterance_specs(texts, config.seed, engines) if s.index not in done)
+    bar = tqdm(total=round(3600 * (config.hours + config.language_hours)), unit="s", desc="speech",
+               disable=not progress)
     with open(out / MANIFEST, "a", encoding="utf-8") as manifest, \
             ProcessPoolExecutor(max_workers=config.jobs) as pool:
-        pending: set[Future] = set()
-        while have < target or pending:
-            while have < target and len(pending) < 2 * config.jobs:
-                pending.add(pool.submit(_safe_make, next(specs), out, config.mocap))
-            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for fut in finished:
-                if fut.cancelled():
-                    continue
-                rec = fut.result()
-                manifest.write(json.dumps(rec) + "\n")
-                manifest.flush()
-                done[rec["index"]] = rec
-                failed_in_a_row = failed_in_a_row + 1 if "error" in rec else 0
-                if failed_in_a_row >= MAX_FAILURES_IN_A_ROW:  # a setup problem, not odd texts
-                    for other in pending:
-                        other.cancel()
-                    raise DiffshegError(f"the last {failed_in_a_row} utterances all failed, the last "
-                                        f"with: {rec['error']}")
-                if "error" not in rec:
-                    have += rec["duration"]
-                    made += rec["duration"]
-                    bar.update(min(round(have), round(target)) - bar.n)
-            if have >= target:
-                for fut in pending:
-                    fut.cancel()
+        made = _make(pool, manifest, config, utterance_specs(texts, config.seed, engines),
+                     range(LANGUAGE_INDEX_START), config.hours * 3600.0, done, bar)
+        if config.languages:
+            made += _make(pool, manifest, config, language_specs(config.languages, config.seed),
+                          range(LANGUAGE_INDEX_START, 2**31), config.language_hours * 3600.0, done, bar)
     bar.close()
     elapsed = time.time() - started
     ok = [r for r in done.values() if "error" not in r]
@@ -197,6 +239,8 @@ def build(config: BuildConfig, progress: bool = True) -> dict:
         "seconds_this_run": elapsed, "speech_seconds_this_run": made,
         "speech_seconds_per_second": made / elapsed if elapsed > 0 else 0.0,
         "config": {k: str(v) for k, v in asdict(config).items()}, "engines": list(engines),
+        "languages": {lang: round(sum(r["duration"] for r in ok if r.get("language", "en") == lang) / 3600, 3)
+                      for lang in sorted({r.get("language", "en") for r in ok})},
         "teacher_version": TEACHER_VERSION, "cpu_count": os.cpu_count(),
     }
     (out / SUMMARY).write_text(json.dumps(summary, indent=1) + "\n", encoding="utf-8")

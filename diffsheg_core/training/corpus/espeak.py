@@ -82,7 +82,7 @@ class _Engine:
 
     def set_voice(self, voice: VoiceSpec) -> None:
         if self.lib.espeak_SetVoiceByName(voice.name.encode()) != 0:
-            raise DiffshegError(f"espeak-ng has no voice {voice.name!r}: see `espeak-ng --voices=en`")
+            raise DiffshegError(f"espeak-ng has no voice {voice.name!r}: see `espeak-ng --voices`")
         for param, value in ((_RATE, voice.rate), (_PITCH, voice.pitch), (_RANGE, voice.pitch_range),
                              (_WORDGAP, voice.word_gap), (_VOLUME, 100)):
             self.lib.espeak_SetParameter(param, int(value), 0)
@@ -96,7 +96,7 @@ class _Engine:
         samples = np.concatenate(self._chunks) if self._chunks else np.zeros(0, np.int16)
         return samples.astype(np.float32) / 32768.0, self._events
 
-    def stressed_vowels(self, text: str) -> list[tuple[str, int]]:
+    def stressed_vowels(self, text: str, language: str) -> list[tuple[str, int]]:
         """(ARPAbet vowel, stress) in spoken order, from espeak's phoneme transcription."""
         buf = ctypes.create_string_buffer(text.encode("utf-8"))
         ptr = ctypes.c_void_p(ctypes.addressof(buf))
@@ -106,7 +106,7 @@ class _Engine:
             for word in chunk.decode("utf-8", "replace").split():
                 for token in word.split("|"):
                     stress = 1 if "'" in token else 2 if "," in token else 0
-                    label = from_espeak(token.replace("'", "").replace(",", ""))
+                    label = from_espeak(token.replace("'", "").replace(",", ""), language)
                     if label in VOWELS:
                         out.append((label, stress))
         return out
@@ -116,7 +116,7 @@ class _Engine:
         """Samples, phoneme events and stressed vowels of `text` spoken by `voice`."""
         self.set_voice(voice)
         samples, events = self.speak(text)
-        return samples, events, self.stressed_vowels(text)
+        return samples, events, self.stressed_vowels(text, voice.language)
 
 
 _engine: _Engine | None = None
@@ -221,6 +221,13 @@ def _attach_closures(samples: np.ndarray, sr: int, phones: list[Phone]) -> list[
     return out
 
 
+def _is_modifier(symbol: str) -> bool:
+    """A bare modifier of the phone before (palatalisation: `;`, Japanese `_j`) or a switch
+    of language (`(en)`), not a phone."""
+    return (not symbol.strip(";") or (symbol.startswith("_") and symbol[1:].isalpha())
+            or symbol.startswith("("))
+
+
 def synthesize(text: str, voice: VoiceSpec) -> Synthesis:
     """Speak `text` with an espeak-ng voice; phones timed to the exact output sample."""
     samples, events, lexical = _run_isolated(voice, text)
@@ -229,13 +236,14 @@ def synthesize(text: str, voice: VoiceSpec) -> Synthesis:
     sr = _get_engine().sample_rate
     # a bare modifier (';', palatalisation) and a pause too short to see belong to the
     # phone before them: dropping their events extends that phone over them
-    events = [(s, sym) for i, (s, sym) in enumerate(events) if sym.strip(";") and not (
-        from_espeak(sym) == SILENCE and i + 1 < len(events) and events[i + 1][0] - s < _MIN_PAUSE * sr)]
+    language = voice.language
+    events = [(s, sym) for i, (s, sym) in enumerate(events) if not _is_modifier(sym) and not (
+        from_espeak(sym, language) == SILENCE and i + 1 < len(events) and events[i + 1][0] - s < _MIN_PAUSE * sr)]
     bounds = [s for s, _ in events] + [len(samples)]
     phones = [] if bounds[0] == 0 else [Phone(SILENCE, 0.0, bounds[0] / sr, 0)]
     for (start, symbol), end in zip(events, bounds[1:]):
         if end > start:
-            label = from_espeak(symbol)
+            label = from_espeak(symbol, language)
             phones.append(Phone(label, start / sr, end / sr, -1 if label in VOWELS else 0))
     vowel_idx = [i for i, p in enumerate(phones) if p.is_vowel]
     stress = _align_stress([phones[i].label for i in vowel_idx], lexical)

@@ -57,10 +57,59 @@ _FESTIVAL = {
 }
 
 
-def from_espeak(symbol: str) -> str:
-    """ARPAbet label of an espeak-ng phoneme mnemonic; pauses (`_`, `_:`...) are SIL."""
+# Other languages' espeak-ng mnemonics (phsource/ph_*: Kirshenbaum letters, X-SAMPA for
+# Japanese) -> the ARPAbet phone whose mouth is nearest: lip closure (p b m, and the
+# bilabial fricatives' near closure as F/V), rounding (front rounded vowels go to the
+# rounded ones) and openness; the tongue-only contrasts English lacks (retroflex, dental,
+# palatal, uvular, aspiration, length, tone, nasality) fall together.
+_ESPEAK_WORLD = {
+    "a": "AA", "A": "AA", "a#": "AH", "&": "AE", "@": "AH", "3": "AH", "V": "AH", "7": "AH",
+    "e": "EY", "E": "EH", "i": "IY", "I": "IH", "1": "IH", "o": "OW", "O": "AO", "0": "AA",
+    "u": "UW", "U": "UH", "y": "UW", "Y": "UH", "W": "ER", "8": "UH", "Q": "G",
+    "aI": "AY", "ai": "AY", "aU": "AW", "au": "AW", "eI": "EY", "EI": "EY", "ei": "EY",
+    "oU": "OW", "ou": "OW", "OI": "OY", "oI": "OY", "Wy": "OY", "VU": "AW", "eU": "EH",
+    "iE": "IY", "iu": "UW", "u@": "UW", "y@": "UW", "o@": "AO", "ong": "UH", "yu": "UW",
+    "ja": "AA", "ju": "UW", "jo": "OW", "je": "EH",
+    "B": "V", "p\\": "F", "C": "HH", "x": "HH", "X": "HH", "H": "HH", "h": "HH", "q": "K",
+    "gH": "G", "c": "K", "J": "D", "n^": "N", "l^": "L", "L": "L", "R": "R", "**": "R",
+    "r`": "R", "t_s": "S", "ts": "S", "dz": "Z", "t_s\\": "CH", "d_z\\": "JH", "s\\": "SH",
+    "z\\": "ZH", "s.": "SH", "z.": "ZH", "ts.": "CH", "tS.": "CH", "ts;": "CH", "dz;": "JH",
+    "sx": "SH", "S;": "SH", "Z;": "ZH", "pf": "P", "ss": "S", "t.": "T", "d.": "D", "n.": "N", "r.": "R",
+    "dH": "DH", "?": "T", "!": "T",
+}
+_MODIFIERS = ":#;~\"-_\\`^[.!'"
+"""Length, aspiration, palatalisation, nasality, retroflexion and the like, after the letter."""
+
+
+def _without_tone(symbol: str) -> str:
+    """The mnemonic without a tone's trailing digits (Mandarin `a55`, Vietnamese `e3`),
+    keeping a digit that is the vowel itself (`011` is `0` with tone 11)."""
+    while len(symbol) > 1 and symbol[-1].isdigit():
+        symbol = symbol[:-1]
+    return symbol
+
+
+def _from_espeak_world(symbol: str) -> str | None:
+    base = _without_tone(symbol.lstrip("?") or symbol)
+    for candidate in (base, base.rstrip(_MODIFIERS), base.strip(_MODIFIERS)):
+        if candidate in _ESPEAK_WORLD:
+            return _ESPEAK_WORLD[candidate]
+        if candidate in _ESPEAK:
+            return _ESPEAK[candidate]
+    return None
+
+
+def from_espeak(symbol: str, language: str = "en") -> str:
+    """ARPAbet label of an espeak-ng phoneme mnemonic of `language` (the voice's language
+    code, e.g. 'en-us', 'de', 'cmn'); pauses (`_`, `_:`...) are SIL."""
     if symbol == "" or symbol.startswith("_") or symbol.startswith("|"):
         return SILENCE
+    if not language.startswith("en"):
+        label = _from_espeak_world(symbol)
+        if label is not None:
+            return label
+        stripped = _without_tone(symbol).strip(_MODIFIERS)
+        return "AH" if stripped and stripped[0] in "aeiouAEIOUVy@0381&W7" else "T"
     if symbol in _ESPEAK:
         return _ESPEAK[symbol]
     stripped = symbol.rstrip("#-:/23[;")

@@ -48,6 +48,12 @@ class VoiceSpec:
     stretch: float = 1.0
     f0_shift: float = 1.0
 
+    @property
+    def language(self) -> str:
+        """The language it speaks: an espeak-ng voice's language code ('en-us', 'de',
+        'cmn'); festival's and flite's voices are English."""
+        return self.name.split("+")[0] if self.engine == "espeak" else "en"
+
 
 @dataclass
 class Synthesis:
@@ -93,10 +99,15 @@ def random_voice(rng: np.random.Generator, engines: tuple[str, ...] = ENGINES) -
     if engine == "flite":
         return VoiceSpec("flite", str(rng.choice(FLITE_VOICES)), stretch=float(rng.uniform(0.85, 1.25)),
                          f0_shift=float(rng.uniform(0.85, 1.2)))
-    accent = str(rng.choice(ESPEAK_ACCENTS))
+    return espeak_voice(rng, str(rng.choice(ESPEAK_ACCENTS)))
+
+
+def espeak_voice(rng: np.random.Generator, language: str) -> VoiceSpec:
+    """An espeak-ng voice of `language` (a voice name such as 'en-us' or 'de') with a drawn
+    variant and speaking style."""
     variant = str(rng.choice(ESPEAK_VARIANTS))
     return VoiceSpec(
-        "espeak", f"{accent}+{variant}" if variant else accent,
+        "espeak", f"{language}+{variant}" if variant else language,
         rate=int(rng.integers(130, 215)), pitch=int(rng.integers(25, 80)),
         pitch_range=int(rng.integers(30, 95)), word_gap=int(rng.choice([0, 0, 0, 1, 2])),
     )
