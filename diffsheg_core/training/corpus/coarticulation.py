@@ -116,11 +116,12 @@ class _Segment:
     gain: float
 
 
-def _segments(phones: list[Phone], stress_gain: float) -> list[_Segment]:
+def _segments(phones: list[Phone], stress_gain: float, effort: np.ndarray) -> list[_Segment]:
     out: list[_Segment] = []
-    for p in phones:
+    for p, vocal_effort in zip(phones, effort):
         names = _PHONE_VISEMES[p.label]
-        gain = 1.0 + stress_gain * {1: 0.15, 2: 0.0, 0: -0.15}.get(p.stress, 0.0) if p.is_vowel else 1.0
+        gain = (1.0 + stress_gain * {1: 0.15, 2: 0.0, 0: -0.15}.get(p.stress, 0.0)) * vocal_effort \
+            if p.is_vowel else 1.0
         start, end = p.start, p.end
         if names == ("PBM",) and end - start < _BILABIAL_MIN:
             mid = 0.5 * (start + end)
@@ -148,14 +149,15 @@ def _dominance(seg: _Segment, t: np.ndarray, pause_inside: bool) -> tuple[np.nda
 
 
 def mouth_curves(phones: list[Phone], times: np.ndarray, jaw_scale: float = 1.0,
-                 stress_gain: float = 1.0) -> np.ndarray:
+                 stress_gain: float = 1.0, effort: np.ndarray | None = None) -> np.ndarray:
     """(len(times), len(MOUTH_CHANNELS)) mouth weights at `times` (seconds).
 
     `jaw_scale` scales jaw opening (a speaker's articulation); `stress_gain` how much more
-    stressed vowels open than unstressed ones."""
+    stressed vowels open than unstressed ones; `effort` (one factor per phone,
+    prosody.vowel_effort) how much wider each vowel opens for being spoken louder."""
     t0, t1 = 0.0, max(float(times[-1]) if len(times) else 0.0, phones[-1].end)
     grid = np.arange(t0, t1 + 1.0 / GRID_RATE, 1.0 / GRID_RATE)
-    segs = _segments(phones, stress_gain)
+    segs = _segments(phones, stress_gain, np.ones(len(phones)) if effort is None else effort)
     lips_w = np.zeros((len(segs), len(grid)))
     jaw_w = np.zeros_like(lips_w)
     targets = np.zeros((len(segs), len(MOUTH_CHANNELS)))

@@ -104,11 +104,11 @@ def pauses_of(phones: list[Phone]) -> list[tuple[float, float]]:
 
 
 def face_curves(phones: list[Phone], accents: list[Accent], n_frames: int, fps: float,
-                style: FaceStyle, rng: np.random.Generator) -> np.ndarray:
-    """(n_frames, 51) ARKit weights in [0, 1]."""
+                style: FaceStyle, rng: np.random.Generator, effort: np.ndarray | None = None) -> np.ndarray:
+    """(n_frames, 51) ARKit weights in [0, 1]; `effort` as for coarticulation.mouth_curves."""
     times = np.arange(n_frames) / fps
     face = np.zeros((n_frames, len(ARKIT51)))
-    face[:, arkit_indices()] = mouth_curves(phones, times, style.jaw_scale, style.stress_gain)
+    face[:, arkit_indices()] = mouth_curves(phones, times, style.jaw_scale, style.stress_gain, effort)
 
     blink = blink_curve(times, blink_times(rng, n_frames / fps, style.blink_rate, pauses_of(phones)), fps)
     for side in ("Left", "Right"):

@@ -75,3 +75,22 @@ def find_accents(samples: np.ndarray, sample_rate: int, phones: list[Phone]) -> 
     strength = 1.0 / (1.0 + np.exp(-(score - np.median(score))))
     return [Accent(v.start + 0.25 * (v.end - v.start), float(s))
             for v, s, keep in zip(vowels, strength, candidates) if keep]
+
+
+EFFORT_PER_DB = 0.04
+"""How much wider the jaw opens on a vowel per dB it is louder than the utterance's typical
+vowel: speakers open the jaw further when they speak with more effort (Schulman 1989, loud
+against normal speech), in every language."""
+EFFORT_RANGE = (0.6, 1.4)
+
+
+def vowel_effort(samples: np.ndarray, sample_rate: int, phones: list[Phone]) -> np.ndarray:
+    """Per phone, the jaw-opening factor of its vocal effort: 1 + EFFORT_PER_DB times its
+    level above the utterance's median vowel level (clipped to EFFORT_RANGE); 1 for
+    consonants and pauses."""
+    out = np.ones(len(phones))
+    index = [i for i, p in enumerate(phones) if p.is_vowel]
+    if index:
+        level = _vowel_level(samples, sample_rate, [phones[i] for i in index])
+        out[index] = np.clip(1 + EFFORT_PER_DB * (level - np.median(level)), *EFFORT_RANGE)
+    return out

@@ -21,12 +21,12 @@ from ...rigs import ARKIT51, BEAT, BEAT_JOINTS
 from .face import FaceStyle, face_curves
 from .gestures import GESTURE_STYLES, GestureLibrary, GestureStyle, gesture_rotations
 from .phones import Phone, check_phones, phones_from_arrays, phones_to_arrays
-from .prosody import find_accents
+from .prosody import find_accents, vowel_effort
 
-TEACHER_VERSION = 2
+TEACHER_VERSION = 3
 """Bump when the teacher's output changes; it is stored with every utterance. v2: longer,
 pose-matched cross-fades, nods that keep the mean head pitch, named gesture styles, the
-last 20 s of the capture held out."""
+last 20 s of the capture held out. v3: the jaw opens wider on louder vowels (vocal effort)."""
 
 STYLE_NAMES: tuple[str, ...] = tuple(GESTURE_STYLES)
 
@@ -64,7 +64,8 @@ def teach(audio: Audio, phones: list[Phone], *, seed: int = 0, style: TeacherSty
     samples = np.asarray(audio.samples, dtype=np.float32)
     accents = find_accents(samples, audio.sample_rate, phones)
     rotations, strokes = gesture_rotations(accents, n_frames, fps, style.gesture, rng, library)
-    face = face_curves(phones, accents, n_frames, fps, style.face, rng)
+    face = face_curves(phones, accents, n_frames, fps, style.face, rng,
+                       vowel_effort(samples, audio.sample_rate, phones))
     return Motion(
         fps=fps, rig=BEAT.name, joint_names=list(BEAT_JOINTS), rotations=rotations,
         face_names=list(ARKIT51), face=face,
