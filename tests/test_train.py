@@ -439,8 +439,11 @@ def test_a_fine_tuned_run_keeps_its_source_normalisation_on_a_rebuilt_corpus():
     rebuilt = NormStats(source.mean + 0.02 * source.std, source.std * 1.02)
     assert fine_tuning_statistics("v7.safetensors", source, rebuilt) is source
     other = NormStats(source.mean + np.array([0.0, 0.0, 0.2], np.float32), source.std)
-    with pytest.raises(DiffshegError, match="init_from v7.safetensors: it was trained with other normalisation"):
+    with pytest.raises(DiffshegError, match=r"init_from v7.safetensors: it was trained with other normalisation "
+                       r"statistics \(up to 0.20 of a channel's spread away, the limit is 0.05\).*raise stats_tolerance"):
         fine_tuning_statistics("v7.safetensors", source, other)
+    # data widened on purpose (other languages) passes a raised tolerance, in the source's normalisation
+    assert fine_tuning_statistics("v7.safetensors", source, other, tolerance=0.3) is source
 
 
 @pytest.mark.parametrize("over,expected", [
