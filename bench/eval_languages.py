@@ -16,7 +16,7 @@ language (means over seeds, then over files):
 and, for the English take, the phone-timed lip-sync of the model card (jaw open at open
 vowels over bilabials, mouthClose at bilabials minus at open vowels).
 
-    python bench/eval_languages.py [--seeds 0 1] [--steps N]
+    python bench/eval_languages.py [--seeds 0 1] [--steps N] [--model FILE]
 """
 
 from __future__ import annotations
@@ -129,8 +129,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--steps", type=int, default=None, help="sampling steps (default: the model's)")
+    parser.add_argument("--model", default=None, help="model file (default: the bundled model)")
     args = parser.parse_args()
-    bundle = load_model()
+    bundle = load_model(args.model)
     options = {} if args.steps is None else {"steps": args.steps}
     rows, take_motions, started = [], [], time.perf_counter()
     for path in (*ENGLISH, *sorted(LANG.glob("*.wav"))):

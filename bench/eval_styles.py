@@ -73,7 +73,8 @@ def settings(bundle) -> list[tuple[str, dict]]:
 
 
 def part(motion: Motion, frames: slice) -> Motion:
-    return replace(motion, rotations=motion.rotations[frames], face=motion.face[frames])
+    root = None if motion.root_translation is None else motion.root_translation[frames]
+    return replace(motion, rotations=motion.rotations[frames], face=motion.face[frames], root_translation=root)
 
 
 def audio_part(audio: Audio, frames: slice, fps: float) -> Audio:
