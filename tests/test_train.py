@@ -464,3 +464,20 @@ def test_settings_no_run_can_use_are_refused_before_anything_is_written(small_ro
                             cwd=REPO, capture_output=True, text=True, timeout=300)
     assert result.returncode == 2 and expected in result.stderr and "Traceback" not in result.stderr
     assert not run.exists() and (tmp_path / "FILE").read_text().startswith("a file")
+
+
+def test_the_bundled_models_training_recipes_read():
+    """Every stage's settings in diffsheg_core/weights (base, guided, temporal, acceleration and
+    the multilingual retraining) read with their `extends` chain resolved."""
+    from pathlib import Path
+
+    recipes = sorted((Path(__file__).resolve().parents[1] / "diffsheg_core" / "weights").glob("*.toml"))
+    assert len(recipes) >= 5
+    ids = set()
+    for path in recipes:
+        cfg = TrainConfig.from_dict(read_config_file(path))
+        assert cfg.model_id.startswith("diffsheg-default-") and cfg.steps > 0 and cfg.data.kind == "corpus", path
+        ids.add(cfg.model_id)
+    assert len(ids) == len(recipes)
+    languages = TrainConfig.from_dict(read_config_file(recipes[0].with_name("default_languages.toml")))
+    assert languages.stats_tolerance == 0.3 and not languages.freeze_expression and languages.data.root.endswith("v5")
