@@ -380,20 +380,20 @@ def phonetic_encoder(cfg: TrainConfig, model_cfg: ModelConfig) -> PhoneticEncode
 
 
 def fine_tuning_statistics(path: str, source: NormStats, data: NormStats,
-                           tolerance: float = 0.05) -> NormStats:
+                           tolerance: float = TrainConfig.stats_tolerance) -> NormStats:
     """The normalisation a run fine-tuned from a model trains in: the model's own (its weights
     work in it), once the data's statistics are seen to lie within `tolerance` (a share of
     each channel's standard deviation) of it."""
-    if source.mean.shape != data.mean.shape or not (
-            np.all(np.abs(source.mean - data.mean) <= tolerance * source.std)
-            and np.all(np.abs(source.std - data.std) <= tolerance * source.std)):
-        worst = (float(np.max(np.maximum(np.abs(source.mean - data.mean), np.abs(source.std - data.std))
-                              / source.std)) if source.mean.shape == data.mean.shape else float("inf"))
-        raise DiffshegError(f"init_from {path}: it was trained with other normalisation statistics "
-                            f"(up to {worst:.2f} of a channel's spread away, the limit is {tolerance}), "
-                            "so on other data; train on the data it was trained on, or, for data "
-                            "widened on purpose, raise stats_tolerance")
-    return source
+    worst = float("inf")
+    if source.mean.shape == data.mean.shape:
+        away = np.maximum(np.abs(source.mean - data.mean), np.abs(source.std - data.std))
+        if np.all(away <= tolerance * source.std):
+            return source
+        worst = float(np.max(away / source.std))
+    raise DiffshegError(f"init_from {path}: it was trained with other normalisation statistics "
+                        f"(up to {worst:.2f} of a channel's spread away, the limit is {tolerance}), "
+                        "so on other data; train on the data it was trained on, or, for data "
+                        "widened on purpose, raise stats_tolerance")
 
 
 class Trainer:

@@ -45,11 +45,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "build":
             from .build import BuildConfig, build
+            from .languages import check_languages
 
-            from .languages import LANGUAGES, check_languages
-
-            codes = [c.strip() for c in args.languages.split(",") if c.strip()]
-            languages = LANGUAGES if codes == ["all"] else check_languages(codes)
+            languages = check_languages([c.strip() for c in args.languages.split(",") if c.strip()])
             config = BuildConfig(out=args.out, hours=args.hours, jobs=args.jobs, seed=args.seed,
                                  engines=tuple(e.strip() for e in args.engines.split(",") if e.strip()),
                                  text_files=tuple(args.text) if args.text else None, mocap=args.mocap,

@@ -43,7 +43,10 @@ MIN_WORDS, MAX_WORDS = 5, 16
 
 
 def check_languages(codes: list[str]) -> tuple[Language, ...]:
-    """The named languages, or an error naming the unknown ones and the choices."""
+    """The named languages (['all']: every one), or an error naming the unknown ones and the
+    choices."""
+    if codes == ["all"]:
+        return LANGUAGES
     unknown = [c for c in codes if c not in BY_CODE]
     if unknown:
         raise DiffshegError(f"unknown corpus language {', '.join(unknown)}: use some of "
