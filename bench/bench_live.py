@@ -8,6 +8,10 @@ For each hop H tried (and the diffusion steps), on one real take with its phone 
   seam) over that elsewhere, lip-sync (mouth-to-voice envelope correlation; jawOpen at
   open vowels over bilabials);
 - compute per second of speech (the audio fed as fast as the engine takes it);
+- the legs (lower_body.LowerBodyStream, fed each hop of the upper body as a live session
+  does) against offline legs on the same upper body and against the capture: hips sway
+  speed and range, knee bend range, foot skating, time in contact, the most a contact foot
+  moves between frames, and the milliseconds per hop they cost;
 - with --realtime: latency p50/p95/max from the audio arriving to the frame being shown,
   the file played at real time through a `LiveSession` (as `diffsheg live` runs it), idle
   and with another process keeping one core busy (--busy).
@@ -107,6 +111,47 @@ def bench_quality(args, bundle, network, audio: Audio, phones) -> None:
         print(f"{label(steps, hop, lookahead):<22}{cells}{compute:>10.3f}s", flush=True)
 
 
+def bench_legs(args, bundle, audio: Audio) -> None:
+    from dataclasses import replace
+
+    from diffsheg_core import lower_body as lb
+
+    capture = lb.read_capture(TAKE.with_suffix(".npz"), bundle.config.fps)
+    fps = bundle.config.fps
+    print(f"\nlegs, {audio.duration:.1f} s of speech, seeds {list(range(args.seeds))}, hops of {args.hops[0]} "
+          f"(capture: {_legs_cells(lb.figures(capture[0], capture[1], fps))})")
+    for seed in range(args.seeds):
+        offline = generate(audio, settings=GenerateSettings(model=bundle, seed=seed, threads=1))
+        upper = lb.upper_body(offline)
+        stream, hop, started = lb.LowerBodyStream(fps, seed), args.hops[0], time.perf_counter()
+        for i in range(0, upper.n_frames, hop):
+            stream.add(replace(upper, rotations=upper.rotations[i:i + hop], face=upper.face[i:i + hop]))
+        per_hop = (time.perf_counter() - started) / -(-upper.n_frames // hop) * 1000
+        lower = offline.rotations[:, -len(lb.JOINTS):].astype(np.float64)
+        trans = offline.root_translation.astype(np.float64)
+        spans = {side: [tuple(s) for s in v] for side, v in offline.meta["contacts"].items()}
+        print(f"  seed {seed} offline: {_legs_cells(lb.figures(lower, trans, fps))}, {_contact_cells(lower, trans, spans, fps)}")
+        print(f"  seed {seed} live:    {_legs_cells(lb.figures(stream.lower, stream.trans, fps))}, "
+              f"{_contact_cells(stream.lower, stream.trans, stream.contacts(), fps)}, {per_hop:.1f} ms per hop")
+
+
+def _legs_cells(f: dict) -> str:
+    return (f"sway {f['sway speed']:.3f} m/s over {f['sway range']:.2f} m, knees {f['knee range']:.0f} deg, "
+            f"skating {100 * f['skating']:.1f} %")
+
+
+def _contact_cells(lower, trans, spans: dict, fps: float) -> str:
+    from diffsheg_core import lower_body as lb
+
+    soles, worst = lb.foot_positions(lower, trans), 0.0
+    for side, side_spans in spans.items():
+        for a, b in side_spans:
+            if b > a:
+                worst = max(worst, float(np.linalg.norm(np.diff(soles[side][1][a:b + 1], axis=0), axis=-1).max()))
+    share = np.mean([sum(b - a + 1 for a, b in v) / len(lower) for v in spans.values()])
+    return f"in contact {100 * share:.0f} %, contact foot moves <= {100 * worst:.2f} cm"
+
+
 def settings_tried(args) -> list[tuple]:
     return [(steps, hop, lookahead) for steps in args.steps for hop in args.hops for lookahead in args.lookaheads]
 
@@ -159,6 +204,7 @@ def main() -> int:
     p.add_argument("--realtime", action="store_true", help="also measure latency at real time")
     p.add_argument("--busy", action="store_true", help="real time also with one core kept busy")
     p.add_argument("--no-quality", action="store_true")
+    p.add_argument("--no-legs", action="store_true")
     p.add_argument("--out", default="/tmp")
     args = p.parse_args()
     args.steps = [s or None for s in args.steps]
@@ -170,6 +216,8 @@ def main() -> int:
     phones = phone_tier(read_textgrid(TAKE.with_suffix(".TextGrid")))
     if not args.no_quality:
         bench_quality(args, bundle, network, audio, phones)
+    if not args.no_legs:
+        bench_legs(args, bundle, audio)
     if args.realtime:
         bench_latency(args, TAKE.with_suffix(".wav"))
     return 0

@@ -53,12 +53,16 @@ def current() -> "LiveRun | None":
 # ---------------------------------------------------------------- posing
 
 class Poser:
-    """Poses the character from single frames of the model's layout, through the channels
-    keying writes (bake.py), and remembers each value it changes to put it back."""
+    """Poses the character from single frames of the model's layout (with `legs`, the lower
+    body's joints after them and the hips' translation), through the channels keying writes
+    (bake.py), and remembers each value it changes to put it back. A frame at a time there
+    are no contact spans: the feet stand as the live lower body planted them, scaled to the
+    rig's legs."""
 
-    def __init__(self, bundle, options):
+    def __init__(self, bundle, options, legs: bool = False):
         import numpy as np
 
+        from diffsheg_core.lower_body import JOINTS, with_lower_body
         from diffsheg_core.motion import Motion
 
         from .bake import map_targets, resolve_preset
@@ -67,6 +71,9 @@ class Poser:
         self.template = Motion(fps=bundle.config.fps, rig=layout.name, joint_names=list(layout.joint_names),
                                rotations=np.zeros((1, len(layout.joint_names), 3)),
                                face_names=list(layout.face_names), face=np.zeros((1, len(layout.face_names))))
+        if legs:
+            self.template = with_lower_body(self.template, np.zeros((1, len(JOINTS), 3)), np.zeros((1, 3)),
+                                            {"right": [], "left": []})
         options, notes = resolve_preset(layout.name, options)
         self.targets = map_targets(self.template, options, notes)
         self.options = self.targets.options
@@ -75,12 +82,18 @@ class Poser:
 
     def _values(self, motion) -> list[tuple[object, str, tuple]]:
         """(datablock, data path, values by array index) of the first frame of `motion`."""
-        from .bake import bone_channels, face_channels
+        from .bake import body_pose, face_channels, location_channels, rotation_channels
 
         out = []
-        if self.targets.armature is not None:
+        mapping = self.targets.armature
+        if mapping is not None:
             armature = self.options.armature
-            for _, channels in bone_channels(armature, self.targets.armature, motion):
+            quaternions, location = body_pose(mapping, motion)
+            groups = [rotation_channels(bone, armature.pose.bones[bone].rotation_mode, quats)
+                      for bone, quats in quaternions.items()]
+            if location is not None:
+                groups.append(location_channels(mapping.root.bone, location))
+            for channels in groups:
                 out.append((armature, channels[0].data_path,
                             tuple(float(ch.values[0]) for ch in sorted(channels, key=lambda c: c.index))))
         for mesh, keys in self.targets.faces:
@@ -104,9 +117,10 @@ class Poser:
         owner, attr = self._owner(id_data, path)
         setattr(owner, attr, values[0] if len(values) == 1 else values)
 
-    def pose(self, rotations, face) -> None:
-        """Pose one frame: (J, 3) axis-angle rotations and (C,) face weights of the layout."""
-        motion = replace(self.template, rotations=rotations[None], face=face[None])
+    def pose(self, frame) -> None:
+        """Pose one LiveFrame (its rotations, face weights and hips' translation)."""
+        root = None if frame.root_translation is None else frame.root_translation[None]
+        motion = replace(self.template, rotations=frame.rotations[None], face=frame.face[None], root_translation=root)
         for id_data, path, values in self._values(motion):
             self._write(id_data, path, values)
 
@@ -164,14 +178,14 @@ def microphone_problem() -> str | None:
     return _mic_status["status"]
 
 
-def _vmc_sender(settings, bundle):
+def _vmc_sender(settings, bundle, legs: bool):
     try:
         from diffsheg_core.live.vmc import VmcSender, parse_address
     except ImportError:
         raise DiffshegError("VMC out needs the Python package python-osc, which is not installed: "
                             "turn VMC out off, or install the add-on's dependencies again") from None
     host, port = parse_address(settings.live_vmc_address)
-    return VmcSender(host, port, bundle.layout)
+    return VmcSender(host, port, bundle.layout, legs=legs)
 
 
 # ---------------------------------------------------------------- recordings
@@ -258,13 +272,15 @@ class LiveRun:
         self.record = settings.live_record
         self.start_frame = scene.frame_current
         bundle = load_model(generation.model)
-        self.poser = Poser(bundle, replace(options, start_frame=self.start_frame, add_sound=True))
-        self.vmc = _vmc_sender(settings, bundle) if settings.live_vmc else None
+        self.vmc = None
+        self.source = make_source(settings)
         try:
-            self.source = make_source(settings)
             self.session = LiveSession(self.source, generation, LiveConfig(hop=settings.live_hop), bundle=bundle)
+            legs = self.session.legs is not None
+            self.poser = Poser(bundle, replace(options, start_frame=self.start_frame, add_sound=True), legs)
+            self.vmc = _vmc_sender(settings, bundle, legs) if settings.live_vmc else None
         except BaseException:
-            self._close_vmc()
+            self.source.stop()
             raise
         self.shown = 0
         self.last = None  # the frame posed last
@@ -296,11 +312,11 @@ class LiveRun:
             frames = self.session.frames_due(now)
             if frames:
                 self.last = last = frames[-1]
-                self.poser.pose(last.rotations, last.face)
+                self.poser.pose(last)
                 self.shown += len(frames)
                 if self.vmc is not None:
                     for frame in frames:
-                        self.vmc.send(frame.rotations, frame.face, frame.time)
+                        self.vmc.send(frame.rotations, frame.face, frame.time, frame.root_translation)
             if self.stop_requested or self.session.done:
                 self.finishing = _Finish(self.session).start()
         return self.finishing is not None and self.finishing.done
@@ -309,7 +325,7 @@ class LiveRun:
         """Pose the frame shown last again: the animation playing was evaluated over it (the
         timeline played or scrubbed while live)."""
         if self.last is not None and self.finishing is None:
-            self.poser.pose(self.last.rotations, self.last.face)
+            self.poser.pose(self.last)
 
     def request_stop(self) -> None:
         """End the session at the next tick (Stop, Esc)."""

@@ -3,7 +3,8 @@
 One implementation for both places a foot is planted: the canonical body that
 `lower_body` makes, and a rig's own legs after keying (the add-on's feet.py). A pin holds
 the ankle at a spot and the foot at an orientation over [first, last] frames, eased in and
-out over `ease` frames; a frame between two pins' eases follows the nearer span.
+out over `ease` frames; a frame between two pins' eases follows the nearer span. A pin may
+start before the frames or end after them (a live stream solves a hop of frames at a time).
 numpy only: it runs inside Blender.
 """
 
@@ -27,6 +28,8 @@ def pin_goals(ankle: np.ndarray, foot: np.ndarray, pins: list[Pin], ease: int
     target, target_rot = ankle.copy(), foot.copy()
     for first, last, spot, rotation in pins:
         lo, hi = max(0, first - ease), min(n - 1, last + ease)
+        if hi < lo:  # the pin and its ease lie outside these frames
+            continue
         frames = np.arange(lo, hi + 1)
         ramp = np.clip(np.minimum(frames - first + ease + 1, last + ease + 1 - frames) / (ease + 1), 0.0, 1.0)
         held = ramp > weight[lo:hi + 1]  # a neighbour's own span wins

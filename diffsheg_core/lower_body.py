@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, replace
 from functools import lru_cache
+from typing import Callable
 from pathlib import Path
 
 import numpy as np
@@ -64,6 +65,7 @@ CONTACT_SPEED = 0.15    # m/s a contact foot's ankle may move before pinning
 EASE = 3                # frames over which a pin eases in and out
 MIN_CONTACT = 4         # frames: a shorter low, slow stretch is a step, not a contact
 REACH_SLACK = 0.004     # m a pinned ankle may lie beyond the straight leg (IK stops 4 mm short)
+LIVE_LEASH = 0.5        # live: the share of the hips' distance from the capture's centre each segment takes back
 
 
 @lru_cache(maxsize=None)
@@ -249,40 +251,72 @@ def foot_skating(lower: np.ndarray, trans: np.ndarray, fps: float, height: float
     return float(np.mean(np.any(ratios, axis=0)))
 
 
+def figures(lower: np.ndarray, trans: np.ndarray, fps: float) -> dict[str, float]:
+    """What legs are measured by against the capture: the hips' sway speed (m/s, over the
+    floor) and range (m, the wider of x and z), the knees' bend range (degrees, both knees'
+    mean) and the foot-skating ratio."""
+    knees = np.degrees(np.linalg.norm(lower[:, [JOINTS.index("RightLeg"), JOINTS.index("LeftLeg")]], axis=-1))
+    return {"sway speed": float(np.linalg.norm(np.diff(trans[:, [0, 2]], axis=0), axis=-1).mean() * fps),
+            "sway range": float(np.ptp(trans[:, [0, 2]], axis=0).max()),
+            "knee range": float(np.ptp(knees, axis=0).mean()),
+            "skating": foot_skating(lower, trans, fps)}
+
+
 def plant_feet(lower: np.ndarray, trans: np.ndarray, fps: float) -> tuple[np.ndarray, dict]:
     """`lower` with each contact foot's ankle and orientation pinned over its span (eased in
     and out over EASE frames) by two-bone IK on each leg (leg_ik); returns it and the spans
-    pinned. A span is pinned where its foot stood in the middle of it; frames where the leg
-    cannot reach that spot split it (the foot steps there)."""
+    pinned. A span is pinned where and as its foot landed (its first MIN_CONTACT frames, so
+    what is pinned never depends on how long the span goes on: the live stream pins the
+    same); frames where the leg cannot reach that spot split it (the foot steps there)."""
     world = _world(lower, trans)
     spans = _contacts(world, fps)
-    world = {name: (convert(q, "quaternion", "matrix"), pos) for name, (q, pos) in world.items()}
+    pins = {side: _pins(world, side, spans[side]) for side in LEGS}
+    return _solve(lower, world, pins), {side: [(a, b) for a, b, _, _ in p] for side, p in pins.items()}
+
+
+def _pins(world: dict, side: str, spans: list[tuple[int, int]]) -> list:
+    """leg_ik pins (first, last, ankle spot, foot rotation matrix) of one foot's contact spans."""
+    up, _, foot = LEGS[side]
+    return _leg_pins(side, world[foot][1], world[up][1], world[foot][0], spans)
+
+
+def _leg_pins(side: str, ankle: np.ndarray, hip: np.ndarray, foot: np.ndarray, spans: list[tuple[int, int]]) -> list:
+    """Pins of one leg's contact `spans` from its ankle and hip positions and foot quaternions."""
     off = _offsets()
-    hips = world["Hips"][0]
-    out, pinned = lower.copy(), {}
+    _, knee, shin = LEGS[side]
+    reach = np.linalg.norm(off[knee]) + np.linalg.norm(off[shin]) + REACH_SLACK
+    return [(a, b, spot, convert(foot[a + MIN_CONTACT // 2], "quaternion", "matrix"))
+            for span in spans for a, b, spot in _reachable(ankle, hip, span, reach)]
+
+
+def _solve(lower: np.ndarray, world: dict, pins: dict[str, list]) -> np.ndarray:
+    """`lower` with each leg solved again by two-bone IK so its ankle and foot follow the pins."""
+    matrices = {name: (convert(q, "quaternion", "matrix"), pos) for name, (q, pos) in world.items()}
+    off = _offsets()
+    hips = matrices["Hips"][0]
+    out = lower.copy()
     for side, (up, knee, foot) in LEGS.items():
         thigh, shin = np.linalg.norm(off[knee]), np.linalg.norm(off[foot])
-        (thigh_rot, hip), (shin_rot, knee_pos), (foot_rot, ankle) = world[up], world[knee], world[foot]
-        pins = [(a, b, spot, foot_rot[(a + b) // 2]) for span in spans[side]
-                for a, b, spot in _reachable(ankle, hip, span, thigh + shin + REACH_SLACK)]
-        pinned[side] = [(a, b) for a, b, _, _ in pins]
-        goal, goal_rot, _ = pin_goals(ankle, foot_rot, pins, EASE)
+        (thigh_rot, hip), (shin_rot, knee_pos), (foot_rot, ankle) = matrices[up], matrices[knee], matrices[foot]
+        goal, goal_rot, _ = pin_goals(ankle, foot_rot, pins[side], EASE)
         turn, bend = two_bone(hip, knee_pos, ankle, goal, thigh, shin, hips[:, :, 0])
         thigh_rot, shin_rot = turn @ thigh_rot, turn @ bend @ shin_rot
         for joint, parent, rotation in ((up, hips, thigh_rot), (knee, thigh_rot, shin_rot), (foot, shin_rot, goal_rot)):
             out[:, JOINTS.index(joint)] = matrix_to_axis_angle(np.transpose(parent, (0, 2, 1)) @ rotation)
-    return out, pinned
+    return out
 
 
 def _reachable(ankle: np.ndarray, hip: np.ndarray, span: tuple[int, int], reach: float
                ) -> list[tuple[int, int, np.ndarray]]:
-    """(first, last, spot) pins within `span`: the ankle's median position there, split
-    (and each part pinned anew) where the hip is further from it than the leg reaches."""
+    """(first, last, spot) pins within `span`: where the foot landed (the ankle's median over
+    the span's first MIN_CONTACT frames, so a pin never moves as its span is seen to go on,
+    live), split (and each part pinned where it lands) where the hip is further from the
+    spot than the leg reaches."""
     todo, done = [span], []
     for _ in range(3):
         later = []
         for a, b in todo:
-            spot = np.median(ankle[a:b + 1], axis=0)
+            spot = np.median(ankle[a:a + MIN_CONTACT], axis=0)
             near = np.linalg.norm(spot - hip[a:b + 1], axis=-1) < reach
             if near.all():
                 done.append((a, b, spot))
@@ -294,77 +328,210 @@ def _reachable(ankle: np.ndarray, hip: np.ndarray, span: tuple[int, int], reach:
 
 # ---------------------------------------------------------------- generating
 
-def sample(library: LowerBodyLibrary, energy: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """(T, 9, 3) lower-body rotations and (T, 3) hips translation for the arms' `energy`
-    (arm_energy of the take), cut from `library` with `seed`; the translation kept within
-    the capture's range, then the body lowered or raised so its lowest foot is on the floor."""
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 29]))
-    n, fps = len(energy), library.fps
-    fade = int(round(FADE_S * fps))
-    lengths = (int(SEGMENT[0] * fps), int(SEGMENT[1] * fps))
-    q = quaternion_sequence_continuous(axis_angle_to_quaternion(library.rotations))
-    pose = library.rotations.reshape(len(q), -1)
-    rotations, trans = np.zeros((0, len(JOINTS), 4)), np.zeros((0, 3))
-    while len(rotations) < n:
-        length = int(rng.integers(lengths[0], lengths[1] + 1))
+class _Planner:
+    """Cuts segments from the library one after another: each the stretch (SEGMENT seconds,
+    drawn) whose arm energy best matches the energy asked for and whose first pose best
+    continues the last, chosen at random among the CHOICES best, cross-faded over FADE_S
+    with the hips going on from where they are. Offline and live lower bodies share it."""
+
+    def __init__(self, library: LowerBodyLibrary, seed: int):
+        self.library = library
+        self.rng = np.random.default_rng(np.random.SeedSequence([int(seed), 29]))
+        self.fade = int(round(FADE_S * library.fps))
+        self.lengths = (int(SEGMENT[0] * library.fps), int(SEGMENT[1] * library.fps))
+        self.q = quaternion_sequence_continuous(axis_angle_to_quaternion(library.rotations))
+        self.pose = library.rotations.reshape(len(self.q), -1)
+        self.rotations, self.trans = np.zeros((0, len(JOINTS), 4)), np.zeros((0, 3))
+
+    def add(self, want: Callable[[int, int], float], leash: float = 0.0) -> None:
+        """One more segment; `want(first, span)` is the arm energy it should match over its
+        frames [first, first + span). `leash` (0-1): the share of the hips' distance from the
+        capture's centre that the segment takes back over its length (a live stream cannot
+        take out drift afterwards)."""
+        library, q, fade = self.library, self.q, self.fade
+        length = int(self.rng.integers(self.lengths[0], self.lengths[1] + 1))
         span = min(length + fade, len(q) - 1)
-        t0 = max(0, len(rotations) - fade)
-        want = energy[t0:t0 + span].mean() if t0 < n else energy[-1]
+        t0 = max(0, len(self.rotations) - fade)
         starts = np.arange(len(q) - span)
         windows = np.convolve(library.energy, np.ones(span) / span, mode="valid")[:len(starts)]
-        cost = np.abs(windows - want) / (library.energy.std() + 1e-9)
+        cost = np.abs(windows - want(t0, span)) / (library.energy.std() + 1e-9)
         # a talker mostly stands: a segment that walks off costs as much as a poor energy match
         travel = np.linalg.norm(library.translation[starts + span - 1][:, [0, 2]]
                                 - library.translation[starts][:, [0, 2]], axis=1)
         cost = cost + travel / TRAVEL_M
-        if len(rotations):
-            last = quaternion_to_axis_angle(rotations[t0]).reshape(-1)
-            cost = cost + np.linalg.norm(pose[starts] - last, axis=1) / 0.2
-        best = np.argsort(cost)[:CHOICES]
-        s0 = int(rng.choice(best))
+        if len(self.rotations):
+            last = quaternion_to_axis_angle(self.rotations[t0]).reshape(-1)
+            cost = cost + np.linalg.norm(self.pose[starts] - last, axis=1) / 0.2
+        s0 = int(self.rng.choice(np.argsort(cost)[:CHOICES]))
         seg_q, seg_t = q[s0:s0 + span].copy(), library.translation[s0:s0 + span].copy()
-        if len(rotations):
-            seg_t[:, [0, 2]] += trans[t0, [0, 2]] - seg_t[0, [0, 2]]  # the hips go on from where they are
+        if len(self.rotations):
+            here = self.trans[t0, [0, 2]]
+            seg_t[:, [0, 2]] += here - seg_t[0, [0, 2]]  # the hips go on from where they are
+            if leash:
+                ease = np.linspace(0.0, 1.0, span)[:, None]
+                seg_t[:, [0, 2]] += leash * ease * ease * (3 - 2 * ease) * (self.centre - here)
             w = np.linspace(0.0, 1.0, fade + 2)[1:-1][:, None]
-            old_q, old_t = rotations[t0:], trans[t0:]
+            old_q, old_t = self.rotations[t0:], self.trans[t0:]
             overlap = len(old_q)
             flip = np.sign(np.sum(old_q * seg_q[:overlap], axis=-1, keepdims=True))
             blended = (1 - w[:overlap, :, None]) * old_q + w[:overlap, :, None] * seg_q[:overlap] * flip
             seg_q[:overlap] = blended / np.linalg.norm(blended, axis=-1, keepdims=True)
             seg_t[:overlap] = (1 - w[:overlap]) * old_t + w[:overlap] * seg_t[:overlap]
-            rotations, trans = rotations[:t0], trans[:t0]
-        rotations = np.concatenate([rotations, seg_q])
-        trans = np.concatenate([trans, seg_t])
-    # the hips wander no further than the capture did: slow drift taken out, then the range kept
-    drift = smooth_frames(trans[:n, [0, 2]], DRIFT_S * fps) - library.translation[:, [0, 2]].mean(axis=0)
-    trans = trans[:n].copy()
-    trans[:, [0, 2]] -= drift
-    lower = quaternion_to_axis_angle(rotations[:n])
-    trans = np.clip(trans, library.translation_low, library.translation_high)
-    # on the floor: segments stood a little higher or lower in the capture than its floor
+        self.rotations = np.concatenate([self.rotations[:t0], seg_q])
+        self.trans = np.concatenate([self.trans[:t0], seg_t])
+
+    @property
+    def centre(self) -> np.ndarray:
+        """(2,) where the capture's hips stand on average, x and z."""
+        return self.library.translation[:, [0, 2]].mean(axis=0)
+
+
+def _on_floor(lower: np.ndarray, trans: np.ndarray, fps: float) -> np.ndarray:
+    """`trans` lowered or raised so the lowest foot point is on the floor (smoothed over
+    GROUND_S): segments stood a little higher or lower in the capture than its floor."""
     world = _world(lower, trans)
     lowest = np.min([world[f"{p}{point}"][1][:, 1] for p in ("Right", "Left") for point in ("Sole", "ToeEnd")], axis=0)
-    trans[:, 1] -= smooth_frames(lowest[:, None], GROUND_S * fps)[:, 0]
-    return lower, trans
+    out = trans.copy()
+    out[:, 1] -= smooth_frames(lowest[:, None], GROUND_S * fps)[:, 0]
+    return out
+
+
+def sample(library: LowerBodyLibrary, energy: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 9, 3) lower-body rotations and (T, 3) hips translation for the arms' `energy`
+    (arm_energy of the take), cut from `library` with `seed`; the translation's slow drift
+    taken out and kept within the capture's range, then the body set on the floor."""
+    n, fps = len(energy), library.fps
+    planner = _Planner(library, seed)
+    while len(planner.rotations) < n:
+        planner.add(lambda t0, span: energy[t0:t0 + span].mean() if t0 < n else energy[-1])
+    # the hips wander no further than the capture did: slow drift taken out, then the range kept
+    trans = planner.trans[:n].copy()
+    trans[:, [0, 2]] -= smooth_frames(trans[:, [0, 2]], DRIFT_S * fps) - planner.centre
+    lower = quaternion_to_axis_angle(planner.rotations[:n])
+    trans = np.clip(trans, library.translation_low, library.translation_high)
+    return lower, _on_floor(lower, trans, fps)
 
 
 def add_lower_body(motion: Motion, seed: int, library: LowerBodyLibrary | None = None) -> Motion:
     """`motion` (a `beat` upper body) with the hips and legs (JOINTS) after its joints,
     `root_translation` (metres about the standing hips), and in its meta the hips' rest
     height ("hips_height", metres) and the contact spans ("contacts", model frames)."""
-    if motion.rig not in LAYOUTS:
-        raise DiffshegError(f"the lower body is known for the {', '.join(LAYOUTS)} layout, not '{motion.rig}': "
-                            "generate with upper_body_only")
-    library = library or _bundled_library()
-    if abs(library.fps - motion.fps) > 1e-6:
-        raise DiffshegError(f"the lower-body library runs at {library.fps:g} fps, the motion at {motion.fps:g}")
+    library = _library_for(motion, library)
     lower, trans = sample(library, arm_energy(motion), seed)
     lower, spans = plant_feet(lower, trans, motion.fps)
+    return with_lower_body(motion, lower, trans, spans)
+
+
+def with_lower_body(motion: Motion, lower: np.ndarray, trans: np.ndarray, spans: dict) -> Motion:
+    """`motion` with (T, 9, 3) `lower` after its joints, `trans` as its root translation and
+    the contact `spans` and the hips' rest height in its meta."""
     return replace(motion, joint_names=list(motion.joint_names) + list(JOINTS),
                    rotations=np.concatenate([motion.rotations, lower.astype(motion.rotations.dtype)], axis=1),
                    root_translation=trans.astype(np.float32),
                    meta={**motion.meta, "hips_height": _hips_height(),
                          "contacts": {side: [list(s) for s in v] for side, v in spans.items()}})
+
+
+def _library_for(motion: Motion, library: LowerBodyLibrary | None) -> LowerBodyLibrary:
+    if motion.rig not in LAYOUTS:
+        raise DiffshegError(f"the lower body is known for the {', '.join(LAYOUTS)} layout, not '{motion.rig}': "
+                            "generate with upper_body_only")
+    return _library_at(motion.fps, library)
+
+
+def _library_at(fps: float, library: LowerBodyLibrary | None) -> LowerBodyLibrary:
+    library = library or _bundled_library()
+    if abs(library.fps - fps) > 1e-6:
+        raise DiffshegError(f"the lower-body library runs at {library.fps:g} fps, the motion at {fps:g}")
+    return library
+
+
+class LowerBodyStream:
+    """The lower body of a live upper body, a hop of frames at a time, with no frame waiting
+    for it: the hips and legs are planned about two seconds ahead (a cross-fade, the floor's
+    smoothing and a contact's ease), so a hop's frames are final when its upper body arrives.
+
+    As offline (`add_lower_body`): segments of the capture cut by motion matching and
+    cross-faded, the translation kept within the capture's range, the body on the floor
+    and each contact foot pinned where it landed with two-bone IK. What differs, because
+    the future is unknown: a segment matches the arms' energy over the last 2 * ENERGY_S
+    seconds emitted (so the legs follow the arms about a segment late), and the hips' drift
+    is taken back at each segment (LIVE_LEASH of the way to the capture's centre) instead of
+    filtered out afterwards. Work per hop is bounded: the IK solves only the hop's frames."""
+
+    def __init__(self, fps: float, seed: int, library: LowerBodyLibrary | None = None):
+        self.library = _library_at(fps, library)
+        self.fps = fps
+        self._planner = _Planner(self.library, seed)
+        self._speed: list[float] = []            # wrist speed of every frame emitted
+        self._wrists: np.ndarray | None = None   # the last frame's wrists
+        self._floored = np.zeros((0, 3))        # the hips' translation, on the floor, for final planned frames
+        # per foot, over the same frames: ankle and hip positions, foot quaternions, and
+        # whether the foot is low and slow (a contact)
+        self._feet = {side: {"ankle": np.zeros((0, 3)), "hip": np.zeros((0, 3)), "foot": np.zeros((0, 4)),
+                             "down": np.zeros(0, bool)} for side in LEGS}
+        self.lower = np.zeros((0, len(JOINTS), 3))  # what was emitted
+        self.trans = np.zeros((0, 3))
+
+    def add(self, upper: Motion) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 9, 3) lower-body rotations and (n, 3) hips translation for the next n frames,
+        whose upper body is `upper` (the stream's next n frames)."""
+        first, n = len(self.lower), upper.n_frames
+        if not n:
+            return np.zeros((0, len(JOINTS), 3)), np.zeros((0, 3))
+        self._hear_arms(upper)
+        energy = float(np.mean(self._speed[-int(2 * ENERGY_S * self.fps):]))
+        margin = int(np.ceil(3 * GROUND_S * self.fps))  # smooth_frames' reach at the floor's sigma
+        need = first + n + EASE + MIN_CONTACT  # a span starting within EASE of the hop eases in over it
+        while len(self._planner.rotations) - self._planner.fade - margin < need:
+            self._planner.add(lambda t0, span: energy, leash=LIVE_LEASH)
+        self._floor(len(self._planner.rotations) - self._planner.fade, margin)
+        hop = slice(first, first + n)
+        lower = quaternion_to_axis_angle(self._planner.rotations[hop])
+        world = _world(lower, self._floored[hop])
+        lower = _solve(lower, world, {side: self._pins(side, first) for side in LEGS})
+        self.lower = np.concatenate([self.lower, lower])
+        self.trans = np.concatenate([self.trans, self._floored[hop]])
+        return lower, self._floored[hop].copy()
+
+    def contacts(self) -> dict[str, list[tuple[int, int]]]:
+        """Per foot the [first, last] spans pinned so far (frames emitted)."""
+        n = len(self.lower)
+        return {side: [(a, min(b, n - 1)) for a, b, _, _ in self._pins(side, 0) if a < n] for side in LEGS}
+
+    def _hear_arms(self, upper: Motion) -> None:
+        wrists = wrist_positions(upper)
+        before = wrists[:1] if self._wrists is None else self._wrists[None]
+        steps = np.diff(np.concatenate([before, wrists]), axis=0)
+        self._speed += list(np.linalg.norm(steps, axis=-1).mean(axis=-1) * self.fps)
+        self._wrists = wrists[-1]
+
+    def _floor(self, planned: int, margin: int) -> None:
+        """Set the planned frames on the floor up to `planned` - `margin` (the floor's
+        smoothing then reaches only planned frames, so it is final) and find their contacts."""
+        done, end = len(self._floored), planned - margin
+        if end <= done:
+            return
+        lo = max(0, done - margin)
+        raw = np.clip(self._planner.trans[lo:planned], self.library.translation_low, self.library.translation_high)
+        lower = quaternion_to_axis_angle(self._planner.rotations[lo:planned])
+        floored = _on_floor(lower, raw, self.fps)[done - lo:end - lo]
+        self._floored = np.concatenate([self._floored, floored])
+        world = _world(lower[done - lo:end - lo], floored)
+        for side, (up, _, foot) in LEGS.items():
+            track, ankle, sole = self._feet[side], world[foot][1], world[f"{side.capitalize()}Sole"][1]
+            before = track["ankle"][-1:] if len(track["ankle"]) else ankle[:1]
+            speed = np.linalg.norm(np.diff(np.concatenate([before, ankle]), axis=0), axis=-1) * self.fps
+            new = {"ankle": ankle, "hip": world[up][1], "foot": world[foot][0],
+                   "down": (sole[:, 1] < CONTACT_HEIGHT) & (speed < CONTACT_SPEED)}
+            self._feet[side] = {key: np.concatenate([track[key], new[key]]) for key in track}
+
+    def _pins(self, side: str, first: int) -> list:
+        """The foot's pins that reach frame `first` - EASE or later, in frames from `first`."""
+        track = self._feet[side]
+        spans = [(a, b) for a, b in _runs(track["down"]) if b - a + 1 >= MIN_CONTACT and b + EASE >= first]
+        return [(a - first, b - first, spot, rotation)
+                for a, b, spot, rotation in _leg_pins(side, track["ankle"], track["hip"], track["foot"], spans)]
 
 
 @lru_cache(maxsize=1)

@@ -114,13 +114,15 @@ def test_live_poses_the_character_from_the_stream_keys_nothing_and_stop_puts_the
     shown = []
     frames_due = run.session.frames_due
     run.session.frames_due = lambda now=None: shown.append(frames_due(now)) or shown[-1]
-    poses, checked = [], 0
+    poses, checked, hips = [], 0, []
+    hips_before = np.array(ob.pose.bones["Hips"].location)
     try:
         deadline = time.monotonic() + 20
         while len(poses) < 12 and not run.step():  # Stop before the file ends
             assert time.monotonic() < deadline, "no frames came"
             if shown[-1]:
                 poses.append(_pose(ob, face, bones))
+                hips.append(np.array(ob.pose.bones["Hips"].location))
                 frame = shown[-1][-1]
                 if checked < 3:  # the pose is the newest frame, retargeted as keying would
                     motion = replace(run.poser.template, rotations=frame.rotations[None], face=frame.face[None])
@@ -158,6 +160,9 @@ def test_live_poses_the_character_from_the_stream_keys_nothing_and_stop_puts_the
     assert outcome.take is None and outcome.level == "INFO" and "not recorded (Record is off)" in outcome.line
     assert scene_state(scene) == before_state and _keys([ob, face.data.shape_keys]) == before_keys
     np.testing.assert_allclose(_pose(ob, face, bones), before_pose, atol=1e-6)  # the take's pose again
+    # the whole body: the hips shift their weight live (the stream's lower body), and are put back
+    assert np.ptp(np.array(hips), axis=0).max() > 1e-3
+    np.testing.assert_allclose(np.array(ob.pose.bones["Hips"].location), hips_before, atol=1e-6)
     assert listener.addresses.count("/VMC/Ext/Blend/Apply") == sent > 0  # every frame shown, over VMC
     assert listener.addresses.count("/VMC/Ext/Bone/Pos") > 40 * sent
 
@@ -189,7 +194,9 @@ def test_record_makes_a_take_as_generate_would_that_can_be_regenerated_in_ranges
         for fc in action_fcurves(action, action.slots[0] if len(getattr(action, "slots", ())) else None):
             types = {k.type for k in fc.keyframe_points}
             assert types == {"GENERATED"} and fc.keyframe_points[0].co[0] == 50.0, fc.data_path
-    assert {fc.data_path.split('"')[1] for fc in fcurves_of(rig)} >= {"Spine", "Neck", "RightArm", "LeftHand"}
+    assert {fc.data_path.split('"')[1] for fc in fcurves_of(rig)} >= {"Spine", "Neck", "RightArm", "LeftHand",
+                                                                      "Hips", "LeftUpLeg", "RightLeg", "LeftFoot"}
+    assert 'pose.bones["Hips"].location' in {fc.data_path for fc in fcurves_of(rig)}  # legs live, recorded
 
     source = takes.source_of("live_001 take 1")
     wav = tmp_path / "live" / "live_001.wav"

@@ -23,7 +23,8 @@ from diffsheg_core.errors import DiffshegError
 from diffsheg_core.checkpoints import load_model
 from diffsheg_core.live.engine import LiveConfig, LiveEngine
 from diffsheg_core.live.session import LiveSession
-from diffsheg_core.live.sources import TcpSource
+from diffsheg_core.live.sources import FileSource, TcpSource
+from diffsheg_core.lower_body import JOINTS as LEG_JOINTS
 from diffsheg_core.motion import Motion
 from diffsheg_core.pipeline import generate
 from diffsheg_core.runtime.backends import open_network
@@ -114,6 +115,13 @@ def test_live_cli_on_a_real_file_at_real_time_records_logs_and_streams_vmc(tmp_p
     assert 0.7 / take.fps < np.median(np.diff(applies)) < 1.3 / take.fps
     bones = {values[0] for _, address, values in listener.messages if address == "/VMC/Ext/Bone/Pos"}
     assert {"Spine", "Neck", "Head", "LeftUpperArm", "RightHand", "LeftIndexProximal"} <= bones
+    # the whole body, live: hips and legs recorded with their contacts, sent as VMC bones
+    assert take.joint_names[-len(LEG_JOINTS):] == list(LEG_JOINTS) and take.root_translation.shape == (take.n_frames, 3)
+    assert take.meta["hips_height"] > 0 and sum(len(v) for v in take.meta["contacts"].values()) > 0
+    assert {"LeftUpperLeg", "RightLowerLeg", "LeftFoot", "RightToes"} <= bones
+    hips = np.array([values[1:4] for _, address, values in listener.messages
+                     if address == "/VMC/Ext/Bone/Pos" and values[0] == "Hips"])
+    assert len(hips) == take.n_frames and np.ptp(hips[:, [0, 2]], axis=0).max() > 0.005  # the weight shifts
     shapes = {values[0] for _, address, values in listener.messages if address == "/VMC/Ext/Blend/Val"}
     assert {"JawOpen", "EyeBlinkLeft", "MouthClose", "A", "Blink_L"} <= shapes
 
@@ -208,6 +216,19 @@ def test_the_engine_refuses_what_live_cannot_do(model):
         LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(later_start=25))
     with pytest.raises(DiffshegError, match="4000 Hz or more"):
         LiveEngine(bundle, network, GenerateSettings(), 100)
+
+
+def test_upper_body_only_streams_no_legs(tmp_path, speech, model):
+    clip = tmp_path / "speech.wav"
+    sf.write(clip, speech.samples[: 2 * speech.sample_rate], speech.sample_rate)
+    shown = []
+    session = LiveSession(FileSource(clip, speed=4.0), GenerateSettings(upper_body_only=True),
+                          bundle=model[0], network=model[1])
+    result = session.run_to_end(shown.append)
+    assert session.legs is None and session.joint_names == list(model[0].layout.joint_names)
+    assert shown and all(f.root_translation is None and f.rotations.shape == (len(session.joint_names), 3)
+                         for f in shown)
+    assert result.motion.root_translation is None and result.motion.joint_names == session.joint_names
 
 
 @pytest.mark.parametrize("lookahead", [0, 2, 5])

@@ -73,11 +73,11 @@ def motion():
     return generate(str(SAMPLE), upper_body_only=True)  # live sends the upper body
 
 
-def send_frames(receiver: Receiver, rotations, faces, **options) -> list[list[tuple[str, tuple]]]:
+def send_frames(receiver: Receiver, rotations, faces, roots=None, **options) -> list[list[tuple[str, tuple]]]:
     """Send frames at a live pace (each one received before the next goes) and return them."""
     with VmcSender("127.0.0.1", receiver.port, rigs.BEAT, **options) as sender:
         for i, (rot, face) in enumerate(zip(rotations, faces)):
-            sender.send(rot, face, i / 15.0)
+            sender.send(rot, face, i / 15.0, None if roots is None else roots[i])
             receiver.frames(i + 1)
         assert (sender.errors, sender.frames_sent) == (0, len(rotations))
     return receiver.frames(len(rotations))
@@ -212,6 +212,45 @@ def test_metacarpals_fold_into_the_finger_bones(receiver):
             np.testing.assert_allclose(bones[f"{u}Proximal"][0], MIRROR @ rest, atol=1e-6, err_msg=u)
 
 
+def _world(bones: dict, chain: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """World rotation and position of the last bone of `chain` (root first) in Unity."""
+    rotation, position = np.eye(3), np.zeros(3)
+    for bone in chain:
+        position = position + rotation @ bones[bone][0]
+        rotation = rotation @ unity_matrix(bones[bone][1])
+    return rotation, position
+
+
+def test_live_legs_arrive_where_the_lower_body_puts_them(receiver):
+    """A whole-body frame (the lower body after the layout's joints, and the hips'
+    translation) sends the hips, legs, feet and toes: the Hips stand where the translation
+    puts them, and each ankle and toe, by Unity's own forward kinematics from the bones
+    received, is where the lower body puts it (mirrored into Unity axes)."""
+    from diffsheg_core import lower_body as lb
+
+    whole = generate(str(SAMPLE), steps=5)
+    k = whole.n_frames // 2
+    rotations, root = whole.rotations[k], whole.root_translation[k].astype(np.float64)
+    frame, = send_frames(receiver, [rotations], [whole.face[k]], legs=True, roots=[root])
+    bones = bones_of(frame)
+    assert len(bones) == 44 + len(vmc.LEG_BONES)
+    rest = vmc._beat_rig(True).positions[0]
+    np.testing.assert_allclose(bones["Hips"][0], rest + MIRROR @ root, atol=1e-6)
+    lower = rotations[None, -len(lb.JOINTS):].astype(np.float64)
+    world = lb._world(lower, root[None])
+    hips = world["Hips"][1][0]
+    skeleton = beat_skeleton()
+    for prefix in ("Left", "Right"):
+        chain = ["Hips", f"{prefix}UpperLeg", f"{prefix}LowerLeg", f"{prefix}Foot"]
+        _, ankle = _world(bones, chain)
+        np.testing.assert_allclose(ankle - bones["Hips"][0], MIRROR @ (world[f"{prefix}Foot"][1][0] - hips),
+                                   atol=1e-5, err_msg=prefix)
+        toe_rotation, toe = _world(bones, chain + [f"{prefix}Toes"])
+        tip = skeleton.offsets[skeleton.joint_names.index(f"{prefix}ToeBaseEnd")] / 100.0
+        np.testing.assert_allclose(toe + toe_rotation @ MIRROR @ tip - bones["Hips"][0],
+                                   MIRROR @ (world[f"{prefix}ToeEnd"][1][0] - hips), atol=1e-5, err_msg=prefix)
+
+
 def test_each_datagram_is_a_bundle_small_enough_for_one_ethernet_frame(motion):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.bind(("127.0.0.1", 0))
@@ -267,6 +306,11 @@ def test_bad_settings_and_frames_are_refused_with_the_fix():
     with pytest.raises(DiffshegError, match="51 face weights"):
         sender.send(np.zeros((N_JOINTS, 3)), np.zeros(52), 0.0)
     sender.close()
+    with VmcSender("127.0.0.1", 39539, rigs.BEAT, legs=True) as legs:
+        with pytest.raises(DiffshegError, match=r"\(56, 3\) rotations for the 'beat' layout with legs"):
+            legs.send(np.zeros((N_JOINTS, 3)), np.zeros(N_FACE), 0.0, np.zeros(3))
+        with pytest.raises(DiffshegError, match="needs the hips' translation"):
+            legs.send(np.zeros((N_JOINTS + 9, 3)), np.zeros(N_FACE), 0.0)
     with pytest.raises(DiffshegError, match="closed"):
         sender.send(np.zeros((N_JOINTS, 3)), np.zeros(N_FACE), 0.0)
 

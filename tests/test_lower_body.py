@@ -45,11 +45,7 @@ def _lower(motion):
 
 
 def _figures(lower: np.ndarray, trans: np.ndarray) -> dict[str, float]:
-    knees = np.degrees(np.linalg.norm(lower[:, [lb.JOINTS.index("RightLeg"), lb.JOINTS.index("LeftLeg")]], axis=-1))
-    return {"sway speed": float(np.linalg.norm(np.diff(trans[:, [0, 2]], axis=0), axis=-1).mean() * FPS),
-            "sway range": float(np.ptp(trans[:, [0, 2]], axis=0).max()),
-            "knee range": float(np.ptp(knees, axis=0).mean()),
-            "skating": lb.foot_skating(lower, trans, FPS)}
+    return lb.figures(lower, trans, FPS)
 
 
 def test_the_library_is_the_capture_less_its_held_out_seconds(capture):
@@ -128,3 +124,54 @@ def test_the_shortest_speech_still_gets_legs(bundle):
     motion = generate(speech, model=bundle, steps=3, device="cpu")
     assert motion.n_frames == 1 and motion.joint_names[-len(lb.JOINTS):] == list(lb.JOINTS)
     assert motion.meta["contacts"] == {"right": [], "left": []}
+
+
+def _stream(upper, seed: int, hop: int) -> lb.LowerBodyStream:
+    """The live lower body of `upper`, fed `hop` frames at a time."""
+    from dataclasses import replace
+
+    stream = lb.LowerBodyStream(upper.fps, seed)
+    for i in range(0, upper.n_frames, hop):
+        lower, trans = stream.add(replace(upper, rotations=upper.rotations[i:i + hop], face=upper.face[i:i + hop]))
+        assert lower.shape == (min(hop, upper.n_frames - i), len(lb.JOINTS), 3) and trans.shape == (len(lower), 3)
+    return stream
+
+
+def test_live_legs_plant_the_feet_and_move_as_offline_ones_do(take):
+    """Live (LowerBodyStream, hops of 3 frames as the live engine emits them) against offline
+    legs on the same upper body: feet planted the same way, figures alike."""
+    _, motions = take
+    library = lb.LowerBodyLibrary.load()
+    for seed, motion in enumerate(motions):
+        stream = _stream(lb.upper_body(motion), seed, hop=3)
+        lower, trans = stream.lower, stream.trans
+        assert len(lower) == motion.n_frames
+        assert np.all(trans >= library.translation_low - 1e-6) and np.all(trans <= library.translation_high + 1e-6)
+        soles = lb.foot_positions(lower, trans)
+        contacts = stream.contacts()
+        assert sum(b - a + 1 for spans in contacts.values() for a, b in spans) > 0.5 * motion.n_frames
+        for side, spans in contacts.items():
+            sole = soles[side][1]
+            for a, b in spans:
+                assert np.linalg.norm(np.diff(sole[a:b + 1], axis=0), axis=-1).max() < 0.01, (side, a, b)
+                assert np.abs(sole[a:b + 1, 1]).max() < lb.CONTACT_HEIGHT + 0.01
+        assert lb.foot_skating(lower, trans, FPS) < 0.03
+        live, offline = _figures(lower, trans), _figures(_lower(motion), motion.root_translation.astype(np.float64))
+        for name in ("sway speed", "knee range"):
+            assert 0.5 * offline[name] < live[name] < 2.0 * offline[name], (name, live[name], offline[name])
+
+
+def test_a_live_frame_is_final_when_emitted(take):
+    """What the stream emits a hop at a time is what planting its whole plan at once gives:
+    no frame would have come out otherwise had the stream waited for more (so no pop at a
+    hop's seam), with the work per hop bounded."""
+    _, motions = take
+    stream = _stream(lb.upper_body(motions[0]), 0, hop=4)
+    n, planned = len(stream.lower), len(stream._floored)
+    assert planned > n
+    raw = lb.quaternion_to_axis_angle(stream._planner.rotations[:planned])
+    whole, _ = lb.plant_feet(raw, stream._floored, FPS)
+    np.testing.assert_allclose(stream.lower, whole[:n], atol=1e-6)
+    np.testing.assert_array_equal(stream.trans, stream._floored[:n])
+    again = _stream(lb.upper_body(motions[0]), 0, hop=4)
+    np.testing.assert_array_equal(again.lower, stream.lower)  # same seed, same hops: same legs

@@ -3,7 +3,9 @@ Ray cluster started by the test and stopped after.
 
 Ray's processes talk to each other over the node's address; the test runs them in a
 network namespace of its own that has only the loopback interface (`unshare -n`), so
-every connection stays on 127.0.0.1. Six short lines of real speech, one of them a
+every connection stays on 127.0.0.1, and in a process namespace of its own (`-p -f
+--mount-proc`), so `ray stop --force` and the killers see only the test's processes,
+never a Ray the developer runs beside it. Six short lines of real speech, one of them a
 corrupt audio file: five done with every output asked for, the sixth failed by name,
 exit code 1; a rerun skips the five and rewrites nothing; a worker killed in the middle
 of a line is retried and the batch ends with the outputs of a one-worker run; a driver
@@ -33,7 +35,7 @@ from diffsheg_core.motion import Motion
 
 pytest.importorskip("ray")
 pytestmark = pytest.mark.skipif(shutil.which("unshare") is None or not sys.platform.startswith("linux"),
-                                reason="the Ray test runs in a network namespace of its own (Linux, unshare)")
+                                reason="the Ray test runs in network and process namespaces of its own (Linux, unshare)")
 
 OUTPUTS = "blend;npz;arkit_json;csv;glb;fbx_unreal"
 PORT = 6391
@@ -210,7 +212,7 @@ def studio(tmp_path_factory):
     (work / "kill_driver.py").write_text(DRIVER_KILLER)
     (work / "scenario.sh").write_text(SCENARIO)
     env = {**os.environ, "PYTHON": sys.executable, "REPO": str(REPO), "PORT": str(PORT)}
-    proc = subprocess.run(["unshare", "-n", "bash", "scenario.sh"], cwd=work, env=env, capture_output=True,
+    proc = subprocess.run(["unshare", "-n", "-p", "-f", "--mount-proc", "bash", "scenario.sh"], cwd=work, env=env, capture_output=True,
                           text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-2000:]
     return work

@@ -57,13 +57,13 @@ def run(args: argparse.Namespace) -> int:
     settings = from_arguments(args)
     live = LiveConfig(hop=args.hop, lookahead=args.lookahead)
     session = LiveSession(source, settings, live)
-    sender = _vmc_sender(args.osc, session.bundle) if args.osc else None
+    sender = _vmc_sender(args.osc, session) if args.osc else None
     print(f"live from {source.description}, model {session.bundle.model_id}, hop {live.hop} frames"
           f"{f', VMC to {args.osc}' if sender else ''}; Ctrl-C ends", file=sys.stderr)
 
     def show(frame) -> None:
         if sender is not None:
-            sender.send(frame.rotations, frame.face, frame.time)
+            sender.send(frame.rotations, frame.face, frame.time, frame.root_translation)
 
     try:
         result = session.run_to_end(show, on_status=lambda line: print(f"\r{line:<90}", end="", file=sys.stderr))
@@ -88,11 +88,11 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _vmc_sender(address: str, bundle):
+def _vmc_sender(address: str, session):
     from .vmc import VmcSender, parse_address
 
     host, port = parse_address(address)
-    return VmcSender(host, port, bundle.layout)
+    return VmcSender(host, port, session.bundle.layout, legs=session.legs is not None)
 
 
 def _write_recording(result, record: Path, audio_out: Path) -> None:

@@ -32,6 +32,7 @@ import numpy as np
 from ..audio import Audio
 from ..checkpoints import ModelBundle, load_model
 from ..errors import DiffshegError
+from ..lower_body import JOINTS as LEG_JOINTS, LAYOUTS as WHOLE_BODY_LAYOUTS, LowerBodyStream, with_lower_body
 from ..motion import Motion
 from ..pipeline import to_motion
 from ..runtime.backends import open_network
@@ -48,13 +49,15 @@ TIGHTEN_S = 0.01  # ... and takes back at most this much waiting per hop once co
 @dataclass(frozen=True)
 class LiveFrame:
     """One frame of the stream: its index and time in the audio, the joint rotations (J, 3)
-    and face weights (C,) as a Motion holds them, and when the engine made it."""
+    and face weights (C,) as a Motion holds them, when the engine made it, and with legs
+    (`LiveSession.joint_names` ends with lower_body.JOINTS) the hips' translation (3,)."""
 
     index: int
     time: float
     rotations: np.ndarray
     face: np.ndarray
     made: float
+    root_translation: Optional[np.ndarray] = None
 
 
 class Pacer:
@@ -111,7 +114,7 @@ class LiveResult:
     motion: Motion
     audio: Audio
     latencies: list[tuple[float, float]]
-    compute: float            # seconds the engine spent sampling
+    compute: float            # seconds spent sampling (and adding the legs)
     underrun_seconds: float   # silence filled in while the source gave no audio
     dropped_seconds: float    # audio the full feed dropped
     error: Optional[str] = None  # why the source or the engine stopped, when it was not the end of the audio
@@ -152,6 +155,9 @@ class LiveSession:
         self.network = network or open_network(self.bundle, settings.backend, settings.device,
                                                settings.precision, settings.threads)
         self.engine = LiveEngine(self.bundle, self.network, settings, source.sample_rate, live)
+        # the hips and legs under the model's upper body, as `generate` adds them (lower_body.py)
+        self.legs = (None if settings.upper_body_only or self.bundle.layout.name not in WHOLE_BODY_LAYOUTS
+                     else LowerBodyStream(self.bundle.config.fps, settings.seed))
         self.feed = AudioFeed(source.sample_rate)
         # a file played faster than real time for a demo (its `speed`) is shown that much faster too
         self.pacer = Pacer(self.bundle.config.fps * getattr(source, "speed", 1.0))
@@ -164,6 +170,11 @@ class LiveSession:
         self._clock = _Clock()
         self._thread: Optional[threading.Thread] = None
         self._stopping = threading.Event()
+
+    @property
+    def joint_names(self) -> list[str]:
+        """The joints of every frame's rotations: the model's layout, then the legs'."""
+        return list(self.bundle.layout.joint_names) + (list(LEG_JOINTS) if self.legs else [])
 
     # --- running -----------------------------------------------------------------------
     def start(self) -> None:
@@ -197,7 +208,10 @@ class LiveSession:
             self._thread.join(timeout)
         self.source.stop()
         engine = self.engine
-        return LiveResult(engine.motion(meta=engine.meta()), engine.audio(), list(self.latencies), self.compute,
+        motion = engine.motion(meta=engine.meta())
+        if self.legs is not None:
+            motion = with_lower_body(motion, self.legs.lower, self.legs.trans, self.legs.contacts())
+        return LiveResult(motion, engine.audio(), list(self.latencies), self.compute,
                           self.underrun_seconds, self.feed.dropped_seconds, self.error)
 
     def run_to_end(self, on_frame: Callable[[LiveFrame], None] = lambda frame: None,
@@ -270,11 +284,16 @@ class LiveSession:
         first = self.engine.emitted
         started = time.perf_counter()
         normalised = sample()
-        self.compute += time.perf_counter() - started
         if not len(normalised):
+            self.compute += time.perf_counter() - started
             return
-        made = time.monotonic()
         part = to_motion(self.bundle, normalised, meta={})
+        rotations, roots = part.rotations, [None] * part.n_frames
+        if self.legs is not None:
+            lower, roots = self.legs.add(part)
+            rotations = np.concatenate([rotations, lower.astype(rotations.dtype)], axis=1)
+        self.compute += time.perf_counter() - started
+        made = time.monotonic()
         fps = self.engine.fps
-        self.pacer.add([LiveFrame(first + k, (first + k) / fps, part.rotations[k], part.face[k], made)
+        self.pacer.add([LiveFrame(first + k, (first + k) / fps, rotations[k], part.face[k], made, roots[k])
                         for k in range(part.n_frames)])

@@ -29,6 +29,7 @@ from pythonosc.udp_client import UDPClient
 from .. import rigs
 from ..bvh import beat_skeleton
 from ..errors import DiffshegError
+from ..lower_body import JOINTS as LEG_JOINTS
 from ..rotations import axis_angle_to_matrix, convert
 
 DEFAULT_HOST = "127.0.0.1"
@@ -90,7 +91,7 @@ BEAT_BONES: tuple[tuple[str, str | None, str], ...] = (
     ("Head", "Neck", "Head"),
     *_beat_side("Left"), *_beat_side("Right"),
 )
-"""(Unity bone, Unity parent, BEAT joint) for every bone sent, parents first.
+"""(Unity bone, Unity parent, BEAT joint) for every bone of the upper body sent, parents first.
 
 A Unity bone's rotation is the product of the BEAT rotations on the path from its Unity
 parent's joint (excluded) down to its own joint (included), so joints Unity lacks fold
@@ -99,7 +100,17 @@ HandIndex into the index and thumb proximals (BEAT hangs the thumb on HandIndex)
 HandRing into the ring proximal, HandRing and HandPinky into the little proximal. The
 folded bone then points where BEAT's chain points. Joints the model does not move (Hips,
 Spine1-3, Head) count as identity: the model's rotations are relative to the T-pose with
-them at rest. Legs, feet, toes, eyes and jaw are not sent; the receiver keeps its own."""
+them at rest. Eyes and jaw are not sent; the receiver keeps its own, and its own legs
+where the frames have none (upper body only)."""
+
+LEG_BONES: tuple[tuple[str, str, str], ...] = tuple(
+    row for side in ("Left", "Right") for row in (
+        (f"{side}UpperLeg", "Hips", f"{side}UpLeg"), (f"{side}LowerLeg", f"{side}UpperLeg", f"{side}Leg"),
+        (f"{side}Foot", f"{side}LowerLeg", f"{side}Foot"), (f"{side}Toes", f"{side}Foot", f"{side}ToeBase")))
+"""(Unity bone, Unity parent, BEAT joint) of the legs, sent when the frames have the lower
+body (lower_body.JOINTS after the layout's joints): then the Hips turn as its Hips joint
+does, and stand where its root translation puts them (BEAT's RightForeFoot folds into
+the toes)."""
 
 
 @dataclass(frozen=True)
@@ -129,17 +140,18 @@ def _mirror_x_position(p: np.ndarray) -> np.ndarray:
     return p * np.array([-1.0, 1.0, 1.0])
 
 
-@lru_cache(maxsize=1)
-def _beat_rig() -> _BeatRig:
+@lru_cache(maxsize=2)
+def _beat_rig(legs: bool = False) -> _BeatRig:
     skeleton = beat_skeleton()
     names, parents = skeleton.joint_names, skeleton.parents
     rest = np.zeros((len(names), 3))
     for k, parent in enumerate(parents):  # parents come before children in a BVH
         rest[k] = skeleton.offsets[k] + (rest[parent] if parent >= 0 else 0.0)
-    by_unity = {bone: joint for bone, _, joint in BEAT_BONES}
-    joints = rigs.BEAT_JOINTS
+    rows = BEAT_BONES + (LEG_BONES if legs else ())
+    by_unity = {bone: joint for bone, _, joint in rows}
+    joints = rigs.BEAT_JOINTS + (LEG_JOINTS if legs else ())
     paths, positions = [], []
-    for bone, parent, joint in BEAT_BONES:
+    for bone, parent, joint in rows:
         top = by_unity[parent] if parent else None
         paths.append([joints.index(j) for j in _path(parents, names, top, joint) if j in joints])
         # the Hips stand on the floor: as high above the root as the lowest joint is below them
@@ -147,12 +159,13 @@ def _beat_rig() -> _BeatRig:
         positions.append(_mirror_x_position(rest[names.index(joint)] - origin) / 100.0)
     width = max(len(p) for p in paths)
     padded = np.array([p + [len(joints)] * (width - len(p)) for p in paths], dtype=int)
-    return _BeatRig(tuple(b for b, _, _ in BEAT_BONES), padded, np.array(positions))
+    return _BeatRig(tuple(b for b, _, _ in rows), padded, np.array(positions))
 
 
 def unity_rotations(rotations: np.ndarray) -> np.ndarray:
     """(47, 3) BEAT axis-angle rotations -> (B, 4) local quaternions (x, y, z, w) in Unity
-    axes of the bones in BEAT_BONES, folded joints multiplied in.
+    axes of the bones in BEAT_BONES, folded joints multiplied in; (56, 3) with the lower
+    body after them (lower_body.JOINTS) -> those of BEAT_BONES and LEG_BONES.
 
     Unity's axes are BEAT's mirrored in X (M = diag(-1, 1, 1)). A rotation R seen through
     a mirror is M R M: the rotation by -angle about M axis = (-ax, ay, az), which is the
@@ -161,7 +174,7 @@ def unity_rotations(rotations: np.ndarray) -> np.ndarray:
     left-handed changes how its axes are drawn, not the formulas), so this is the value a
     Transform's localRotation takes.
     """
-    rig = _beat_rig()
+    rig = _beat_rig(len(rotations) > len(rigs.BEAT_JOINTS))
     matrices = np.concatenate([axis_angle_to_matrix(rotations), np.eye(3)[None]])
     composed = reduce(np.matmul, (matrices[rig.paths[:, k]] for k in range(rig.paths.shape[1])))
     w, x, y, z = np.moveaxis(convert(composed, "matrix", "quaternion"), -1, 0)
@@ -262,7 +275,7 @@ class VmcSender:
     """
 
     def __init__(self, host: str, port: int, layout: rigs.Layout, *,
-                 names: str = "pascal", presets: bool = True):
+                 names: str = "pascal", presets: bool = True, legs: bool = False):
         if layout.name != rigs.BEAT.name:
             raise DiffshegError(
                 f"VMC output needs the 'beat' layout (the bundled model's), not '{layout.name}': "
@@ -272,6 +285,7 @@ class VmcSender:
             raise DiffshegError(f"VMC port {port!r} is not valid: give a whole number from 1 to 65535 "
                                 f"(receivers listen on {DEFAULT_PORT} by default)")
         self.layout = layout
+        self.legs = legs  # frames carry the lower body (lower_body.JOINTS) and the hips' translation
         self.host, self.port = host, port
         self.presets = presets
         self.blend_names = blendshape_names(names) + (VRM_PRESETS if presets else ())
@@ -289,12 +303,14 @@ class VmcSender:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def send(self, rotations: np.ndarray, face: np.ndarray, t: float) -> None:
+    def send(self, rotations: np.ndarray, face: np.ndarray, t: float,
+             root_translation: np.ndarray | None = None) -> None:
         """Send one frame: (J, 3) axis-angle rotations and (C,) face weights of the layout,
-        `t` the frame's time in seconds."""
+        `t` the frame's time in seconds; with `legs`, the rotations go on with the lower
+        body's and `root_translation` (3,) is the hips' (metres, lower_body's axes)."""
         if self._client is None:
             raise DiffshegError("this VMC sender is closed: make a new VmcSender to send again")
-        for bundle in _bundles(self._messages(rotations, face, t)):
+        for bundle in _bundles(self._messages(rotations, face, t, root_translation)):
             try:
                 self._client.send(bundle)
             except OSError as exc:
@@ -309,29 +325,42 @@ class VmcSender:
             self._client.close()
             self._client = None
 
-    def _messages(self, rotations: np.ndarray, face: np.ndarray, t: float) -> list[OscMessage]:
-        rotations, face = self._checked(rotations, face, t)
-        rig = _beat_rig()
+    def _messages(self, rotations: np.ndarray, face: np.ndarray, t: float,
+                  root_translation: np.ndarray | None = None) -> list[OscMessage]:
+        rotations, face, root = self._checked(rotations, face, t, root_translation)
+        rig = _beat_rig(self.legs)
         quats = unity_rotations(rotations)
+        positions = rig.positions.copy()
+        if root is not None:
+            positions[rig.bones.index("Hips")] += _mirror_x_position(root)
         weights = np.clip(face, 0.0, 1.0)
         if self.presets:
             weights = np.concatenate([weights, preset_weights(face)])
         return ([self._ok, _message(TIME, float(t)), self._root]
                 + [_message(BONE, bone, *map(float, p), *map(float, q))
-                   for bone, p, q in zip(rig.bones, rig.positions, quats)]
+                   for bone, p, q in zip(rig.bones, positions, quats)]
                 + [_message(BLEND, name, float(v)) for name, v in zip(self.blend_names, weights)]
                 + [_message(APPLY)])
 
-    def _checked(self, rotations: np.ndarray, face: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+    def _checked(self, rotations: np.ndarray, face: np.ndarray, t: float, root_translation: np.ndarray | None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         rotations = np.asarray(rotations, dtype=np.float64)
         face = np.asarray(face, dtype=np.float64)
-        joints, channels = len(self.layout.joint_names), len(self.layout.face_names)
+        joints, channels = len(self.layout.joint_names) + (len(LEG_JOINTS) if self.legs else 0), len(self.layout.face_names)
+        what = f"the '{self.layout.name}' layout" + (" with legs" if self.legs else "")
         if rotations.shape != (joints, 3):
-            raise DiffshegError(f"a VMC frame needs ({joints}, 3) rotations for the "
-                                f"'{self.layout.name}' layout, got shape {rotations.shape}")
+            raise DiffshegError(f"a VMC frame needs ({joints}, 3) rotations for {what}, got shape {rotations.shape}")
+        root = None
+        if self.legs:
+            if root_translation is None or np.shape(root_translation) != (3,):
+                raise DiffshegError("a VMC frame with legs needs the hips' translation (3 numbers, metres), got "
+                                    f"{'none' if root_translation is None else f'shape {np.shape(root_translation)}'}")
+            root = np.asarray(root_translation, dtype=np.float64)
+            if not np.all(np.isfinite(root)):
+                raise DiffshegError("a VMC frame holds a NaN or infinite hips translation")
         if face.shape != (channels,):
             raise DiffshegError(f"a VMC frame needs {channels} face weights for the "
                                 f"'{self.layout.name}' layout, got shape {face.shape}")
         if not (np.all(np.isfinite(face)) and math.isfinite(t)):
             raise DiffshegError("a VMC frame holds NaN or infinite face weights or time")
-        return rotations, face
+        return rotations, face, root
