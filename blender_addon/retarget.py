@@ -28,7 +28,7 @@ from diffsheg_core.rigs import SMPLX_JOINTS, SMPLX_PARENTS
 from diffsheg_core.rotations import axis_angle_to_matrix, convert, quaternion_sequence_continuous
 
 from .preset import JawDrive, Preset, find_name
-from .visemes import derived_keys
+from .visemes import DerivedKey, derived_keys
 
 # Landmark vectors of each layout's rest skeleton in its canonical frame, used to find
 # the canonical axes on a target rig: "up" from the first to the second joint, "left"
@@ -410,18 +410,17 @@ class ShapeKeyMapping:
     mesh: str
     pairs: list[tuple[int, str]]   # (face channel index, shape key name)
     unmatched: list[str]
-    derived: list[tuple[dict[int, float], str]] = field(default_factory=list)  # (weights, key): see visemes
+    derived: list[tuple[DerivedKey, str]] = field(default_factory=list)  # (how it follows the face, key): visemes
     empty: list[str] = field(default_factory=list)  # keys named like a channel that move no vertex
 
     def drives(self, channel: int) -> bool:
         """Whether some key of this mapping follows face channel `channel`."""
-        return any(i == channel for i, _ in self.pairs) or any(channel in w for w, _ in self.derived)
+        return any(i == channel for i, _ in self.pairs) or any(channel in d.channels for d, _ in self.derived)
 
     def curves(self, face: np.ndarray) -> list[tuple[str, np.ndarray]]:
         """(shape key, weights over time) for every key this mapping drives."""
         out = [(key, face[:, index]) for index, key in self.pairs]
-        out += [(key, np.clip(sum(w * face[:, i] for i, w in weights.items()), 0.0, 1.0))
-                for weights, key in self.derived]
+        out += [(key, derived.values(face)) for derived, key in self.derived]
         return out
 
 
@@ -458,10 +457,10 @@ def map_shape_keys(mesh, preset: Preset, motion: Motion) -> ShapeKeyMapping:
                 pairs.append((i, found))
                 used.add(found)
     derived = []
-    for names, weights in derived_keys({motion.face_names[i] for i, _ in pairs}, motion.face_names):
+    for names, how in derived_keys({motion.face_names[i] for i, _ in pairs}, motion.face_names):
         found = find_name(list(names), [k for k in working if k not in used])
-        if found is not None and weights:
-            derived.append((weights, found))
+        if found is not None:
+            derived.append((how, found))
             used.add(found)
     if not pairs and not derived:
         raise DiffshegError(

@@ -214,6 +214,15 @@ def test_a_vroid_style_face_talks_and_blinks_through_its_own_keys(speech_motion)
     mouth = curves['key_blocks["Fcl_MTH_A"].value']
     values = np.array([k.co[1] for k in mouth.keyframe_points])
     assert values.max() > 0.2 and 'key_blocks["Fcl_EYE_Close_L"].value' in curves
+    # the vowels are VMC's: the same A and O a VRM avatar gets live, never more than one vowel
+    from diffsheg_core.live.vmc import preset_weights
+    from blender_addon.retarget import map_shape_keys
+
+    derived = dict(map_shape_keys(face, load_preset("beat"), speech_motion).curves(speech_motion.face))
+    presets = np.array([preset_weights(f) for f in speech_motion.face])
+    np.testing.assert_allclose(derived["Fcl_MTH_A"], presets[:, 2], atol=1e-12)
+    np.testing.assert_allclose(derived["Fcl_MTH_O"], presets[:, 6], atol=1e-12)
+    assert (derived["Fcl_MTH_A"] + derived["Fcl_MTH_O"]).max() <= 1.0 + 1e-9
     # at the jaw's peak the mouth's vertices have moved
     peak = int(mouth.keyframe_points[int(values.argmax())].co[0])
     scene.frame_set(peak)

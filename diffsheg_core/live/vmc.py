@@ -31,6 +31,7 @@ from ..bvh import beat_skeleton
 from ..errors import DiffshegError
 from ..lower_body import JOINTS as LEG_JOINTS
 from ..rotations import axis_angle_to_matrix, convert
+from ..vowels import VOWELS, vowel_weights
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 39539  # where VMC receivers listen unless told otherwise
@@ -60,11 +61,10 @@ HUMAN_BODY_BONES: tuple[str, ...] = (
           for finger in _FINGERS for part in _FINGER_PARTS) + ("UpperChest",)
 """The 55 bone names of Unity's HumanBodyBones, in enum order: the names VMC bones go by."""
 
-VRM_PRESETS: tuple[str, ...] = ("Blink_L", "Blink_R", "A", "I", "U", "E", "O")
+VRM_PRESETS: tuple[str, ...] = ("Blink_L", "Blink_R") + VOWELS
 """VRM 0.x blendshape presets derived from the ARKit channels (`preset_weights`)."""
 
 NAME_STYLES = ("pascal", "arkit")
-_VOWEL_GAIN = 2.0  # jawOpen -> mouth opening for the vowel presets; see preset_weights
 
 
 def _beat_side(side: str) -> list[tuple[str, str, str]]:
@@ -197,23 +197,12 @@ def blendshape_names(style: str) -> tuple[str, ...]:
 
 def preset_weights(face: np.ndarray) -> np.ndarray:
     """The VRM 0.x presets Blink_L, Blink_R, A, I, U, E, O from 51 ARKit weights (0..1).
-
     Blinks are eyeBlinkLeft / eyeBlinkRight (ARKit's Left is the face's own left, as VRM's
-    _L). The vowels split the mouth by three amounts: opening o = min(1, 2 jawOpen) (speech
-    seldom opens ARKit's jaw past half, VRM's A is a full 'ah'), rounding r =
-    max(mouthFunnel, mouthPucker) and spreading s = max(mean mouthStretch, mean
-    mouthSmile):
-        A = o (1 - r)(1 - s)   E = o s (1 - r)   O = o r
-        I = (1 - o) s (1 - r)  U = (1 - o) r
-    They add up to at most 1, so together they never open the mouth past one full vowel.
-    """
-    w = dict(zip(rigs.ARKIT51, np.clip(face, 0.0, 1.0)))
-    o = min(1.0, _VOWEL_GAIN * w["jawOpen"])
-    r = max(w["mouthFunnel"], w["mouthPucker"])
-    s = max((w["mouthStretchLeft"] + w["mouthStretchRight"]) / 2,
-            (w["mouthSmileLeft"] + w["mouthSmileRight"]) / 2)
-    return np.array([w["eyeBlinkLeft"], w["eyeBlinkRight"], o * (1 - r) * (1 - s),
-                     (1 - o) * s * (1 - r), (1 - o) * r, o * s * (1 - r), o * r])
+    _L); the vowels are `vowels.vowel_weights`, as the add-on drives VRoid's and Ready
+    Player Me's vowel keys, so they add up to at most one full vowel."""
+    face = np.clip(np.asarray(face, dtype=np.float64), 0.0, 1.0)
+    blinks = face[[rigs.ARKIT51.index("eyeBlinkLeft"), rigs.ARKIT51.index("eyeBlinkRight")]]
+    return np.concatenate([blinks, vowel_weights(face[None], rigs.ARKIT51)[0]])
 
 
 def parse_address(text: str) -> tuple[str, int]:
