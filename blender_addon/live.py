@@ -267,7 +267,7 @@ class LiveRun:
         scene, settings = context.scene, context.scene.diffsheg
         check_runtime()
         options = check_targets(settings)
-        generation = replace(generate_settings(settings), emotion=None)  # live runs neutral (the panel says so)
+        generation = generate_settings(settings)  # the panel's emotion too (its markers need a whole take)
         self.scene = scene
         self.record = settings.live_record
         self.start_frame = scene.frame_current

@@ -300,9 +300,6 @@ class DIFFSHEG_PT_live(_Panel, bpy.types.Panel):
             rate = f"{live.SOCKET_RATE / 1000:g}\u00a0kHz"  # a non-breaking space: "16 kHz" on one line
             wrapped_label(col, context, f"Listens on {live.SOCKET_HOST}:{s.live_port} for 16-bit mono PCM at {rate}")
         col.prop(s, "live_hop")
-        if s.emotion != NEUTRAL:  # an emotion is laid over a whole take: live cannot wait for it
-            wrapped_label(col, context, "Live runs without emotion: regenerate the recorded take to add it",
-                          icon="INFO")
         col.row(heading="Take").prop(s, "live_record")
         col.row(heading="VMC").prop(s, "live_vmc", text="Send")
         if s.live_vmc:  # the whole width: an address is longer than the value column shows

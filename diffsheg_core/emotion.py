@@ -19,6 +19,7 @@ a lip-synced take:
 
 An emotion changes over time like a style: `emotion_at` ((seconds, emotion), ...) and the
 add-on's timeline markers `emotion:sad`; each change eases in over about a third of a second.
+Live, `EmotionStream` lays one emotion over each hop as it is made.
 numpy only: it runs inside Blender.
 """
 
@@ -162,6 +163,32 @@ def apply_emotion(motion: Motion, track: np.ndarray, start: int = 0, end: int | 
     face[start:end] = _face(motion, track)[start:end]
     rotations[start:end] = body[start:end]
     return replace(motion, rotations=rotations, face=face)
+
+
+class EmotionStream:
+    """One emotion laid over a live motion, a hop of frames at a time (live/session.py): the
+    face exactly as `apply_emotion` lays it over a whole take (it is frame by frame), the
+    body's energy and sharpness around the slow posture of the frames made so far, where
+    offline also sees the next ones, so a stroke is scaled a moment later in its course;
+    the head's and chest's pitch exactly."""
+
+    def __init__(self, emotion: dict[str, float], fps: float):
+        self.row = np.zeros(len(NAMES))
+        for name, value in check_emotion(emotion).items():
+            self.row[NAMES.index(name)] = value
+        self.context = int(np.ceil(3 * POSTURE_S * fps))  # smooth_frames' reach at the posture's sigma
+        self._before: Motion | None = None  # the last `context` frames made, without the emotion
+
+    def add(self, part: Motion) -> Motion:
+        """`part`, the next frames of the stream, with the emotion laid over them."""
+        if not part.n_frames or not self.row.any():
+            return part
+        window = part if self._before is None else replace(
+            part, rotations=np.concatenate([self._before.rotations, part.rotations]),
+            face=np.concatenate([self._before.face, part.face]))
+        laid = apply_emotion(window, np.repeat(self.row[None], window.n_frames, axis=0))
+        self._before = replace(window, rotations=window.rotations[-self.context:], face=window.face[-self.context:])
+        return replace(part, rotations=laid.rotations[-part.n_frames:], face=laid.face[-part.n_frames:])
 
 
 def remove_emotion(motion: Motion, track: np.ndarray) -> Motion:

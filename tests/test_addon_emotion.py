@@ -1,7 +1,7 @@
 """Emotion in the add-on (issue 29, item 2): the panel's Emotion menu and Intensity slider
 reach generation, timeline markers 'emotion:sad' change it from their frame as style
 markers do (a bad one refused, named, before anything runs), a range with Neutral keeps
-its take's emotion, Live runs neutral, the report names the emotion, and a Happy take
+its take's emotion, Live lays the panel's emotion, the report names the emotion, and a Happy take
 keyed onto the ARKit face smiles more than a Neutral one. Real speech, the bundled model
 at 5 steps."""
 
@@ -86,7 +86,7 @@ def test_the_emotion_menu_is_the_cores_emotions():
         assert description[0].isupper() and not description.endswith("."), name
 
 
-def test_the_panel_draws_emotion_beside_style_and_live_says_it_runs_neutral():
+def test_the_panel_draws_emotion_beside_style():
     s = reset_scene().diffsheg
     props = [e[1:] for e in _draw(panel.DIFFSHEG_PT_generate) if e[0] == "prop"]
     at = props.index(("style_mix", False))
@@ -94,8 +94,7 @@ def test_the_panel_draws_emotion_beside_style_and_live_says_it_runs_neutral():
     assert not any(e[0] == "label" and "without emotion" in e[1] for e in _draw(panel.DIFFSHEG_PT_live))
     s.emotion = "sad"
     assert ("prop", "emotion_intensity", True) in _draw(panel.DIFFSHEG_PT_generate)
-    assert any(e[0] == "label" and e[1].startswith("Live runs without emotion")
-               for e in _draw(panel.DIFFSHEG_PT_live))
+    assert not any(e[0] == "label" and "without emotion" in e[1] for e in _draw(panel.DIFFSHEG_PT_live))
 
 
 def test_the_panels_emotion_and_markers_reach_generate_from_their_frame(speech, monkeypatch):
@@ -149,12 +148,12 @@ def test_a_range_with_neutral_keeps_the_takes_emotion_and_markers_change_it(spee
     assert made[-1][0].emotion == {"happy": 0.8}
 
 
-def test_live_runs_neutral_whatever_the_panels_emotion(speech):
+def test_live_carries_the_panels_emotion(speech):
     scene, s, _ = _panel(speech)
-    s.emotion, s.live_source, s.live_file = "happy", "FILE", str(speech)
-    run = live.LiveRun(bpy.context)  # the core refuses an emotion live
+    s.emotion, s.emotion_intensity, s.live_source, s.live_file = "happy", 0.5, "FILE", str(speech)
+    run = live.LiveRun(bpy.context)
     run.source.stop()  # never started
-    assert run.session.engine.settings.emotion is None
+    assert run.session.engine.settings.emotion == {"happy": 0.5} and run.session.mood is not None
 
 
 def test_a_happy_take_smiles_more_than_a_neutral_one(speech):

@@ -141,8 +141,9 @@ def test_the_command_line_and_live(bundle):
     assert GenerateSettings(emotion="neutral").emotion is None
     with pytest.raises(SystemExit):
         parser.parse_args(["--emotion", "joyful"])
-    with pytest.raises(DiffshegError, match="live runs neutral"):
-        LiveEngine(bundle, open_network(bundle), GenerateSettings(emotion="happy"), 16000)
+    LiveEngine(bundle, open_network(bundle), GenerateSettings(emotion="happy"), 16000)  # live lays one emotion
+    with pytest.raises(DiffshegError, match="an emotion over time"):
+        LiveEngine(bundle, open_network(bundle), GenerateSettings(emotion_at=((1.0, "sad"),)), 16000)
 
 
 @pytest.mark.parametrize("value, match", [

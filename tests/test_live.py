@@ -231,6 +231,40 @@ def test_upper_body_only_streams_no_legs(tmp_path, speech, model):
     assert result.motion.root_translation is None and result.motion.joint_names == session.joint_names
 
 
+def test_live_lays_the_emotion_over_each_hop(tmp_path, speech, model):
+    """Sad, live, against neutral live from the same speech and seed: the face is exactly
+    the emotion layer over the neutral frames (it is frame by frame), the brows go up and the
+    mouth down, the head is lower and the gestures slower, as offline; the recording says so."""
+    from diffsheg_core.emotion import NAMES, _face
+    from diffsheg_core.kinematics import wrist_positions
+    from diffsheg_core.training.metrics.channels import face_channel
+
+    clip = tmp_path / "speech.wav"
+    sf.write(clip, speech.samples[: 5 * speech.sample_rate], speech.sample_rate)
+    runs = {}
+    for emotion in (None, "sad"):
+        session = LiveSession(FileSource(clip, speed=4.0), GenerateSettings(seed=0, emotion=emotion),
+                              bundle=model[0], network=model[1])
+        runs[emotion] = session.run_to_end().motion
+    neutral, sad = runs[None], runs["sad"]
+    assert sad.meta["emotion"] == {"sad": 1.0} and sad.n_frames == neutral.n_frames
+    track = np.zeros((sad.n_frames, len(NAMES)))
+    track[:, NAMES.index("sad")] = 1.0
+    np.testing.assert_allclose(sad.face, _face(neutral, track), atol=1e-6)
+    assert face_channel(sad, "browInnerUp").mean() > face_channel(neutral, "browInnerUp").mean() + 0.3
+    assert face_channel(sad, "mouthFrownLeft").mean() > face_channel(neutral, "mouthFrownLeft").mean() + 0.2
+
+    def head_pitch(m):  # degrees, down positive, over the neck's two joints
+        return np.degrees(sum(m.rotations[:, m.joint_names.index(j), 0] for j in ("Neck", "Neck1"))).mean()
+
+    def wrist_speed(m):
+        return np.linalg.norm(np.diff(wrist_positions(m), axis=0), axis=-1).mean()
+
+    assert head_pitch(sad) > head_pitch(neutral) + 8
+    assert wrist_speed(sad) < 0.9 * wrist_speed(neutral)
+    assert sad.joint_names[-len(LEG_JOINTS):] == list(LEG_JOINTS)  # the legs under the emotional arms
+
+
 @pytest.mark.parametrize("lookahead", [0, 2, 5])
 def test_every_frame_heard_is_emitted_whatever_the_lookahead(speech, model, lookahead):
     bundle, network = model

@@ -98,10 +98,9 @@ class LiveEngine:
         if settings.style_at:
             raise DiffshegError("a style over time (style_at) needs the whole recording: live, choose one "
                                 "style (style=...)")
-        if settings.emotion or settings.emotion_at:
-            raise DiffshegError("an emotion is laid over the whole take after generating, which live cannot "
-                                "wait for: live runs neutral (leave emotion out); record and regenerate "
-                                "with an emotion")
+        if settings.emotion_at:
+            raise DiffshegError("an emotion over time (emotion_at, timeline markers) needs the whole recording: "
+                                "live, choose one emotion (emotion=...)")
         if isinstance(sample_rate, bool) or not isinstance(sample_rate, int) or sample_rate < MIN_SAMPLE_RATE:
             raise DiffshegError(f"live audio must come at {MIN_SAMPLE_RATE} Hz or more, got {sample_rate!r}")
         live.check(cfg.clip_len)

@@ -24,13 +24,14 @@ import bisect
 import collections
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Optional
 
 import numpy as np
 
 from ..audio import Audio
 from ..checkpoints import ModelBundle, load_model
+from ..emotion import EmotionStream
 from ..errors import DiffshegError
 from ..lower_body import JOINTS as LEG_JOINTS, LAYOUTS as WHOLE_BODY_LAYOUTS, LowerBodyStream, with_lower_body
 from ..motion import Motion
@@ -155,7 +156,9 @@ class LiveSession:
         self.network = network or open_network(self.bundle, settings.backend, settings.device,
                                                settings.precision, settings.threads)
         self.engine = LiveEngine(self.bundle, self.network, settings, source.sample_rate, live)
-        # the hips and legs under the model's upper body, as `generate` adds them (lower_body.py)
+        # the emotion and the hips and legs laid over what the model makes, as `generate` lays them
+        self.mood = EmotionStream(settings.emotion, self.bundle.config.fps) if settings.emotion else None
+        self._moods: list[Motion] = []  # the frames made, with the emotion (the recording's)
         self.legs = (None if settings.upper_body_only or self.bundle.layout.name not in WHOLE_BODY_LAYOUTS
                      else LowerBodyStream(self.bundle.config.fps, settings.seed))
         self.feed = AudioFeed(source.sample_rate)
@@ -209,6 +212,9 @@ class LiveSession:
         self.source.stop()
         engine = self.engine
         motion = engine.motion(meta=engine.meta())
+        if self.mood is not None and self._moods:
+            motion = replace(motion, rotations=np.concatenate([m.rotations for m in self._moods]),
+                             face=np.concatenate([m.face for m in self._moods]))
         if self.legs is not None:
             motion = with_lower_body(motion, self.legs.lower, self.legs.trans, self.legs.contacts())
         return LiveResult(motion, engine.audio(), list(self.latencies), self.compute,
@@ -288,6 +294,9 @@ class LiveSession:
             self.compute += time.perf_counter() - started
             return
         part = to_motion(self.bundle, normalised, meta={})
+        if self.mood is not None:
+            part = self.mood.add(part)
+            self._moods.append(part)
         rotations, roots = part.rotations, [None] * part.n_frames
         if self.legs is not None:
             lower, roots = self.legs.add(part)
