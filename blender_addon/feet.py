@@ -4,9 +4,9 @@ The motion plants its feet on the canonical body; on a rig whose legs, hips widt
 height differ, the same turns move the feet a little. Over each contact span of the motion
 (meta "contacts") the rig's ankle is pinned where it is at the span's middle frame and the
 foot keeps that frame's orientation (eased in and out), and each leg is solved with two-bone
-IK on the rig's own bone lengths (diffsheg_core.leg_ik, as the canonical body's). numpy
-only, fed with the rig's rest matrices (retarget.LegRig):
-bones between the keyed ones are taken at rest.
+IK on the rig's own bone lengths (diffsheg_core.leg_ik, as the canonical body's). Live
+(`LiveFeet`) pins a foot a frame at a time, where it lands. numpy only, fed with the rig's
+rest matrices (retarget.LegRig): bones between the keyed ones are taken at rest.
 """
 
 from __future__ import annotations
@@ -60,9 +60,16 @@ def plant_foot(leg: LegRig, displacement: np.ndarray, quaternions: dict[str, np.
     """New local quaternions of the leg's thigh, shin and foot (by bone name) that pin the
     ankle and the foot's orientation over each span (diffsheg_core.leg_ik). `quaternions`:
     local (T, 4) of "hips" and of the leg's bones."""
-    (hips, thigh, shin, foot), (_, hip, knee, ankle) = _pose(leg, displacement, quaternions)
+    worlds, heads = _pose(leg, displacement, quaternions)
+    ankle, foot = heads[3], worlds[3]
     pins = [(a, b, ankle[(a + b) // 2], foot[(a + b) // 2]) for a, b in spans]
-    goal, goal_rot, weight = pin_goals(ankle, foot, pins, max(1, int(round(EASE_S * fps))))
+    return _solve(leg, worlds, heads, pins, max(1, int(round(EASE_S * fps))))
+
+
+def _solve(leg: LegRig, worlds: list, heads: list, pins: list, ease: int) -> dict[str, np.ndarray]:
+    """The leg's thigh, shin and foot local quaternions with its ankle and foot held by `pins`."""
+    (hips, thigh, shin, foot), (_, hip, knee, ankle) = worlds, heads
+    goal, goal_rot, weight = pin_goals(ankle, foot, pins, ease)
     turn, bend = two_bone(hip, knee, ankle, goal, float(np.linalg.norm(leg.heads[2] - leg.heads[1])),
                           float(np.linalg.norm(leg.heads[3] - leg.heads[2])), hips @ leg.left)
     held = (weight > 0)[:, None, None]
@@ -73,3 +80,36 @@ def plant_foot(leg: LegRig, displacement: np.ndarray, quaternions: dict[str, np.
     return {thigh_bone: _local(leg.rest[1], new_thigh, hips),
             shin_bone: _local(leg.rest[2], new_shin, new_thigh),
             foot_bone: _local(leg.rest[3], new_foot, new_shin)}
+
+
+class LiveFeet:
+    """Contact feet pinned on the rig a frame at a time (Live posing, live.py). Live cannot
+    see a span's middle: a foot is pinned where it is on the frame it lands, held while the
+    stream says it is down, and eased out over EASE_S once it lifts."""
+
+    def __init__(self, fps: float):
+        self.ease = max(1, int(round(EASE_S * fps)))
+        self._pins: dict[str, tuple[int, int, np.ndarray, np.ndarray]] = {}  # side: (landed, last down, ankle, foot)
+        self._shown: int | None = None  # the stream's frame posed last
+
+    def solve(self, legs: list[LegRig], displacement: np.ndarray, quaternions: dict[str, np.ndarray], hips: str,
+              down: dict[str, bool], index: int) -> dict[str, np.ndarray]:
+        """New local quaternions (1, 4) of the legs' bones for the stream's frame `index`,
+        posed as `quaternions` ((1, 4) per bone, `hips` the hips bone's) and `displacement`
+        (1, 3); `down`: per side whether that foot is planted in this frame."""
+        out = {}
+        for leg in legs:
+            worlds, heads = _pose(leg, displacement, {"hips": quaternions[hips],
+                                                      **{b: quaternions[b] for b in leg.bones}})
+            pin = self._pins.get(leg.side)
+            if down.get(leg.side):
+                landed = pin is None or self._shown is None or pin[1] < self._shown
+                pin = (index, index, heads[3][0], worlds[3][0]) if landed else (pin[0], index, pin[2], pin[3])
+                self._pins[leg.side] = pin
+            elif pin is not None and index - pin[1] > self.ease:
+                del self._pins[leg.side]
+                pin = None
+            if pin is not None:
+                out.update(_solve(leg, worlds, heads, [(pin[0] - index, pin[1] - index, pin[2], pin[3])], self.ease))
+        self._shown = index
+        return out

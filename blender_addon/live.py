@@ -56,8 +56,8 @@ class Poser:
     """Poses the character from single frames of the model's layout (with `legs`, the lower
     body's joints after them and the hips' translation), through the channels keying writes
     (bake.py), and remembers each value it changes to put it back. A frame at a time there
-    are no contact spans: the feet stand as the live lower body planted them, scaled to the
-    rig's legs."""
+    are no contact spans to pin the feet over: a foot the stream says is down is pinned on
+    the rig where it lands (feet.LiveFeet)."""
 
     def __init__(self, bundle, options, legs: bool = False):
         import numpy as np
@@ -66,6 +66,7 @@ class Poser:
         from diffsheg_core.motion import Motion
 
         from .bake import map_targets, resolve_preset
+        from .feet import LiveFeet
 
         layout = bundle.layout
         self.template = Motion(fps=bundle.config.fps, rig=layout.name, joint_names=list(layout.joint_names),
@@ -77,11 +78,13 @@ class Poser:
         options, notes = resolve_preset(layout.name, options)
         self.targets = map_targets(self.template, options, notes)
         self.options = self.targets.options
+        self.feet = LiveFeet(bundle.config.fps)
         self._owners: dict[tuple[int, str], tuple[object, str]] = {}  # (datablock's pointer, path) -> owner
         self.saved = [(id_data, path, self._read(id_data, path)) for id_data, path, _ in self._values(self.template)]
 
-    def _values(self, motion) -> list[tuple[object, str, tuple]]:
-        """(datablock, data path, values by array index) of the first frame of `motion`."""
+    def _values(self, motion, frame=None) -> list[tuple[object, str, tuple]]:
+        """(datablock, data path, values by array index) of the first frame of `motion`, the
+        stream's `frame` (a LiveFrame) when it is one, with its feet pinned."""
         from .bake import body_pose, face_channels, location_channels, rotation_channels
 
         out = []
@@ -89,6 +92,9 @@ class Poser:
         if mapping is not None:
             armature = self.options.armature
             quaternions, location = body_pose(mapping, motion)
+            if frame is not None and frame.feet_down and location is not None and mapping.legs:
+                quaternions.update(self.feet.solve(mapping.legs, location @ mapping.root.rest.T, quaternions,
+                                                   mapping.root.bone, frame.feet_down, frame.index))
             groups = [rotation_channels(bone, armature.pose.bones[bone].rotation_mode, quats)
                       for bone, quats in quaternions.items()]
             if location is not None:
@@ -121,7 +127,7 @@ class Poser:
         """Pose one LiveFrame (its rotations, face weights and hips' translation)."""
         root = None if frame.root_translation is None else frame.root_translation[None]
         motion = replace(self.template, rotations=frame.rotations[None], face=frame.face[None], root_translation=root)
-        for id_data, path, values in self._values(motion):
+        for id_data, path, values in self._values(motion, frame):
             self._write(id_data, path, values)
 
     def restore(self, scene) -> None:

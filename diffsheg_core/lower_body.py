@@ -473,12 +473,13 @@ class LowerBodyStream:
         self.lower = np.zeros((0, len(JOINTS), 3))  # what was emitted
         self.trans = np.zeros((0, 3))
 
-    def add(self, upper: Motion) -> tuple[np.ndarray, np.ndarray]:
-        """(n, 9, 3) lower-body rotations and (n, 3) hips translation for the next n frames,
-        whose upper body is `upper` (the stream's next n frames)."""
+    def add(self, upper: Motion) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """(n, 9, 3) lower-body rotations, (n, 3) hips translation and per foot (n,) whether
+        it is pinned (in contact) for the next n frames, whose upper body is `upper` (the
+        stream's next n frames)."""
         first, n = len(self.lower), upper.n_frames
         if not n:
-            return np.zeros((0, len(JOINTS), 3)), np.zeros((0, 3))
+            return np.zeros((0, len(JOINTS), 3)), np.zeros((0, 3)), {side: np.zeros(0, bool) for side in LEGS}
         self._hear_arms(upper)
         energy = float(np.mean(self._speed[-int(2 * ENERGY_S * self.fps):]))
         margin = int(np.ceil(3 * GROUND_S * self.fps))  # smooth_frames' reach at the floor's sigma
@@ -489,10 +490,15 @@ class LowerBodyStream:
         hop = slice(first, first + n)
         lower = quaternion_to_axis_angle(self._planner.rotations[hop])
         world = _world(lower, self._floored[hop])
-        lower = _solve(lower, world, {side: self._pins(side, first) for side in LEGS})
+        pins = {side: self._pins(side, first) for side in LEGS}
+        lower = _solve(lower, world, pins)
         self.lower = np.concatenate([self.lower, lower])
         self.trans = np.concatenate([self.trans, self._floored[hop]])
-        return lower, self._floored[hop].copy()
+        down = {side: np.zeros(n, bool) for side in LEGS}
+        for side, side_pins in pins.items():
+            for a, b, _, _ in side_pins:
+                down[side][max(a, 0):max(b + 1, 0)] = True
+        return lower, self._floored[hop].copy(), down
 
     def contacts(self) -> dict[str, list[tuple[int, int]]]:
         """Per foot the [first, last] spans pinned so far (frames emitted)."""

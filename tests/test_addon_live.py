@@ -167,6 +167,50 @@ def test_live_poses_the_character_from_the_stream_keys_nothing_and_stop_puts_the
     assert listener.addresses.count("/VMC/Ext/Bone/Pos") > 40 * sent
 
 
+def test_live_plants_the_feet_on_the_ready_player_me_avatar(speech):
+    """Whole body live on a rig with other proportions than the canonical body: the hips
+    move, and a foot the stream says is down stays where it landed on the rig's own legs
+    (feet.LiveFeet) over every run of frames shown with it down: within 2 mm (the issue asks
+    for 1 cm; unpinned on the rig, the same frames drift 0.82 cm)."""
+    scene = reset_scene()
+    rig, faces = import_readyplayerme()
+    s = scene.diffsheg
+    s.armature, s.device = rig, "CPU"
+    s.live_source, s.live_file, s.live_speed, s.live_record = "FILE", str(speech), SPEED, False
+    run = live.LiveRun(bpy.context).start()
+    shown = []
+    frames_due = run.session.frames_due
+    run.session.frames_due = lambda now=None: shown.append(frames_due(now)) or shown[-1]
+    ankles, downs, hips = [], [], []
+    try:
+        deadline = time.monotonic() + 30
+        while not run.step():
+            assert time.monotonic() < deadline, "the session did not end"
+            if run.finishing is None and shown and shown[-1]:
+                bpy.context.view_layer.update()
+                ankles.append({side: np.array(rig.matrix_world @ rig.pose.bones[f"{side.capitalize()}Foot"].head)
+                               for side in ("right", "left")})
+                downs.append(shown[-1][-1].feet_down)
+                hips.append(np.array(rig.pose.bones["Hips"].location))
+            time.sleep(1 / 60)
+        run.end(bpy.context)
+    finally:
+        if live.current() is run:
+            run.end(bpy.context)
+    assert len(downs) > 10 and np.ptp(np.array(hips), axis=0).max() > 1e-3
+    worst, held = 0.0, 0
+    for side in ("right", "left"):
+        landed = None
+        for ankle, down in zip(ankles, downs):
+            if down[side]:
+                landed = ankle[side] if landed is None else landed
+                worst, held = max(worst, float(np.linalg.norm(ankle[side] - landed))), held + 1
+            else:
+                landed = None
+    print(f"live, Ready Player Me: a planted foot moves at most {100 * worst:.2f} cm from where it landed")
+    assert held > 10 and worst < 0.002
+
+
 @pytest.mark.skipif(not HAS_AUDIO, reason="this Blender has no audio support: no sound strips")
 def test_record_makes_a_take_as_generate_would_that_can_be_regenerated_in_ranges(speech, tmp_path):
     """The Ready Player Me avatar, Live from a file through the operator (its blocking run),

@@ -126,14 +126,19 @@ def test_the_shortest_speech_still_gets_legs(bundle):
     assert motion.meta["contacts"] == {"right": [], "left": []}
 
 
-def _stream(upper, seed: int, hop: int) -> lb.LowerBodyStream:
-    """The live lower body of `upper`, fed `hop` frames at a time."""
+def _stream(upper, seed: int, hop: int, down_out: dict | None = None) -> lb.LowerBodyStream:
+    """The live lower body of `upper`, fed `hop` frames at a time (each foot's contact flags
+    gathered into `down_out`)."""
     from dataclasses import replace
 
     stream = lb.LowerBodyStream(upper.fps, seed)
     for i in range(0, upper.n_frames, hop):
-        lower, trans = stream.add(replace(upper, rotations=upper.rotations[i:i + hop], face=upper.face[i:i + hop]))
+        lower, trans, down = stream.add(replace(upper, rotations=upper.rotations[i:i + hop],
+                                                face=upper.face[i:i + hop]))
         assert lower.shape == (min(hop, upper.n_frames - i), len(lb.JOINTS), 3) and trans.shape == (len(lower), 3)
+        assert set(down) == set(lb.LEGS) and all(v.shape == (len(lower),) for v in down.values())
+        for side, flags in down.items():
+            (down_out if down_out is not None else {}).setdefault(side, []).extend(flags)
     return stream
 
 
@@ -166,8 +171,14 @@ def test_a_live_frame_is_final_when_emitted(take):
     no frame would have come out otherwise had the stream waited for more (so no pop at a
     hop's seam), with the work per hop bounded."""
     _, motions = take
-    stream = _stream(lb.upper_body(motions[0]), 0, hop=4)
+    down: dict = {}
+    stream = _stream(lb.upper_body(motions[0]), 0, hop=4, down_out=down)
     n, planned = len(stream.lower), len(stream._floored)
+    for side, spans in stream.contacts().items():  # each frame's flags are the contact spans'
+        flags = np.zeros(n, bool)
+        for a, b in spans:
+            flags[a:b + 1] = True
+        np.testing.assert_array_equal(down[side], flags)
     assert planned > n
     raw = lb.quaternion_to_axis_angle(stream._planner.rotations[:planned])
     whole, _ = lb.plant_feet(raw, stream._floored, FPS)

@@ -51,7 +51,8 @@ TIGHTEN_S = 0.01  # ... and takes back at most this much waiting per hop once co
 class LiveFrame:
     """One frame of the stream: its index and time in the audio, the joint rotations (J, 3)
     and face weights (C,) as a Motion holds them, when the engine made it, and with legs
-    (`LiveSession.joint_names` ends with lower_body.JOINTS) the hips' translation (3,)."""
+    (`LiveSession.joint_names` ends with lower_body.JOINTS) the hips' translation (3,) and
+    which feet are planted ({"right": bool, "left": bool})."""
 
     index: int
     time: float
@@ -59,6 +60,7 @@ class LiveFrame:
     face: np.ndarray
     made: float
     root_translation: Optional[np.ndarray] = None
+    feet_down: Optional[dict] = None
 
 
 class Pacer:
@@ -297,12 +299,13 @@ class LiveSession:
         if self.mood is not None:
             part = self.mood.add(part)
             self._moods.append(part)
-        rotations, roots = part.rotations, [None] * part.n_frames
+        rotations, roots, down = part.rotations, [None] * part.n_frames, [None] * part.n_frames
         if self.legs is not None:
-            lower, roots = self.legs.add(part)
+            lower, roots, feet = self.legs.add(part)
+            down = [{side: bool(v[k]) for side, v in feet.items()} for k in range(part.n_frames)]
             rotations = np.concatenate([rotations, lower.astype(rotations.dtype)], axis=1)
         self.compute += time.perf_counter() - started
         made = time.monotonic()
         fps = self.engine.fps
-        self.pacer.add([LiveFrame(first + k, (first + k) / fps, rotations[k], part.face[k], made, roots[k])
+        self.pacer.add([LiveFrame(first + k, (first + k) / fps, rotations[k], part.face[k], made, roots[k], down[k])
                         for k in range(part.n_frames)])
