@@ -13,6 +13,12 @@ language (means over seeds, then over files):
               proxy for closing on p/b/m that needs no phone timings
   per p/b/m   those closures per p, b or m of the recording's phones
   jaw v/b     mouth opening at open vowels over at p/b/m (the model card's jaw contrast)
+  follows     correlation over voiced frames of the mouth opening with the jaw the teacher's
+              visemes give the recording's phones (lipsync.viseme_jaw): how closely the
+              mouth follows what is said, whatever the loudness
+  teacher r   r voiced of that viseme jaw itself: what lip-sync that follows the phones
+              exactly scores on the loudness figure in that language (its ceiling, unless
+              the mouth also follows the voice's level)
 The phones are the take's TextGrid, elsewhere the transcript spoken by espeak-ng and warped
 onto the recording (training.metrics.transcript_phones: approximate; on the take it gives
 2.34 where the TextGrid gives 2.43); none where espeak-ng cannot read the script (Chinese
@@ -37,9 +43,11 @@ from diffsheg_core.audio import load_audio
 from diffsheg_core.checkpoints import load_model
 from diffsheg_core.motion import Motion
 from diffsheg_core.pipeline import generate
-from diffsheg_core.qc import lip_closures, mouth_voice_correlation, voiced_frames, voiced_mouth_voice_correlation
+from diffsheg_core.qc import (lip_closures, mouth_curve, mouth_voice_correlation, voiced_frames,
+                              voiced_level_correlation, voiced_mouth_voice_correlation)
 from diffsheg_core.training.metrics import face_channel, mouth_opening, phone_tier, phoneme_contrast, read_textgrid
-from diffsheg_core.training.metrics.lipsync import BILABIALS, OPEN_VOWELS, base_phone, phone_middles, values_at
+from diffsheg_core.training.metrics.lipsync import (BILABIALS, OPEN_VOWELS, base_phone, phone_following,
+                                                     phone_middles, values_at, viseme_jaw)
 from diffsheg_core.training.metrics.transcript_phones import transcript_phones
 
 REPO = Path(__file__).resolve().parents[1]
@@ -81,6 +89,8 @@ class Row:
     per_bilabial: Optional[float]
     jaw_open: list[float]
     jaw_bilabial: list[float]
+    follows: Optional[float] = None
+    teacher: Optional[float] = None
 
 
 def measure(path: Path, motions: list[Motion]) -> Row:
@@ -88,7 +98,7 @@ def measure(path: Path, motions: list[Motion]) -> Row:
     audio = load_audio(path)
     whole, voiced, rate, closures = [], [], [], []
     phones = timed_phones(path, audio)
-    jaw_open, jaw_bilabial = [], []
+    jaw_open, jaw_bilabial, follows = [], [], []
     for m in motions:
         whole.append(mouth_voice_correlation(m, audio.samples, audio.sample_rate))
         voiced.append(voiced_mouth_voice_correlation(m, audio.samples, audio.sample_rate))
@@ -100,10 +110,13 @@ def measure(path: Path, motions: list[Motion]) -> Row:
             mouth = mouth_opening(m)
             jaw_open += list(values_at(mouth, m.fps, phone_middles(phones, OPEN_VOWELS, m.n_frames / m.fps)))
             jaw_bilabial += list(values_at(mouth, m.fps, phone_middles(phones, BILABIALS, m.n_frames / m.fps)))
+            follows.append(phone_following(mouth_curve(m), m.fps, phones, audio.samples, audio.sample_rate))
     bilabials = sum(base_phone(p.label) in BILABIALS for p in phones) if phones else 0
     return Row(language(path), path.stem, audio.duration, float(np.mean(whole)), float(np.mean(voiced)),
                float(np.mean(rate)), float(np.mean(closures)) / bilabials if bilabials else None,
-               jaw_open, jaw_bilabial)
+               jaw_open, jaw_bilabial, float(np.mean(follows)) if follows else None,
+               voiced_level_correlation(viseme_jaw(phones, motions[0].n_frames, motions[0].fps), motions[0].fps,
+                                        audio.samples, audio.sample_rate) if phones else None)
 
 
 def _jaw_ratio(rows: list[Row]) -> Optional[float]:
@@ -123,6 +136,11 @@ def take_contrast(motions: list[Motion]) -> str:
             f"at open vowels {np.mean(shut):.2f}")
 
 
+def _mean_of(values) -> Optional[float]:
+    known = [v for v in values if v is not None]
+    return float(np.mean(known)) if known else None
+
+
 def _cell(x: Optional[float], digits: int = 2) -> str:
     return "n/a" if x is None else f"{x:.{digits}f}"
 
@@ -130,14 +148,14 @@ def _cell(x: Optional[float], digits: int = 2) -> str:
 def table(rows: list[Row]) -> str:
     english = float(np.mean([r.voiced for r in rows if r.language == "en"]))
     head = ["language", "file", "seconds", "r whole", "r voiced", "x English", "closures/s", "per p/b/m",
-            "jaw v/b"]
+            "jaw v/b", "follows", "teacher r"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for lang in dict.fromkeys(r.language for r in rows):
         group = [r for r in rows if r.language == lang]
         for r in group:
             lines.append(f"| {lang} | {r.file} | {r.seconds:.1f} | {r.whole:.2f} | {r.voiced:.2f} | "
                          f"{r.voiced / english:.2f} | {r.closures_per_s:.2f} | {_cell(r.per_bilabial)} | "
-                         f"{_cell(_jaw_ratio([r]))} |")
+                         f"{_cell(_jaw_ratio([r]))} | {_cell(r.follows)} | {_cell(r.teacher)} |")
         known = [r.per_bilabial for r in group if r.per_bilabial is not None]
         voiced = float(np.mean([r.voiced for r in group]))
         spread = (f" ± {np.std([r.voiced for r in group], ddof=1) / np.sqrt(len(group)) / english:.2f}"
@@ -145,7 +163,8 @@ def table(rows: list[Row]) -> str:
         lines.append(f"| **{lang}** | mean of {len(group)} | {sum(r.seconds for r in group):.1f} | "
                      f"{np.mean([r.whole for r in group]):.2f} | **{voiced:.2f}** | **{voiced / english:.2f}**{spread} | "
                      f"{np.mean([r.closures_per_s for r in group]):.2f} | "
-                     f"{_cell(float(np.mean(known)) if known else None)} | **{_cell(_jaw_ratio(group))}** |")
+                     f"{_cell(float(np.mean(known)) if known else None)} | **{_cell(_jaw_ratio(group))}** | "
+                     f"{_cell(_mean_of(r.follows for r in group))} | {_cell(_mean_of(r.teacher for r in group))} |")
     return "\n".join(lines)
 
 

@@ -191,11 +191,17 @@ def voiced_mouth_voice_correlation(motion: Motion, audio_samples: np.ndarray, sa
     """mouth_voice_correlation over the voiced frames only (voiced_frames): whether the mouth
     follows the loudness of the voice while it speaks, which a clip's pauses cannot flatter
     (a mouth that merely opens for speech and shuts in pauses scores high over a whole clip)."""
-    mouth = mouth_curve(motion)
+    return voiced_level_correlation(mouth_curve(motion), motion.fps, audio_samples, sample_rate, max_lag)
+
+
+def voiced_level_correlation(curve: np.ndarray, fps: float, audio_samples: np.ndarray, sample_rate: int,
+                             max_lag: float = MAX_LAG) -> float:
+    """Correlation of a per-frame `curve` with the speech level over the voiced frames, the
+    best within +-`max_lag` seconds (voiced_mouth_voice_correlation's figure for any curve)."""
     sample_rate = int(sample_rate)
-    level = speech_level(audio_samples, sample_rate, motion.fps, len(mouth))
-    voiced = voiced_frames(audio_samples, sample_rate, motion.fps, len(mouth))
-    return lagged_correlation(mouth, level, int(math.floor(max_lag * motion.fps + 1e-9)), where=voiced)
+    level = speech_level(audio_samples, sample_rate, fps, len(curve))
+    voiced = voiced_frames(audio_samples, sample_rate, fps, len(curve))
+    return lagged_correlation(curve, level, int(math.floor(max_lag * fps + 1e-9)), where=voiced)
 
 
 def lip_closures(motion: Motion, audio_samples: np.ndarray, sample_rate: int,

@@ -113,11 +113,25 @@ recordings (bundled model, seed 0): de 1.87, es 2.05, fr 5.13, hi 3.12, ru 1.32,
 English on the take 2.34 with these approximate timings, 2.43 with its TextGrid."""
 
 
-def _transcript_phones(path, audio):
+FOLLOWS_MIN = 0.3
+"""Correlation over voiced frames of the mouth with the jaw the teacher's visemes give the
+transcript's phones (lipsync.viseme_jaw), a language's mean over its recordings (seeds 0-1:
+de 0.68, es 0.47, fr 0.72, hi 0.61, ru 0.43, sv 0.48; English 0.62 on the take's TextGrid)."""
+
+
+@pytest.fixture(scope="module")
+def aligned(generated) -> dict[str, list]:
+    """File name -> the phones of its transcript timed on it (approximate), per transcribed recording."""
     from diffsheg_core.training.metrics.transcript_phones import transcript_phones
 
-    return transcript_phones(audio.samples, audio.sample_rate, path.with_suffix(".txt").read_text(encoding="utf-8"),
-                             TRANSCRIBED[path.name.split("_", 1)[0]])
+    out = {}
+    for path in sorted(LANG.glob("*.wav")):
+        lang = path.name.split("_", 1)[0]
+        if lang in TRANSCRIBED and path.with_suffix(".txt").is_file():
+            audio, _ = generated[path.name]
+            out[path.name] = transcript_phones(audio.samples, audio.sample_rate,
+                                               path.with_suffix(".txt").read_text(encoding="utf-8"), TRANSCRIBED[lang])
+    return out
 
 
 def test_transcript_phones_place_the_take_s_phones_as_its_textgrid_does(generated):
@@ -148,23 +162,64 @@ def test_transcript_phones_place_the_take_s_phones_as_its_textgrid_does(generate
 
 
 @pytest.mark.parametrize("lang", sorted(TRANSCRIBED))
-def test_the_jaw_opens_on_vowels_and_closes_on_bilabials_in_every_transcribed_language(generated, lang):
+def test_the_jaw_opens_on_vowels_and_closes_on_bilabials_in_every_transcribed_language(generated, aligned, lang):
     """Jaw open at open vowels against p/b/m (the model card's lip-sync figure) per language,
     on phone timings from the transcripts (approximate, see the test above)."""
     from diffsheg_core.training.metrics import mouth_opening
     from diffsheg_core.training.metrics.lipsync import OPEN_VOWELS, phone_middles, values_at
 
     opened, shut = [], []
-    for path in sorted(LANG.glob(f"{lang}_*.wav")):
-        if not path.with_suffix(".txt").is_file():
-            continue
-        audio, motion = generated[path.name]
-        phones = _transcript_phones(path, audio)
+    for name in (n for n in aligned if n.startswith(f"{lang}_")):
+        _, motion = generated[name]
+        phones = aligned[name]
         mouth, seconds = mouth_opening(motion), motion.n_frames / motion.fps
         opened += list(values_at(mouth, motion.fps, phone_middles(phones, OPEN_VOWELS, seconds)))
         shut += list(values_at(mouth, motion.fps, phone_middles(phones, BILABIALS, seconds)))
     assert len(opened) >= 10 and len(shut) >= 5, (lang, len(opened), len(shut))
     assert np.mean(opened) > JAW_CONTRAST_MIN * np.mean(shut), (lang, np.mean(opened), np.mean(shut))
+
+
+def _follows(audio, motion, phones) -> float:
+    from diffsheg_core.qc import mouth_curve
+    from diffsheg_core.training.metrics.lipsync import phone_following
+
+    return phone_following(mouth_curve(motion), motion.fps, phones, audio.samples, audio.sample_rate)
+
+
+def _teacher_r(audio, motion, phones) -> float:
+    """The loudness figure (voiced-frame mouth-to-voice correlation) of the viseme jaw of `phones`."""
+    from diffsheg_core.qc import voiced_level_correlation
+    from diffsheg_core.training.metrics.lipsync import viseme_jaw
+
+    return voiced_level_correlation(viseme_jaw(phones, motion.n_frames, motion.fps), motion.fps, audio.samples,
+                                    audio.sample_rate)
+
+
+@pytest.mark.parametrize("lang", sorted(TRANSCRIBED))
+def test_the_mouth_follows_the_phones_in_every_transcribed_language(generated, aligned, lang):
+    """Whatever the loudness: the mouth opens as the teacher's visemes open the jaw for the
+    transcript's phones (approximately timed), in every transcribed language."""
+    follows = [_follows(*generated[name], aligned[name]) for name in aligned if name.startswith(f"{lang}_")]
+    assert np.mean(follows) > FOLLOWS_MIN, (lang, follows)
+
+
+def test_where_the_loudness_goal_is_missed_exact_phone_lip_sync_misses_it_more(generated, aligned):
+    """The loudness goal measures the recordings as much as the model: lip-sync that follows
+    the phones exactly (the viseme jaw of the transcript's phones) scores on the loudness
+    figure, in each transcribed language short of the goal (de, fr, hi), under the goal's
+    share of what it scores on English (the take and its TextGrid), and the model scores
+    above it there (seeds 0-1: teacher de 0.06, fr 0.07, hi 0.13 against English 0.21; the
+    model 0.15, 0.35, 0.23)."""
+    audio, motion = generated[TAKE_WAV.name]
+    english = _teacher_r(audio, motion, phone_tier(read_textgrid(DATA / "beat2" / "2_scott_0_1_1.TextGrid")))
+    short = [lang for lang in TRANSCRIBED if LANGUAGES[lang][1] is not None]
+    assert sorted(short) == ["de", "fr", "hi"]
+    for lang in short:
+        names = [name for name in aligned if name.startswith(f"{lang}_")]
+        teacher = np.mean([_teacher_r(*generated[name], aligned[name]) for name in names])
+        model = np.mean([voiced_mouth_voice_correlation(generated[name][1], generated[name][0].samples,
+                                                        generated[name][0].sample_rate) for name in names])
+        assert teacher < GOAL * english and model > teacher, (lang, teacher, model, english)
 
 
 def test_voiced_frames_on_real_phone_timings():

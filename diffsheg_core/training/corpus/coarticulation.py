@@ -180,6 +180,11 @@ def mouth_curves(phones: list[Phone], times: np.ndarray, jaw_scale: float = 1.0,
     return np.stack([np.interp(times, grid, c) for c in curves.T], axis=1).clip(0.0, 1.0)
 
 
+def viseme_phones() -> frozenset[str]:
+    """The ARPAbet phones that have visemes (silence included)."""
+    return frozenset(_PHONE_VISEMES)
+
+
 def arkit_indices(names: tuple[str, ...] = MOUTH_CHANNELS) -> np.ndarray:
     """Columns of `names` in the ARKit-51 face vector."""
     return np.array([ARKIT51.index(n) for n in names])

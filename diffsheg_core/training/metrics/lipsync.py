@@ -109,3 +109,34 @@ def reference_correlation(mouth: np.ndarray, reference: np.ndarray, fps: float,
     """Correlation of mouth opening with a reference's mouth opening at the best lag."""
     return lagged_correlation(resample_curve(mouth, fps), resample_curve(reference, fps),
                               ENVELOPE_RATE, max_lag)
+
+
+def phone_following(mouth: np.ndarray, fps: float, phones: list[Interval], samples: np.ndarray,
+                    sample_rate: int) -> float:
+    """Correlation over the voiced frames (qc.voiced_frames) of a mouth-opening curve with
+    the viseme jaw of `phones`: how closely the mouth follows what is said, whatever the
+    loudness."""
+    from ...qc import voiced_frames
+
+    voiced = voiced_frames(samples, sample_rate, fps, len(mouth))
+    return float(np.corrcoef(mouth[voiced], viseme_jaw(phones, len(mouth), fps)[voiced])[0, 1])
+
+
+def viseme_jaw(phones: list[Interval], n_frames: int, fps: float) -> np.ndarray:
+    """(n_frames,) the jaw opening the teacher's visemes give these timed ARPAbet phones (the
+    corpus's coarticulation, neutral stress and effort): what lip-sync that follows the
+    phones exactly would do. Gaps and labels it has no viseme for ('sp', '') are silence."""
+    from ..corpus.coarticulation import MOUTH_CHANNELS, mouth_curves, viseme_phones
+    from ..corpus.phones import SILENCE, VOWELS, Phone
+
+    known, out, t = viseme_phones(), [], 0.0
+    for p in sorted(phones, key=lambda p: p.start):
+        label = base_phone(p.label)
+        if label not in known or p.end <= p.start:
+            continue
+        if p.start > t:
+            out.append(Phone(SILENCE, t, p.start))
+        out.append(Phone(label, max(p.start, t), p.end, 1 if label in VOWELS else 0))
+        t = max(t, p.end)
+    out.append(Phone(SILENCE, t, max(t + 0.1, n_frames / fps)))
+    return mouth_curves(out, np.arange(n_frames) / fps)[:, MOUTH_CHANNELS.index("jawOpen")]
