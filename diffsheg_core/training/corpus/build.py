@@ -225,9 +225,11 @@ def build(config: BuildConfig, progress: bool = True) -> dict:
                disable=not progress)
     with open(out / MANIFEST, "a", encoding="utf-8") as manifest, \
             ProcessPoolExecutor(max_workers=config.jobs) as pool:
+        bar.set_description("speech, English" if config.languages else "speech")
         made = _make(pool, manifest, config, utterance_specs(texts, config.seed, engines),
                      range(LANGUAGE_INDEX_START), config.hours * 3600.0, done, bar)
         if config.languages:
+            bar.set_description("speech, other languages")  # one bar over both targets, phase by phase
             made += _make(pool, manifest, config, language_specs(config.languages, config.seed),
                           range(LANGUAGE_INDEX_START, 2**31), config.language_hours * 3600.0, done, bar)
     bar.close()
