@@ -288,6 +288,7 @@ class LiveRun:
         except BaseException:
             self.source.stop()
             raise
+        self.emotion = generation.emotion  # the panel's, as Live last applied it
         self.shown = 0
         self.last = None  # the frame posed last
         self.stop_requested = False
@@ -315,6 +316,7 @@ class LiveRun:
         source has ended or Stop was asked for, let the session finish. True once it has
         finished and `end` can run."""
         if self.finishing is None:
+            self._follow_the_panels_emotion()
             frames = self.session.frames_due(now)
             if frames:
                 self.last = last = frames[-1]
@@ -326,6 +328,16 @@ class LiveRun:
             if self.stop_requested or self.session.done:
                 self.finishing = _Finish(self.session).start()
         return self.finishing is not None and self.finishing.done
+
+    def _follow_the_panels_emotion(self) -> None:
+        """The performer changed the panel's Emotion or Intensity while live: it eases in from
+        the next frames made (the recording notes when)."""
+        from .panel_settings import panel_emotion
+
+        wanted = panel_emotion(self.scene.diffsheg)
+        if wanted != self.emotion:
+            self.session.set_emotion(wanted)
+            self.emotion = wanted
 
     def repose(self) -> None:
         """Pose the frame shown last again: the animation playing was evaluated over it (the

@@ -56,11 +56,16 @@ def generate_settings(settings):
         overlap=settings.overlap if settings.set_overlap else None,
         style=panel_style(settings),
         style_guidance=settings.style_strength if settings.style_strength != 1.0 else None,
-        emotion=None if settings.emotion == NEUTRAL else {settings.emotion: round(settings.emotion_intensity, 3)},
+        emotion=panel_emotion(settings),
         upper_body_only=settings.upper_body_only,
         guidance=settings.guidance if settings.set_guidance else None,
         skip_guidance=settings.gesture_energy if settings.set_gesture_energy else None,
         device=settings.device_arg())
+
+
+def panel_emotion(settings) -> dict[str, float] | None:
+    """The emotion the panel asks for and its intensity (None: Neutral)."""
+    return None if settings.emotion == NEUTRAL else {settings.emotion: round(settings.emotion_intensity, 3)}
 
 
 def panel_style(settings):

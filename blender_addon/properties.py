@@ -165,7 +165,7 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
     emotion: EnumProperty(name="Emotion", default=NEUTRAL, items=EMOTIONS,
                           description="A mood laid over the face and body; Neutral: none, and Regenerate "
                                       "Range keeps the take's own. Timeline markers emotion:sad or "
-                                      "emotion:sad=0.5 change it from their frame (Live keeps the one chosen)")
+                                      "emotion:sad=0.5 change it from their frame; while Live runs, changing it changes the live face and body")
     emotion_intensity: FloatProperty(name="Intensity", default=1.0, min=0.0, max=1.0, subtype="FACTOR",
                                      description="How strongly the emotion shows: 1 is full, 0 is none")
     set_guidance: BoolProperty(name="Set guidance", default=False,

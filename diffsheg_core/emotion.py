@@ -74,6 +74,7 @@ CLOSED_LIPS = 0.12   # mouthClose at which the emotion's mouth channels have giv
 KEPT_MOUTH = ("mouthPress",)  # mouth channels that close the lips themselves: not given way
 RELAX = 0.8          # how far, at full intensity, an opposed channel is relaxed
 HOLD_S = 0.5         # seconds over which the emotion eases in around a pinned pose
+SWITCH_S = 0.35      # seconds over which an emotion changed live eases in (from the change on)
 CHAINS = {"beat": {"head": (("Neck", 0.4), ("Neck1", 0.6)), "chest": (("Spine", 1.0),)},
           "smplx": {"head": (("neck", 0.4), ("head", 0.6)), "chest": (("spine3", 0.6), ("spine2", 0.4))}}
 """Per layout, the joints a head or chest pitch is spread over, with their shares."""
@@ -124,10 +125,7 @@ def emotion_track(emotion: dict[str, float] | None, changes, n_frames: int, fps:
     None where every frame is neutral."""
     track = np.zeros((n_frames, len(NAMES)))
     for (t, spec) in ((0.0, emotion or {}),) + tuple(changes or ()):
-        row = np.zeros(len(NAMES))
-        for name, value in spec.items():
-            row[NAMES.index(name)] = value
-        track[min(n_frames, int(round(t * fps))):] = row
+        track[min(n_frames, int(round(t * fps))):] = _row(spec)
     if not track.any():
         return None
     return smooth_frames(track, EASE_S * fps)
@@ -166,29 +164,64 @@ def apply_emotion(motion: Motion, track: np.ndarray, start: int = 0, end: int | 
 
 
 class EmotionStream:
-    """One emotion laid over a live motion, a hop of frames at a time (live/session.py): the
+    """The emotion laid over a live motion, a hop of frames at a time (live/session.py): the
     face exactly as `apply_emotion` lays it over a whole take (it is frame by frame), the
     body's energy and sharpness around the slow posture of the frames made so far, where
     offline also sees the next ones, so a stroke is scaled a moment later in its course;
-    the head's and chest's pitch exactly."""
+    the head's and chest's pitch exactly. The performer may change it while speaking
+    (`set`, from any thread): the new one eases in over SWITCH_S from the next hop, and
+    `changes` keeps when, for the recording's meta ("emotion_at")."""
 
-    def __init__(self, emotion: dict[str, float], fps: float):
-        self.row = np.zeros(len(NAMES))
-        for name, value in check_emotion(emotion).items():
-            self.row[NAMES.index(name)] = value
+    def __init__(self, emotion: dict[str, float] | None, fps: float):
+        self.fps = fps
         self.context = int(np.ceil(3 * POSTURE_S * fps))  # smooth_frames' reach at the posture's sigma
+        self.frames = 0                    # frames made so far
+        self.changes: list[tuple[float, dict[str, float]]] = []  # (seconds, emotion) of each change
+        self._ease = max(1, int(round(SWITCH_S * fps)))
+        self._start = self._target = _row(check_emotion(emotion or {}))
+        self._since = 0                    # the frame the last change began to ease in
+        self._pending: dict[str, float] | None = None
         self._before: Motion | None = None  # the last `context` frames made, without the emotion
+        self._before_rows = np.zeros((0, len(NAMES)))
+
+    def set(self, emotion) -> None:
+        """Change the emotion (a spec as `check_emotion` takes; {} or 'neutral' for none) from
+        the next hop on. Raises DiffshegError, on the caller's thread, for a bad one."""
+        self._pending = check_emotion(emotion if emotion else {})
 
     def add(self, part: Motion) -> Motion:
         """`part`, the next frames of the stream, with the emotion laid over them."""
-        if not part.n_frames or not self.row.any():
+        n = part.n_frames
+        if not n:
             return part
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            self._start, self._target, self._since = self._rows(np.array([self.frames]))[0], _row(pending), self.frames
+            # noted at the middle of its ease, where emotion_track (a recording's regenerated ranges) centres it
+            self.changes.append(((self.frames + self._ease / 2) / self.fps, pending))
+        rows = self._rows(np.arange(self.frames, self.frames + n))
         window = part if self._before is None else replace(
             part, rotations=np.concatenate([self._before.rotations, part.rotations]),
             face=np.concatenate([self._before.face, part.face]))
-        laid = apply_emotion(window, np.repeat(self.row[None], window.n_frames, axis=0))
+        track = np.concatenate([self._before_rows, rows])
+        laid = apply_emotion(window, track) if track.any() else window
         self._before = replace(window, rotations=window.rotations[-self.context:], face=window.face[-self.context:])
-        return replace(part, rotations=laid.rotations[-part.n_frames:], face=laid.face[-part.n_frames:])
+        self._before_rows = track[-self.context:]
+        self.frames += n
+        return replace(part, rotations=laid.rotations[-n:], face=laid.face[-n:])
+
+    def _rows(self, frames: np.ndarray) -> np.ndarray:
+        """(len(frames), len(NAMES)) the emotion at these frames, easing from the last change."""
+        w = np.clip((frames - self._since) / self._ease, 0.0, 1.0)[:, None]
+        return self._start + w * w * (3 - 2 * w) * (self._target - self._start)
+
+
+def _row(emotion: dict[str, float]) -> np.ndarray:
+    """(len(NAMES),) the intensities of a checked emotion spec."""
+    row = np.zeros(len(NAMES))
+    for name, value in emotion.items():
+        row[NAMES.index(name)] = value
+    return row
 
 
 def remove_emotion(motion: Motion, track: np.ndarray) -> Motion:

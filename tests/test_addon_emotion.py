@@ -148,12 +148,31 @@ def test_a_range_with_neutral_keeps_the_takes_emotion_and_markers_change_it(spee
     assert made[-1][0].emotion == {"happy": 0.8}
 
 
-def test_live_carries_the_panels_emotion(speech):
-    scene, s, _ = _panel(speech)
+def test_live_carries_the_panels_emotion_and_follows_it_while_running(speech):
+    """Live starts with the panel's emotion; the performer turns the menu to Sad while it
+    runs, and the live face shows it from then on (noted in the recording's meta)."""
+    import time
+
+    scene, s, face = _panel(speech)
     s.emotion, s.emotion_intensity, s.live_source, s.live_file = "happy", 0.5, "FILE", str(speech)
-    run = live.LiveRun(bpy.context)
-    run.source.stop()  # never started
-    assert run.session.engine.settings.emotion == {"happy": 0.5} and run.session.mood is not None
+    s.live_speed, s.live_record = 2.0, False
+    run = live.LiveRun(bpy.context).start()
+    assert run.session.engine.settings.emotion == {"happy": 0.5}
+    brows, deadline = [], time.monotonic() + 30
+    key = face.data.shape_keys.key_blocks["browInnerUp"]
+    while not run.step():
+        assert time.monotonic() < deadline, "the session did not end"
+        if run.shown >= 8 and s.emotion == "happy":
+            s.emotion, s.emotion_intensity = "sad", 1.0  # while live
+        if run.last is not None:
+            brows.append((s.emotion, key.value))
+        time.sleep(1 / 60)
+    run.end(bpy.context)
+    (t, spec), = run.session.mood.changes
+    assert spec == {"sad": 1.0} and t > 0
+    happy = [v for e, v in brows if e == "happy"]
+    sad = [v for e, v in brows if e == "sad"][-5:]  # once eased in
+    assert happy and sad and np.mean(sad) > np.mean(happy) + 0.25, (happy, sad)
 
 
 def test_a_happy_take_smiles_more_than_a_neutral_one(speech):

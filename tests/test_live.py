@@ -265,6 +265,42 @@ def test_live_lays_the_emotion_over_each_hop(tmp_path, speech, model):
     assert sad.joint_names[-len(LEG_JOINTS):] == list(LEG_JOINTS)  # the legs under the emotional arms
 
 
+def test_the_emotion_changed_while_live_eases_in_and_is_recorded(tmp_path, speech, model):
+    """Neutral, then happy asked for while the frames are shown (the panel's menu does so):
+    until the change the frames are neutral's exactly, then the smile eases in over
+    emotion.SWITCH_S and holds; the recording notes the change, so regenerating a range of it
+    knows the emotion there. A bad emotion is refused and changes nothing."""
+    from diffsheg_core.emotion import SWITCH_S, take_emotion
+    from diffsheg_core.training.metrics.channels import face_channel
+
+    clip = tmp_path / "speech.wav"
+    sf.write(clip, speech.samples[: 6 * speech.sample_rate], speech.sample_rate)
+    neutral = LiveSession(FileSource(clip, speed=4.0), GenerateSettings(seed=0), bundle=model[0],
+                          network=model[1]).run_to_end().motion
+    session = LiveSession(FileSource(clip, speed=4.0), GenerateSettings(seed=0), bundle=model[0], network=model[1])
+    with pytest.raises(DiffshegError, match="unknown emotion 'joyful'"):
+        session.set_emotion("joyful")
+
+    def show(frame):
+        if frame.index == 20:
+            session.set_emotion({"happy": 0.8})
+
+    changed = session.run_to_end(show).motion
+    (t, spec), = changed.meta["emotion_at"]  # noted at the middle of its ease
+    fps = changed.fps
+    at = int(round(t * fps - SWITCH_S * fps / 2))
+    assert spec == {"happy": 0.8} and 20 <= at < changed.n_frames - 2 * fps
+    np.testing.assert_array_equal(changed.face[:at], neutral.face[:at])
+    smile = face_channel(changed, "mouthSmileLeft") - face_channel(neutral, "mouthSmileLeft")
+    held = at + int(np.ceil(SWITCH_S * fps))
+    # eased in, then held (giving way where the lips close on p, b, m, as offline)
+    assert abs(smile[at]) < 0.05 and np.median(smile[held:]) > 0.3 and smile[at:held].mean() < np.median(smile[held:])
+    track = take_emotion(changed)
+    assert track is not None and track[held + 6:, 1].min() == pytest.approx(0.8, abs=0.01)
+    w = 3 / round(SWITCH_S * fps)  # live's ease three frames in: 0.8 smoothstep(w)
+    assert not track[:at - 4].any() and track[at + 3, 1] == pytest.approx(0.8 * w * w * (3 - 2 * w), abs=0.08)
+
+
 @pytest.mark.parametrize("lookahead", [0, 2, 5])
 def test_every_frame_heard_is_emitted_whatever_the_lookahead(speech, model, lookahead):
     bundle, network = model

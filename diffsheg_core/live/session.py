@@ -159,7 +159,7 @@ class LiveSession:
                                                settings.precision, settings.threads)
         self.engine = LiveEngine(self.bundle, self.network, settings, source.sample_rate, live)
         # the emotion and the hips and legs laid over what the model makes, as `generate` lays them
-        self.mood = EmotionStream(settings.emotion, self.bundle.config.fps) if settings.emotion else None
+        self.mood = EmotionStream(settings.emotion, self.bundle.config.fps)  # set_emotion changes it
         self._moods: list[Motion] = []  # the frames made, with the emotion (the recording's)
         self.legs = (None if settings.upper_body_only or self.bundle.layout.name not in WHOLE_BODY_LAYOUTS
                      else LowerBodyStream(self.bundle.config.fps, settings.seed))
@@ -175,6 +175,12 @@ class LiveSession:
         self._clock = _Clock()
         self._thread: Optional[threading.Thread] = None
         self._stopping = threading.Event()
+
+    def set_emotion(self, emotion) -> None:
+        """Change the emotion while live (any thread; e.g. the panel's menu): it eases in from
+        the next hop over emotion.SWITCH_S, and the recording notes when ("emotion_at").
+        A DiffshegError for a bad one, with nothing changed."""
+        self.mood.set(emotion)
 
     @property
     def joint_names(self) -> list[str]:
@@ -213,8 +219,8 @@ class LiveSession:
             self._thread.join(timeout)
         self.source.stop()
         engine = self.engine
-        motion = engine.motion(meta=engine.meta())
-        if self.mood is not None and self._moods:
+        motion = engine.motion(meta={**engine.meta(), "emotion_at": [[t, e] for t, e in self.mood.changes]})
+        if self._moods:
             motion = replace(motion, rotations=np.concatenate([m.rotations for m in self._moods]),
                              face=np.concatenate([m.face for m in self._moods]))
         if self.legs is not None:
@@ -295,10 +301,8 @@ class LiveSession:
         if not len(normalised):
             self.compute += time.perf_counter() - started
             return
-        part = to_motion(self.bundle, normalised, meta={})
-        if self.mood is not None:
-            part = self.mood.add(part)
-            self._moods.append(part)
+        part = self.mood.add(to_motion(self.bundle, normalised, meta={}))
+        self._moods.append(part)
         rotations, roots, down = part.rotations, [None] * part.n_frames, [None] * part.n_frames
         if self.legs is not None:
             lower, roots, feet = self.legs.add(part)
