@@ -340,3 +340,29 @@ def test_ctrl_c_ends_the_live_cli_cleanly_and_writes_the_recording(tmp_path, spe
     heard = read_audio_file(tmp_path / "take.wav")
     assert 1.0 < heard.duration < speech.duration - 1.0  # stopped part-way: what was heard is kept
     assert take.n_frames == n_motion_frames(heard, take.fps)
+
+
+def test_a_line_on_standard_input_changes_the_emotion_of_the_live_cli(tmp_path, speech):
+    """A performer types (or an agent pipes) an emotion while the CLI runs: a bad one is
+    said and changes nothing, a good one is laid from then on and the recording notes it."""
+    clip = tmp_path / "speech.wav"
+    sf.write(clip, speech.samples, speech.sample_rate)
+    proc = subprocess.Popen([sys.executable, "-m", "diffsheg_core", "live", "--source", str(clip), "--speed", "2",
+                             "--record", str(tmp_path / "take.npz")], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, "DIFFSHEG_THREADS": "1"})
+    err_parts: list[str] = []
+    reader = threading.Thread(target=lambda: err_parts.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True)
+    reader.start()
+    deadline = time.monotonic() + 60
+    while "latency" not in "".join(err_parts) and time.monotonic() < deadline:  # frames are being shown
+        time.sleep(0.05)
+    proc.stdin.write("joyful\nsad=0.7\n")
+    proc.stdin.close()
+    proc.wait(timeout=60)
+    reader.join(10)
+    err = "".join(err_parts)
+    assert proc.returncode == 0, err
+    assert "unknown emotion 'joyful'" in err and "emotion: sad=0.7" in err
+    take = Motion.load_npz(tmp_path / "take.npz")
+    (t, spec), = take.meta["emotion_at"]
+    assert spec == {"sad": 0.7} and 0 < t < take.n_frames / take.fps

@@ -1,11 +1,14 @@
 """`python -m diffsheg_core live`: speech from a microphone, a file at real time or a socket,
-motion out over VMC as it is made, the performance recorded on Ctrl-C or at the end."""
+motion out over VMC as it is made, the performance recorded on Ctrl-C or at the end. A line
+typed (or piped by an agent) on standard input changes the emotion while it runs: `sad`,
+`happy=0.5`, `neutral`."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+import threading
 from pathlib import Path
 
 from ..errors import DiffshegError
@@ -19,7 +22,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("live", help="generate live from a microphone, a file played at real time or a socket",
                        description="Live: speech in as it arrives, motion out within a fraction of a second. "
-                                   "Ctrl-C ends the session and writes the recording.")
+                                   "Ctrl-C ends the session and writes the recording. While it runs, a line on "
+                                   "standard input (sad, happy=0.5, neutral) changes the emotion.")
     p.add_argument("--source", default="mic",
                    help="mic, mic:DEVICE (name or index), a speech file played at real time, or "
                         "tcp://HOST:PORT[?rate=16000] taking raw 16-bit mono PCM (default: mic)")
@@ -61,6 +65,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"live from {source.description}, model {session.bundle.model_id}, hop {live.hop} frames"
           f"{f', VMC to {args.osc}' if sender else ''}; Ctrl-C ends", file=sys.stderr)
 
+    threading.Thread(target=_emotions_from, args=(sys.stdin, session), name="diffsheg-live-emotion",
+                     daemon=True).start()
+
     def show(frame) -> None:
         if sender is not None:
             sender.send(frame.rotations, frame.face, frame.time, frame.root_translation)
@@ -86,6 +93,21 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {result.error}", file=sys.stderr)
         return 1
     return 0
+
+
+def _emotions_from(lines, session) -> None:
+    """Each line of `lines` (standard input) an emotion for the session from then on; a bad
+    one is said and changes nothing. Ends with the input."""
+    try:
+        for line in lines:
+            if line.strip():
+                try:
+                    session.set_emotion(line.strip())
+                    print(f"\nemotion: {line.strip()}", file=sys.stderr)
+                except DiffshegError as exc:
+                    print(f"\n{exc}", file=sys.stderr)
+    except (OSError, ValueError):  # no standard input to read (closed, detached)
+        return
 
 
 def _vmc_sender(address: str, session):
