@@ -20,9 +20,12 @@ sways, turns and steps come with the gestures that go with them.
 
 Feet: on the BEAT skeleton's legs (the canonical body: x left, y up, z forward; legs
 straight down at rest) each foot is in contact while it is low and slow; within a contact
-span the ankle's position and the foot's orientation are pinned (eased in and out over a
-few frames) and each leg is solved again with two-bone IK, so a contact foot does not
-slide. The hips' translation is kept within the capture's range.
+span the ankle's position and the foot's orientation are pinned where the foot landed
+(eased in and out over a few frames) and each leg is solved again with two-bone IK, so a
+contact foot does not slide. The hips' translation is kept within the capture's range.
+
+Live, `LowerBodyStream` does the same a hop of frames at a time, planned ahead so that no
+frame waits for it (see its docstring for what it cannot know that offline does).
 numpy only: it runs inside Blender.
 """
 
