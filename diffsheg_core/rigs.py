@@ -114,7 +114,7 @@ class Layout:
         gesture, expression = motion[:, : self.gesture_dim], motion[:, self.gesture_dim :]
         n_face_rot = 3 * len(self.face_rotation_joints)
         rotations = np.concatenate([gesture, expression[:, :n_face_rot]], axis=1)
-        return rotations.reshape(len(motion), -1, 3), expression[:, n_face_rot:]
+        return rotations.reshape(len(motion), rotations.shape[1] // 3, 3), expression[:, n_face_rot:]
 
     def join(self, rotations: np.ndarray, face: np.ndarray) -> np.ndarray:
         """Inverse of `split`."""

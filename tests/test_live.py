@@ -170,7 +170,8 @@ def test_a_stalling_producer_eases_the_avatar_to_rest_and_it_resumes(speech, mod
     assert gap.mean() < 0.5 * spoken.mean()  # the mouth rests while no audio comes
     assert after.std() > 2 * gap.std() and after.mean() > 2 * gap.mean()  # and talks again after
     silence = result.audio.samples[3 * rate + rate // 2: 3 * rate + int(rate * (result.underrun_seconds - 0.2))]
-    assert not silence.any()  # the recording holds the filled silence
+    assert not silence.any()  # the recording holds the filled silence, and says so
+    assert any("filled with silence" in w for w in result.motion.meta["warnings"])
 
 
 def test_a_closed_socket_ends_the_session_and_a_reset_one_says_why(speech, model):
@@ -201,6 +202,7 @@ def test_a_producer_faster_than_real_time_is_bounded_and_reported(speech, model)
     assert 5.0 < result.dropped_seconds < 6.1
     assert result.audio.duration + result.dropped_seconds == pytest.approx(speech.duration, abs=0.01)
     assert "dropped" in session.status()
+    assert any("dropped: it came faster than real time" in w for w in result.motion.meta["warnings"])  # the take says so
     assert abs(result.motion.n_frames - n_motion_frames(result.audio, result.motion.fps)) <= 1
 
 
@@ -362,7 +364,24 @@ def test_a_line_on_standard_input_changes_the_emotion_of_the_live_cli(tmp_path, 
     reader.join(10)
     err = "".join(err_parts)
     assert proc.returncode == 0, err
-    assert "unknown emotion 'joyful'" in err and "emotion: sad=0.7" in err
+    assert "ignored 'joyful', the emotion stays as it was: unknown emotion 'joyful'" in err and "emotion: sad=0.7" in err
     take = Motion.load_npz(tmp_path / "take.npz")
     (t, spec), = take.meta["emotion_at"]
     assert spec == {"sad": 0.7} and 0 < t < take.n_frames / take.fps
+
+
+def test_a_session_that_hears_nothing_ends_cleanly(tmp_path, model):
+    """A producer that connects and hangs up before a frame's worth of audio: no frame, no
+    error, legs and emotion included; the CLI says nothing was recorded."""
+    session = LiveSession(TcpSource(sample_rate=16000), GenerateSettings(emotion="sad"), bundle=model[0],
+                          network=model[1])
+    thread, out = _serve(session)
+    with socket.create_connection(("127.0.0.1", session.source.port)) as sock:
+        sock.sendall(np.zeros(400, "<i2").tobytes())  # 25 ms: less than a frame
+    thread.join(60)
+    result = out["result"]
+    assert result.error is None and result.motion.n_frames == 0
+    assert result.motion.joint_names[-len(LEG_JOINTS):] == list(LEG_JOINTS)
+    proc = subprocess.run([sys.executable, "-m", "diffsheg_core", "live", "--source", "tcp://127.0.0.1:5093",
+                           "--speed", "2"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0 and "--speed plays a speech file faster" in proc.stderr, proc.stderr

@@ -50,20 +50,26 @@ def run(args: argparse.Namespace) -> int:
     from ..settings import from_arguments
     from .engine import LiveConfig
     from .session import LiveSession, latency_summary
-    from .sources import open_source
+    from .sources import FileSource, open_source
 
     record = Path(args.record) if args.record else None
     audio_out = record.with_suffix(".wav") if record else None
     if record is not None and record.suffix != ".npz":
         raise DiffshegError(f"--record {record}: the recording is a Motion .npz; name it e.g. take.npz")
     source = open_source(args.source, speed=args.speed)
+    if args.speed != 1.0 and not isinstance(source, FileSource):
+        raise DiffshegError(f"--speed plays a speech file faster than real time; {source.description} is "
+                            "live and comes as fast as it is spoken: leave --speed out")
     check_outputs([record, audio_out, args.latency_log], inputs=[getattr(source, "path", None), *files_read(args.model)])
     settings = from_arguments(args)
     live = LiveConfig(hop=args.hop, lookahead=args.lookahead)
     session = LiveSession(source, settings, live)
     sender = _vmc_sender(args.osc, session) if args.osc else None
-    print(f"live from {source.description}, model {session.bundle.model_id}, hop {live.hop} frames"
-          f"{f', VMC to {args.osc}' if sender else ''}; Ctrl-C ends", file=sys.stderr)
+    mood = ", ".join(f"{k} {v:g}" for k, v in (settings.emotion or {}).items()) or "neutral"
+    print(f"live from {source.description}, model {session.bundle.model_id}, hop {live.hop} frames, "
+          f"{'upper body only' if session.legs is None else 'whole body'}, emotion {mood}"
+          f"{f', VMC to {args.osc}' if sender else ''}; Ctrl-C ends, a line (sad, happy=0.5, neutral) "
+          "changes the emotion", file=sys.stderr)
 
     threading.Thread(target=_emotions_from, args=(sys.stdin, session), name="diffsheg-live-emotion",
                      daemon=True).start()
@@ -79,14 +85,17 @@ def run(args: argparse.Namespace) -> int:
             sender.close()
     print(file=sys.stderr)
     summary = latency_summary(result.latencies)
-    print(f"{result.motion.n_frames} frames ({result.audio.duration:.1f} s of audio); latency p50 {summary['p50']:.3f} s, "
-          f"p95 {summary['p95']:.3f} s, max {summary['max']:.3f} s; compute {result.compute / max(result.audio.duration, 1e-9):.2f} s "
+    shown = (f"latency p50 {summary['p50']:.3f} s, p95 {summary['p95']:.3f} s, max {summary['max']:.3f} s"
+             if result.latencies else "no frame was shown")
+    print(f"{result.motion.n_frames} frames ({result.audio.duration:.1f} s of audio); {shown}; compute {result.compute / max(result.audio.duration, 1e-9):.2f} s "
           f"per s of speech" + (f"; {result.underrun_seconds:.1f} s without audio filled with silence"
                                 if result.underrun_seconds else "")
           + (f"; {result.dropped_seconds:.1f} s of audio dropped (it came faster than real time)"
              if result.dropped_seconds else ""))
     if record is not None and result.motion.n_frames:
         _write_recording(result, record, audio_out)
+    elif record is not None:
+        print(f"no audio came: {record} not written", file=sys.stderr)
     if args.latency_log:
         _write_latency_log(result.latencies, summary, Path(args.latency_log))
     if result.error:
@@ -105,7 +114,7 @@ def _emotions_from(lines, session) -> None:
                     session.set_emotion(line.strip())
                     print(f"\nemotion: {line.strip()}", file=sys.stderr)
                 except DiffshegError as exc:
-                    print(f"\n{exc}", file=sys.stderr)
+                    print(f"\nignored {line.strip()!r}, the emotion stays as it was: {exc}", file=sys.stderr)
     except (OSError, ValueError):  # no standard input to read (closed, detached)
         return
 

@@ -96,11 +96,13 @@ class LiveEngine:
                                 "recording: live generation runs models with the phonetic encoder (the "
                                 "bundled model) or mel only")
         if settings.style_at:
-            raise DiffshegError("a style over time (style_at) needs the whole recording: live, choose one "
-                                "style (style=...)")
+            raise DiffshegError("a style over time (--style-at, style_at) needs the whole recording: live, "
+                                "choose one style (--style NAME, style=...)")
         if settings.emotion_at:
-            raise DiffshegError("an emotion over time (emotion_at, timeline markers) needs the whole recording: "
-                                "live, choose one emotion (emotion=...)")
+            raise DiffshegError("an emotion over time given beforehand (--emotion-at, emotion_at, timeline "
+                                "markers) needs the whole recording: live, start with one (--emotion sad, "
+                                "emotion=...) and change it while it runs (a line on the CLI's standard input, "
+                                "the panel's menu, LiveSession.set_emotion)")
         if isinstance(sample_rate, bool) or not isinstance(sample_rate, int) or sample_rate < MIN_SAMPLE_RATE:
             raise DiffshegError(f"live audio must come at {MIN_SAMPLE_RATE} Hz or more, got {sample_rate!r}")
         live.check(cfg.clip_len)

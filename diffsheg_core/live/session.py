@@ -219,7 +219,10 @@ class LiveSession:
             self._thread.join(timeout)
         self.source.stop()
         engine = self.engine
-        motion = engine.motion(meta={**engine.meta(), "emotion_at": [[t, e] for t, e in self.mood.changes]})
+        meta = engine.meta()
+        meta["emotion_at"] = [[t, e] for t, e in self.mood.changes]
+        meta["warnings"] = meta["warnings"] + self._warnings()
+        motion = engine.motion(meta=meta)
         if self._moods:
             motion = replace(motion, rotations=np.concatenate([m.rotations for m in self._moods]),
                              face=np.concatenate([m.face for m in self._moods]))
@@ -227,6 +230,15 @@ class LiveSession:
             motion = with_lower_body(motion, self.legs.lower, self.legs.trans, self.legs.contacts())
         return LiveResult(motion, engine.audio(), list(self.latencies), self.compute,
                           self.underrun_seconds, self.feed.dropped_seconds, self.error)
+
+    def _warnings(self) -> list[str]:
+        """What the recording should say about how it was heard."""
+        out = []
+        if self.underrun_seconds:
+            out.append(f"{self.underrun_seconds:.1f} s without audio from the source were filled with silence")
+        if self.feed.dropped:
+            out.append(f"{self.feed.dropped_seconds:.1f} s of audio were dropped: it came faster than real time")
+        return out
 
     def run_to_end(self, on_frame: Callable[[LiveFrame], None] = lambda frame: None,
                    on_status: Optional[Callable[[str], None]] = None, status_every: float = 0.5) -> LiveResult:
