@@ -22,7 +22,8 @@ language (means over seeds, then over files):
 The phones are the take's TextGrid, elsewhere the transcript spoken by espeak-ng and warped
 onto the recording (training.metrics.transcript_phones: approximate; on the take it gives
 2.34 where the TextGrid gives 2.43); none where espeak-ng cannot read the script (Chinese
-characters and pinyin, Japanese kanji) or there is no transcript
+characters and pinyin) or there is no transcript; Japanese kanji are read as kana through UniDic
+(fugashi)
 and, for the English take, the phone-timed lip-sync of the model card (jaw open at open
 vowels over bilabials, mouthClose at bilabials minus at open vowels).
 
@@ -57,8 +58,9 @@ TAKE_WAV = DATA / "beat2" / "2_scott_0_1_1.wav"
 TAKE_TEXTGRID = DATA / "beat2" / "2_scott_0_1_1.TextGrid"
 ENGLISH = (TAKE_WAV, *(DATA / "audio" / name for name in (
     "2_scott_0_3_3.wav", "2_scott_0_4_4.wav", "12_zhao_2_3_3.wav", "2_scott_0_103_103_28s.wav")))
-ESPEAK_VOICES = {"de": "de", "es": "es", "fr": "fr", "hi": "hi", "ru": "ru", "sv": "sv"}
-"""Languages whose transcripts espeak-ng reads (its zh and ja voices cannot read pinyin or kanji)."""
+ESPEAK_VOICES = {"de": "de", "es": "es", "fr": "fr", "hi": "hi", "ja": "ja", "ru": "ru", "sv": "sv"}
+"""Languages whose transcripts espeak-ng reads (its zh voice cannot read pinyin or characters;
+Japanese goes through transcript_phones' kana reading)."""
 
 
 def language(path: Path) -> str:

@@ -32,6 +32,19 @@ def _features(samples: np.ndarray, sample_rate: int) -> np.ndarray:
     return (mel - mel.mean(axis=1, keepdims=True)) / (mel.std(axis=1, keepdims=True) + 1e-6)
 
 
+def _readable(text: str, voice: str) -> str:
+    """`text` as espeak-ng's voice can read it: Japanese in kana (espeak-ng reads no kanji),
+    each word's reading from UniDic through fugashi; other languages as they are."""
+    if voice != "ja":
+        return text
+    try:
+        import fugashi
+    except ImportError:
+        raise DiffshegError("a Japanese transcript is read through fugashi and unidic-lite (kanji to kana): "
+                            "pip install fugashi unidic-lite (in the [train] extra)") from None
+    return "".join(word.feature.kana or word.surface for word in fugashi.Tagger()(text))
+
+
 def transcript_phones(samples: np.ndarray, sample_rate: int, text: str, voice: str) -> list[Interval]:
     """ARPAbet phones of `text` (espeak-ng voice `voice`, e.g. 'de') timed on the recording."""
     import librosa
@@ -41,7 +54,7 @@ def transcript_phones(samples: np.ndarray, sample_rate: int, text: str, voice: s
 
     if not text.strip():
         raise DiffshegError("the transcript is empty: phone timings need the words spoken")
-    spoken = synthesize(text, VoiceSpec("espeak", voice))
+    spoken = synthesize(_readable(text, voice), VoiceSpec("espeak", voice))
     synthetic, real = _features(spoken.samples, spoken.sample_rate), _features(samples, sample_rate)
     _, path = librosa.sequence.dtw(X=synthetic, Y=real)
     # for every synthetic frame, the mean real frame it is warped onto
