@@ -26,6 +26,7 @@ numpy only: it runs inside Blender.
 from __future__ import annotations
 
 import numbers
+import threading
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -180,21 +181,25 @@ class EmotionStream:
         self._ease = max(1, int(round(SWITCH_S * fps)))
         self._start = self._target = _row(check_emotion(emotion or {}))
         self._since = 0                    # the frame the last change began to ease in
-        self._pending: dict[str, float] | None = None
+        self._pending: dict[str, float] | None = None  # set by another thread, taken at the next hop
+        self._lock = threading.Lock()
         self._before: Motion | None = None  # the last `context` frames made, without the emotion
         self._before_rows = np.zeros((0, len(NAMES)))
 
     def set(self, emotion) -> None:
         """Change the emotion (a spec as `check_emotion` takes; {} or 'neutral' for none) from
         the next hop on. Raises DiffshegError, on the caller's thread, for a bad one."""
-        self._pending = check_emotion(emotion if emotion else {})
+        checked = check_emotion(emotion if emotion else {})
+        with self._lock:
+            self._pending = checked
 
     def add(self, part: Motion) -> Motion:
         """`part`, the next frames of the stream, with the emotion laid over them."""
         n = part.n_frames
         if not n:
             return part
-        pending, self._pending = self._pending, None
+        with self._lock:
+            pending, self._pending = self._pending, None
         if pending is not None:
             self._start, self._target, self._since = self._rows(np.array([self.frames]))[0], _row(pending), self.frames
             # noted at the middle of its ease, where emotion_track (a recording's regenerated ranges) centres it
