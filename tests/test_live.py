@@ -317,20 +317,27 @@ def test_every_frame_heard_is_emitted_whatever_the_lookahead(speech, model, look
     assert engine.motion().n_frames == engine.emitted
 
 
-def test_ctrl_c_ends_the_live_cli_cleanly_and_writes_the_recording(tmp_path, speech):
-    import signal
-
+def _live_cli_showing(tmp_path, speech: Audio, *options: str):
+    """The live CLI on `speech` (recording to take.npz, standard input a pipe), once it shows
+    frames: (the process, the thread reading its stderr, the stderr read so far)."""
     clip = tmp_path / "speech.wav"
     sf.write(clip, speech.samples, speech.sample_rate)
-    proc = subprocess.Popen([sys.executable, "-m", "diffsheg_core", "live", "--source", str(clip), "--record",
-                             str(tmp_path / "take.npz")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "DIFFSHEG_THREADS": "1"})
+    proc = subprocess.Popen([sys.executable, "-m", "diffsheg_core", "live", "--source", str(clip), *options,
+                             "--record", str(tmp_path / "take.npz")], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, "DIFFSHEG_THREADS": "1"})
     err_parts: list[str] = []
     reader = threading.Thread(target=lambda: err_parts.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True)
     reader.start()
     deadline = time.monotonic() + 60
     while "latency" not in "".join(err_parts) and time.monotonic() < deadline:  # frames are being shown
-        time.sleep(0.1)
+        time.sleep(0.05)
+    return proc, reader, err_parts
+
+
+def test_ctrl_c_ends_the_live_cli_cleanly_and_writes_the_recording(tmp_path, speech):
+    import signal
+
+    proc, reader, err_parts = _live_cli_showing(tmp_path, speech)
     time.sleep(1.5)
     proc.send_signal(signal.SIGINT)
     proc.wait(timeout=60)
@@ -347,17 +354,7 @@ def test_ctrl_c_ends_the_live_cli_cleanly_and_writes_the_recording(tmp_path, spe
 def test_a_line_on_standard_input_changes_the_emotion_of_the_live_cli(tmp_path, speech):
     """A performer types (or an agent pipes) an emotion while the CLI runs: a bad one is
     said and changes nothing, a good one is laid from then on and the recording notes it."""
-    clip = tmp_path / "speech.wav"
-    sf.write(clip, speech.samples, speech.sample_rate)
-    proc = subprocess.Popen([sys.executable, "-m", "diffsheg_core", "live", "--source", str(clip), "--speed", "2",
-                             "--record", str(tmp_path / "take.npz")], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env={**os.environ, "DIFFSHEG_THREADS": "1"})
-    err_parts: list[str] = []
-    reader = threading.Thread(target=lambda: err_parts.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True)
-    reader.start()
-    deadline = time.monotonic() + 60
-    while "latency" not in "".join(err_parts) and time.monotonic() < deadline:  # frames are being shown
-        time.sleep(0.05)
+    proc, reader, err_parts = _live_cli_showing(tmp_path, speech, "--speed", "2")
     proc.stdin.write("joyful\nsad=0.7\n")
     proc.stdin.close()
     proc.wait(timeout=60)
