@@ -81,8 +81,8 @@ class BackgroundJob:
     def done(self) -> bool:
         return not self._thread.is_alive()
 
-    def wait(self) -> None:
-        self._thread.join()
+    def wait(self, timeout: float | None = None) -> None:
+        self._thread.join(timeout)
 
 
 class GenerationJob(BackgroundJob):

@@ -40,6 +40,7 @@ MIC, FILE, SOCKET = "MIC", "FILE", "SOCKET"
 SOCKET_HOST = LIVE_HOST    # the socket listens on this computer only: whoever reaches it speaks
 SOCKET_RATE = 16000        # the socket's PCM: 16-bit mono at this rate (TcpSource's default)
 RECORDINGS = "live"        # the folder beside the .blend that holds the recordings' audio
+DISCARD_WAIT_S = 5.0       # the most a discarded session's threads are waited for
 MIC_STATUS_EVERY_S = 5.0   # the microphone's state is looked up at most this often (panel redraws)
 
 _current: "LiveRun | None" = None
@@ -371,14 +372,17 @@ class LiveRun:
 
     # --- ending ----------------------------------------------------------------------
     def discard(self, restore: bool = False) -> None:
-        """End at once, keeping nothing: the session stops in the background. `restore`: put
-        the pose back (not when the data are about to be replaced: undo, opening a file)."""
+        """End at once, keeping nothing. `restore`: put the pose back (not when the data are
+        about to be replaced: undo, opening a file). The session's threads are given up to
+        DISCARD_WAIT_S to end (a fraction of a second: the last hop), so that Blender quitting
+        right after never tears down the runtime under them (that aborted the process)."""
         global _current
         if _current is self:
             _current = None
         self.discarded = True
         if self.finishing is None:
             self.finishing = _Finish(self.session).start()
+        self.finishing.wait(DISCARD_WAIT_S)
         self._close_vmc()
         if restore:
             try:
@@ -450,9 +454,10 @@ class LiveRun:
                 f"{baked.n_keys:,} keys; {summary}")
         if warnings:
             line += f"; {warnings} warning{'s' if warnings > 1 else ''}, see DiffSHEG report"
-        details = report_details(baked, time.monotonic() - self.started, settings.model_label, motion.meta)
-        write_report(details + "\n".join([f"live: {self.source.description}", f"audio: {path}", summary,
-                                          *[f"- {p}" for p in problems]]) + "\n")
+        details = report_details(baked, time.monotonic() - self.started, settings.model_label, motion.meta,
+                                 problems)
+        write_report("\n".join([line, "", f"live: {self.source.description}", f"audio: {path}", summary, ""])
+                     + details)
         return LiveOutcome(line, "WARNING" if warnings else "INFO", baked.take)
 
     def _close_vmc(self) -> None:

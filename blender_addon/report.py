@@ -9,9 +9,10 @@ REPORT_TEXT = "DiffSHEG report"
 MAX_LINE = 120
 
 
-def report_line(result, seconds: float) -> str:
-    """At most MAX_LINE characters: take, frames, preset, keys, time, warnings."""
-    warnings = len(warning_lines(result))
+def report_line(result, seconds: float, extra: list[str] = ()) -> str:
+    """At most MAX_LINE characters: take, frames, preset, keys, time, warnings (`extra`: the
+    caller's own, beside keying's)."""
+    warnings = len(warning_lines(result)) + len(extra)
     line = (f"{result.take}: {result.n_frames} frames, {result.n_keys:,} keys, preset {result.preset}, "
             f"{seconds:.1f} s")
     if warnings:
@@ -35,16 +36,16 @@ def model_label(meta: dict) -> str:
     return label
 
 
-def report_details(result, seconds: float, model: str, meta: dict) -> str:
+def report_details(result, seconds: float, model: str, meta: dict, extra: list[str] = ()) -> str:
     """The report's Text: its line, the model, the style and emotion the take was made with
     (`meta`: what made it, a range's own record), the Actions, the sound strip, the preset's
-    notes and the warnings."""
-    lines = [report_line(result, seconds), "", f"model: {model}",
+    notes and the warnings (`extra`: the caller's own, after keying's)."""
+    lines = [report_line(result, seconds, extra), "", f"model: {model}",
              f"style: {changes_text(meta.get('style_weights') or {}, meta.get('style_at'), 'default')}",
              f"emotion: {changes_text(meta.get('emotion') or {}, meta.get('emotion_at'), 'neutral')}",
              f"actions: {', '.join(result.actions)}",
              f"sound strip: {result.sound_strip or 'none'}", *result.preset_notes]
-    warnings = warning_lines(result)
+    warnings = warning_lines(result) + list(extra)
     if warnings:
         lines += ["", "warnings:"] + [f"- {w}" for w in warnings]
     return "\n".join(lines) + "\n"
@@ -56,7 +57,7 @@ def changes_text(weights: dict, changes: list | None, none: str) -> str:
     def mix(w: dict) -> str:
         return ", ".join(name if value == 1 else f"{name} {value:g}" for name, value in w.items()) or none
 
-    return "; ".join([mix(weights)] + [f"from {seconds:g} s: {mix(w)}" for seconds, w in changes or ()])
+    return "; ".join([mix(weights)] + [f"from {round(seconds, 2):g} s: {mix(w)}" for seconds, w in changes or ()])
 
 
 def write_report(text: str):

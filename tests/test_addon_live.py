@@ -339,11 +339,39 @@ def test_a_socket_producer_that_breaks_off_keeps_what_was_performed(speech, tmp_
     assert outcome.take == "live_001 take 1" and outcome.level == "WARNING"
     assert "see DiffSHEG report" in outcome.line
     report = bpy.data.texts["DiffSHEG report"].as_string()
+    assert report.splitlines()[0] == outcome.line  # the report opens with the status line
+    counted = int(re.search(r"(\d+) warnings?, see DiffSHEG report", outcome.line).group(1))
+    assert counted == len(report.split("\nwarnings:\n")[1].strip().splitlines())  # and lists as many warnings
     assert "was reset in the middle of the stream" in report
     wav = tmp_path / "diffsheg_live" / "live_001.wav"
     assert f"its audio is in the temporary folder ({wav})" in report
     assert takes.source_of(outcome.take).audio_path == str(wav)
     assert 1.3 < read_audio_file(wav).duration <= 1.55
+
+
+def test_quitting_right_after_a_session_is_discarded_does_not_abort(speech, tmp_path):
+    """Blender ends a running session (a file opened, the window closed) and quits at once:
+    the process exits cleanly (the runtime was torn down under the session's threads: abort)."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "discard.py"
+    script.write_text(f"""
+import sys, time
+sys.path.insert(0, {str(REPO / "tests")!r})
+from addon_fixtures import bpy, import_readyplayerme, reset_scene
+from blender_addon import live
+s = reset_scene().diffsheg
+s.armature, s.device = import_readyplayerme()[0], "CPU"
+s.live_source, s.live_file, s.live_speed, s.live_record = "FILE", {str(speech)!r}, 2.0, False
+run = live.LiveRun(bpy.context).start()
+for _ in range(30):
+    run.step()
+    time.sleep(1 / 60)
+run.discard(restore=True)
+""")
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
 
 
 def test_one_session_at_a_time_and_undo_ends_it(speech):
