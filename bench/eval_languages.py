@@ -44,8 +44,8 @@ from diffsheg_core.audio import load_audio
 from diffsheg_core.checkpoints import load_model
 from diffsheg_core.motion import Motion
 from diffsheg_core.pipeline import generate
-from diffsheg_core.qc import (lip_closures, mouth_curve, mouth_voice_correlation, voiced_frames,
-                              voiced_level_correlation, voiced_mouth_voice_correlation)
+from diffsheg_core.qc import (lip_closures, mouth_voice_correlation, voiced_frames, voiced_level_correlation,
+                              voiced_mouth_voice_correlation)
 from diffsheg_core.training.metrics import face_channel, mouth_opening, phone_tier, phoneme_contrast, read_textgrid
 from diffsheg_core.training.metrics.lipsync import (BILABIALS, OPEN_VOWELS, base_phone, phone_following,
                                                      phone_middles, values_at, viseme_jaw)
@@ -112,7 +112,7 @@ def measure(path: Path, motions: list[Motion]) -> Row:
             mouth = mouth_opening(m)
             jaw_open += list(values_at(mouth, m.fps, phone_middles(phones, OPEN_VOWELS, m.n_frames / m.fps)))
             jaw_bilabial += list(values_at(mouth, m.fps, phone_middles(phones, BILABIALS, m.n_frames / m.fps)))
-            follows.append(phone_following(mouth_curve(m), m.fps, phones, audio.samples, audio.sample_rate))
+            follows.append(phone_following(mouth, m.fps, phones, audio.samples, audio.sample_rate))
     bilabials = sum(base_phone(p.label) in BILABIALS for p in phones) if phones else 0
     return Row(language(path), path.stem, audio.duration, float(np.mean(whole)), float(np.mean(voiced)),
                float(np.mean(rate)), float(np.mean(closures)) / bilabials if bilabials else None,

@@ -229,12 +229,16 @@ def contacts(lower: np.ndarray, trans: np.ndarray, fps: float) -> dict[str, list
 
 
 def _contacts(world: dict, fps: float) -> dict[str, list[tuple[int, int]]]:
-    spans = {}
-    for side, (ankle, sole) in _feet(world).items():
-        speed = np.linalg.norm(np.diff(ankle, axis=0, prepend=ankle[:1]), axis=-1) * fps
-        down = (sole[:, 1] < CONTACT_HEIGHT) & (speed < CONTACT_SPEED)
-        spans[side] = [(a, b) for a, b in _runs(down) if b - a + 1 >= MIN_CONTACT]
-    return spans
+    return {side: [(a, b) for a, b in _runs(_down(ankle, sole, fps)) if b - a + 1 >= MIN_CONTACT]
+            for side, (ankle, sole) in _feet(world).items()}
+
+
+def _down(ankle: np.ndarray, sole: np.ndarray, fps: float, before: np.ndarray | None = None) -> np.ndarray:
+    """(T,) whether the foot is on the floor: its sole within CONTACT_HEIGHT of it and its
+    ankle slower than CONTACT_SPEED since the frame before (`before`: the ankle then, (1, 3);
+    None, the first frame counts as still)."""
+    speed = np.linalg.norm(np.diff(ankle, axis=0, prepend=ankle[:1] if before is None else before), axis=-1) * fps
+    return (sole[:, 1] < CONTACT_HEIGHT) & (speed < CONTACT_SPEED)
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -527,12 +531,11 @@ class LowerBodyStream:
         floored = _on_floor(lower, raw, self.fps)[done - lo:end - lo]
         self._floored = np.concatenate([self._floored, floored])
         world = _world(lower[done - lo:end - lo], floored)
-        for side, (up, _, foot) in LEGS.items():
-            track, ankle, sole = self._feet[side], world[foot][1], world[f"{side.capitalize()}Sole"][1]
-            before = track["ankle"][-1:] if len(track["ankle"]) else ankle[:1]
-            speed = np.linalg.norm(np.diff(np.concatenate([before, ankle]), axis=0), axis=-1) * self.fps
+        for side, (ankle, sole) in _feet(world).items():
+            up, _, foot = LEGS[side]
+            track = self._feet[side]
             new = {"ankle": ankle, "hip": world[up][1], "foot": world[foot][0],
-                   "down": (sole[:, 1] < CONTACT_HEIGHT) & (speed < CONTACT_SPEED)}
+                   "down": _down(ankle, sole, self.fps, track["ankle"][-1:] if len(track["ankle"]) else None)}
             self._feet[side] = {key: np.concatenate([track[key], new[key]]) for key in track}
 
     def _pins(self, side: str, first: int) -> list:
