@@ -12,7 +12,7 @@ diversity between seeds, FGD to the take (with --autoencoder), beat alignment, l
 blinks; the take's last 20 s (which the teacher's gesture library never saw) are reported
 apart. Prints one table; writes OUT/styles.md and OUT/styles.json.
 
-    python bench/eval_styles.py [--model ckpt] [--autoencoder ../runs/ae-v3.pt] [--out out/eval-styles]
+    python bench/eval_styles.py [--model ckpt] [--autoencoder ../runs/ae-v3.pt] [--out out/eval-styles] [--only LABEL]
 """
 
 from __future__ import annotations
@@ -88,6 +88,7 @@ def main() -> int:
     p.add_argument("--model", help="checkpoint (default: the bundled model)")
     p.add_argument("--autoencoder", help="motion autoencoders (.pt) for FGD")
     p.add_argument("--out", default="out/eval-styles")
+    p.add_argument("--only", help="measure only the settings whose label holds this text (e.g. 'style conversational')")
     args = p.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -103,6 +104,8 @@ def main() -> int:
     tail = slice(-int(HELD_OUT_SECONDS * capture.fps), None)
     results: dict[str, dict] = {}
     for label, options in settings(bundle):
+        if args.only and args.only not in label:
+            continue
         started = time.perf_counter()
         samples = [generate(audio, model=bundle, seed=s, **options) for s in SEEDS]
         seconds = (time.perf_counter() - started) / len(SEEDS)

@@ -69,7 +69,7 @@ class Poser:
         from .bake import map_targets, resolve_preset
         from .feet import LiveFeet
 
-        layout = bundle.layout
+        layout = bundle.rig_layout
         self.template = Motion(fps=bundle.config.fps, rig=layout.name, joint_names=list(layout.joint_names),
                                rotations=np.zeros((1, len(layout.joint_names), 3)),
                                face_names=list(layout.face_names), face=np.zeros((1, len(layout.face_names))))
@@ -192,7 +192,7 @@ def _vmc_sender(settings, bundle, legs: bool):
         raise DiffshegError("VMC out needs the Python package python-osc, which is not installed: "
                             "turn VMC out off, or install the add-on's dependencies again") from None
     host, port = parse_address(settings.live_vmc_address)
-    return VmcSender(host, port, bundle.layout, legs=legs)
+    return VmcSender(host, port, bundle.rig_layout, legs=legs)
 
 
 # ---------------------------------------------------------------- recordings

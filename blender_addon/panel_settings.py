@@ -262,7 +262,7 @@ def layout_motion(generation):
     from diffsheg_core.motion import Motion
 
     bundle = load_model(generation.model)
-    layout = bundle.layout
+    layout = bundle.rig_layout
     return Motion(fps=bundle.config.fps, rig=layout.name, joint_names=list(layout.joint_names),
                   rotations=np.zeros((1, len(layout.joint_names), 3)), face_names=list(layout.face_names),
                   face=np.zeros((1, len(layout.face_names))))

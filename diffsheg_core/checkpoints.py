@@ -72,6 +72,12 @@ class ModelBundle:
         return get_layout(self.config.layout)
 
     @property
+    def rig_layout(self) -> Layout:
+        """The layout of the rig its motion is on, whose joints the model makes above the hips
+        (a whole-body model's `beat_body`: `beat`); what live frames and rig mappings are laid out in."""
+        return get_layout(self.layout.rig)
+
+    @property
     def style_names(self) -> list[str]:
         """Names of the style classes (models trained with named styles; else none)."""
         return list(self.info.get("style_names", []))

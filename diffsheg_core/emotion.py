@@ -33,6 +33,7 @@ import numpy as np
 
 from .errors import DiffshegError
 from .motion import Motion, smooth_frames
+from .rigs import BEAT_LOWER_JOINTS
 from .rotations import (axis_angle_to_quaternion, quaternion_conjugate, quaternion_product,
                         quaternion_sequence_continuous, quaternion_to_axis_angle)
 
@@ -285,7 +286,7 @@ def _columns(channel: str, names: dict[str, int]) -> list[tuple[int, str]]:
 
 def _body(motion: Motion, track: np.ndarray, inverse: bool = False) -> np.ndarray:
     """Rotations with energy and sharpness scaled around the slow posture, then pitched (with
-    `inverse`, unpitched, then the scaling undone to first order)."""
+    `inverse`, unpitched, then the scaling undone to first order); the hips and legs as they are."""
     mix = np.array([[EMOTIONS[n].energy - 1.0, EMOTIONS[n].sharpness, EMOTIONS[n].head_pitch,
                      EMOTIONS[n].chest_pitch] for n in NAMES])
     energy, sharpness, head, chest = (track @ mix).T
@@ -306,7 +307,10 @@ def _body(motion: Motion, track: np.ndarray, inverse: bool = False) -> np.ndarra
     out = quaternion_product(slow, axis_angle_to_quaternion(movement))
     if not inverse:
         out = _pitched(motion, out, head, chest, sign)
-    return quaternion_to_axis_angle(out).astype(motion.rotations.dtype)
+    rotations = quaternion_to_axis_angle(out).astype(motion.rotations.dtype)
+    legs = [k for k, name in enumerate(motion.joint_names) if name in BEAT_LOWER_JOINTS]
+    rotations[:, legs] = motion.rotations[:, legs]  # the hips and legs stand as made (their feet are planted)
+    return rotations
 
 
 def _pitched(motion: Motion, q: np.ndarray, head: np.ndarray, chest: np.ndarray, sign: float) -> np.ndarray:

@@ -1,13 +1,16 @@
 """The lower body: hips (rotation and translation) and legs under the generated upper body,
 with the feet planted.
 
-The diffusion model makes the upper body and face (its layouts stop at the waist). Below
-it, this module adds what a standing talker's hips and legs do: weight shifts, sway and
-turns, learnt from the real full-body capture of BEAT2 take 2_scott_0_1_1 (SMPL-X, with
-root translation) and stored beside the model (`assets/lower_body.npz`, a few thousand
-numbers). The flow is one way, as DiffSHEG's expression-to-gesture flow: the upper body
-the model made drives the lower body, never the reverse, so the upper body and face are
-the model's to the bit.
+A whole-body model (layout `beat_body`, the bundled one) makes the hips, legs and the hips'
+translation itself: `plant` low-passes them, keeps the hips within the real capture's range
+and plants the contact feet. For a model whose layout stops at the waist (`beat`: the
+official BEAT checkpoint and earlier bundled models) and live (where planting a network's
+legs would need frames not yet made), this module adds what a standing talker's hips and
+legs do: weight shifts, sway and turns cut from the real full-body capture of BEAT2 take
+2_scott_0_1_1 (SMPL-X, with root translation), stored beside the model
+(`assets/lower_body.npz`, a few thousand numbers). That flow is one way, as DiffSHEG's
+expression-to-gesture flow: the upper body the model made drives the lower body, never
+the reverse, so the upper body and face are the model's to the bit.
 
 The lower body is cut from that capture as the teacher's gestures are cut from the BEAT
 take: motion matching. The take is built segment by segment (1.5-4 s, drawn with the
@@ -43,12 +46,12 @@ from .errors import DiffshegError
 from .kinematics import rest_offsets, wrist_positions
 from .leg_ik import pin_goals, two_bone
 from .motion import Motion, smooth_frames
+from .rigs import BEAT_LOWER_JOINTS
 from .rotations import (axis_angle_to_quaternion, convert, matrix_to_axis_angle, quaternion_conjugate,
                         quaternion_product, quaternion_sequence_continuous, quaternion_to_axis_angle,
                         resample_positions, resample_weights, slerp_resample)
 
-JOINTS = ("Hips", "RightUpLeg", "RightLeg", "RightFoot", "RightToeBase",
-          "LeftUpLeg", "LeftLeg", "LeftFoot", "LeftToeBase")
+JOINTS = BEAT_LOWER_JOINTS
 """The joints added to a `beat` Motion, in its BEAT skeleton names."""
 SMPLX_INDEX = (0, 2, 5, 8, 11, 1, 4, 7, 10)  # pelvis, right hip, knee, ankle, foot, then left
 LEGS = {"right": ("RightUpLeg", "RightLeg", "RightFoot"), "left": ("LeftUpLeg", "LeftLeg", "LeftFoot")}
@@ -69,6 +72,7 @@ EASE = 3                # frames over which a pin eases in and out
 MIN_CONTACT = 4         # frames: a shorter low, slow stretch is a step, not a contact
 REACH_SLACK = 0.004     # m a pinned ankle may lie beyond the straight leg (IK stops 4 mm short)
 LIVE_LEASH = 0.5        # live: the share of the hips' distance from the capture's centre each segment takes back
+MODEL_SMOOTH_S = 0.2    # Gaussian sigma (s) a whole-body model's hips and legs are low-passed by before planting
 
 
 @lru_cache(maxsize=None)
@@ -121,6 +125,11 @@ class LowerBodyLibrary:
     @property
     def translation_high(self) -> np.ndarray:
         return self.translation.max(axis=0)
+
+    @property
+    def centre(self) -> np.ndarray:
+        """(2,) where the capture's hips stand on average, x and z."""
+        return self.translation[:, [0, 2]].mean(axis=0)
 
 
 # ---------------------------------------------------------------- the capture
@@ -269,14 +278,18 @@ def figures(lower: np.ndarray, trans: np.ndarray, fps: float) -> dict[str, float
             "skating": foot_skating(lower, trans, fps)}
 
 
-def plant_feet(lower: np.ndarray, trans: np.ndarray, fps: float) -> tuple[np.ndarray, dict]:
+def plant_feet(lower: np.ndarray, trans: np.ndarray, fps: float,
+               down: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, dict]:
     """`lower` with each contact foot's ankle and orientation pinned over its span (eased in
     and out over EASE frames) by two-bone IK on each leg (leg_ik); returns it and the spans
     pinned. A span is pinned where and as its foot landed (its first MIN_CONTACT frames, so
     what is pinned never depends on how long the span goes on: the live stream pins the
-    same); frames where the leg cannot reach that spot split it (the foot steps there)."""
+    same); frames where the leg cannot reach that spot split it (the foot steps there).
+    The contacts are the feet's low and slow stretches, or per foot the (T,) mask `down`
+    (the teacher's, from the capture it reads)."""
     world = _world(lower, trans)
-    spans = _contacts(world, fps)
+    spans = _contacts(world, fps) if down is None else \
+        {side: [(a, b) for a, b in _runs(down[side]) if b - a + 1 >= MIN_CONTACT] for side in LEGS}
     pins = {side: _pins(world, side, spans[side]) for side in LEGS}
     return _solve(lower, world, pins), {side: [(a, b) for a, b, _, _ in p] for side, p in pins.items()}
 
@@ -376,7 +389,7 @@ class _Planner:
             seg_t[:, [0, 2]] += here - seg_t[0, [0, 2]]  # the hips go on from where they are
             if leash:
                 ease = np.linspace(0.0, 1.0, span)[:, None]
-                seg_t[:, [0, 2]] += leash * ease * ease * (3 - 2 * ease) * (self.centre - here)
+                seg_t[:, [0, 2]] += leash * ease * ease * (3 - 2 * ease) * (self.library.centre - here)
             w = np.linspace(0.0, 1.0, fade + 2)[1:-1][:, None]
             old_q, old_t = self.rotations[t0:], self.trans[t0:]
             overlap = len(old_q)
@@ -386,11 +399,6 @@ class _Planner:
             seg_t[:overlap] = (1 - w[:overlap]) * old_t + w[:overlap] * seg_t[:overlap]
         self.rotations = np.concatenate([self.rotations[:t0], seg_q])
         self.trans = np.concatenate([self.trans[:t0], seg_t])
-
-    @property
-    def centre(self) -> np.ndarray:
-        """(2,) where the capture's hips stand on average, x and z."""
-        return self.library.translation[:, [0, 2]].mean(axis=0)
 
 
 def _on_floor(lower: np.ndarray, trans: np.ndarray, fps: float) -> np.ndarray:
@@ -411,12 +419,19 @@ def sample(library: LowerBodyLibrary, energy: np.ndarray, seed: int) -> tuple[np
     planner = _Planner(library, seed)
     while len(planner.rotations) < n:
         planner.add(lambda t0, span: energy[t0:t0 + span].mean() if t0 < n else energy[-1])
-    # the hips wander no further than the capture did: slow drift taken out, then the range kept
-    trans = planner.trans[:n].copy()
-    trans[:, [0, 2]] -= smooth_frames(trans[:, [0, 2]], DRIFT_S * fps) - planner.centre
     lower = quaternion_to_axis_angle(planner.rotations[:n])
+    return lower, settle(lower, planner.trans[:n], library)
+
+
+def settle(lower: np.ndarray, trans: np.ndarray, library: LowerBodyLibrary) -> np.ndarray:
+    """`trans` (T, 3) of the hips under `lower` (T, 9, 3) wandering no further than the
+    capture did: its slow drift (DRIFT_S) taken out about the capture's centre, kept within
+    the capture's range, then lowered or raised so the feet are on the floor."""
+    fps = library.fps
+    trans = trans.copy()
+    trans[:, [0, 2]] -= smooth_frames(trans[:, [0, 2]], DRIFT_S * fps) - library.centre
     trans = np.clip(trans, library.translation_low, library.translation_high)
-    return lower, _on_floor(lower, trans, fps)
+    return _on_floor(lower, trans, fps)
 
 
 def add_lower_body(motion: Motion, seed: int, library: LowerBodyLibrary | None = None) -> Motion:
@@ -427,6 +442,26 @@ def add_lower_body(motion: Motion, seed: int, library: LowerBodyLibrary | None =
     lower, trans = sample(library, arm_energy(motion), seed)
     lower, spans = plant_feet(lower, trans, motion.fps)
     return with_lower_body(motion, lower, trans, spans)
+
+
+def plant(motion: Motion, library: LowerBodyLibrary | None = None) -> Motion:
+    """`motion` (a `beat` Motion whose hips, legs and root translation a whole-body model
+    made) with the hips and legs low-passed (MODEL_SMOOTH_S: the network's frame-to-frame
+    wobble would read as feet that never stand still), the hips settled as the capture's are
+    (`settle`) and each contact foot planted (`plant_feet`); the contact spans and the hips'
+    rest height go into its meta."""
+    library = _library_for(motion, library)
+    if motion.root_translation is None or not set(JOINTS) <= set(motion.joint_names):
+        raise DiffshegError("planting the feet needs a motion with the hips, legs and root translation "
+                            "of a whole-body model")
+    sigma = MODEL_SMOOTH_S * motion.fps
+    q = quaternion_sequence_continuous(axis_angle_to_quaternion(
+        motion.rotations[:, [motion.joint_names.index(j) for j in JOINTS]].astype(np.float64)))
+    q = smooth_frames(q, sigma)
+    lower = quaternion_to_axis_angle(q / np.linalg.norm(q, axis=-1, keepdims=True))
+    trans = settle(lower, smooth_frames(motion.root_translation.astype(np.float64), sigma), library)
+    lower, spans = plant_feet(lower, trans, motion.fps)
+    return with_lower_body(upper_body(motion), lower, trans, spans)
 
 
 def with_lower_body(motion: Motion, lower: np.ndarray, trans: np.ndarray, spans: dict) -> Motion:

@@ -26,7 +26,7 @@ from .emotion import apply_emotion, emotion_track, remove_emotion, take_emotion
 from .errors import DiffshegError
 from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, inpaint_range, with_overrides
 from .guidance import Guidance, step_eps
-from .lower_body import LAYOUTS as WHOLE_BODY_LAYOUTS, add_lower_body, upper_body
+from .lower_body import JOINTS as LOWER_JOINTS, LAYOUTS as WHOLE_BODY_LAYOUTS, add_lower_body, plant, upper_body
 from .motion import Motion
 from .phonetic import (PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel, recogniser_frames,
                        stack_posteriors)
@@ -396,7 +396,23 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     track = emotion_track(s.emotion, s.emotion_at, n_frames, bundle.config.fps)
     if track is not None:
         motion = apply_emotion(motion, track, held=tuple((p.frame, p.joint) for p in pins))
-    return motion if s.upper_body_only or motion.rig not in WHOLE_BODY_LAYOUTS else add_lower_body(motion, s.seed)
+    return with_legs(motion, s)
+
+
+def with_legs(motion: Motion, s: GenerateSettings) -> Motion:
+    """The hips and legs of a generated `motion`: none with `upper_body_only`; a whole-body
+    model's own, settled and with the feet planted (lower_body.plant); else, on the BEAT
+    skeleton, cut from the capture to go with the arms (lower_body.add_lower_body). The meta's
+    "lower_body" says which ("model" or "capture")."""
+    if s.upper_body_only:
+        return upper_body(motion)
+    if motion.root_translation is not None:
+        legs, source = plant(motion), "model"
+    elif motion.rig in WHOLE_BODY_LAYOUTS:
+        legs, source = add_lower_body(motion, s.seed), "capture"
+    else:
+        return motion
+    return replace(legs, meta={**legs.meta, "lower_body": source})
 
 
 def _sampling(bundle: ModelBundle, network, s: GenerateSettings, sampling: Optional[FoppasConfig],
@@ -450,9 +466,9 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     bundle = s.model if isinstance(s.model, ModelBundle) else load_model(s.model)
     layout = bundle.layout
     whole, motion = motion, upper_body(motion)  # the take's hips and legs stay as they are
-    if motion.rig != layout.name or motion.fps != bundle.config.fps:
+    if motion.rig != layout.rig or motion.fps != bundle.config.fps:
         raise DiffshegError(f"this motion is {motion.rig} at {motion.fps:g} fps, but model {bundle.model_id} "
-                            f"makes {layout.name} at {bundle.config.fps:g} fps: regenerate with the model "
+                            f"makes {layout.rig} at {bundle.config.fps:g} fps: regenerate with the model "
                             "that made it")
     if isinstance(start, bool) or isinstance(end, bool) or not 0 <= int(start) < int(end) <= motion.n_frames:
         raise DiffshegError(f"the range to regenerate, frames {start} to {end}, must lie within the motion's "
@@ -466,15 +482,14 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     cond = np.concatenate(list(with_style(speech_chunks(bundle, network, speech), plan.track)))
     laid = take_emotion(motion)
     base = motion if laid is None else remove_emotion(motion, laid)  # what the take's emotion was laid over
-    normalised = bundle.normalise(layout.join(base.rotations, base.face)).astype(np.float32)
-    hold = np.zeros(normalised.shape, dtype=bool)
+    normalised, hold = _known(bundle, base, whole)
     if keep_face:
         hold[start:end, layout.gesture_dim:] = True
     _hold_pins(bundle, normalised, hold, pins, start, end)
     new = inpaint_range(sampler, make_eps_fn, cond, normalised, start, end, s.seed, hold, progress, cancel,
                         face_seed=s.face_seed)
     check_finite(bundle, new)
-    made = to_motion(bundle, new, meta={})  # the range's frames
+    made = upper_body(to_motion(bundle, new, meta={}))  # the range's frames
     part = replace(base, rotations=base.rotations.copy(), face=base.face.copy())
     part.rotations[start:end], part.face[start:end] = made.rotations, made.face
     if s.emotion is None and s.emotion_at is None:  # the range keeps the take's own emotion
@@ -493,6 +508,29 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
                    meta={**motion.meta, "regenerated": list(motion.meta.get("regenerated", [])) + [record]})
 
 
+def _known(bundle: ModelBundle, upper: Motion, whole: Motion) -> tuple[np.ndarray, np.ndarray]:
+    """(T, D) normalised model input of a take being regenerated (its `upper` body, without
+    the emotion, and face), and which of it is held inside the range: nothing, except that
+    a whole-body model holds the take's own hips and legs (`whole`'s), which stay as they
+    are. A take without them (upper body only) shows that model the capture's mean legs."""
+    layout = bundle.layout
+    if not layout.root_translation:
+        values = bundle.normalise(layout.join(upper.rotations, upper.face))
+        return values.astype(np.float32), np.zeros(values.shape, dtype=bool)
+    legs = slice(3 * len(upper.joint_names), layout.gesture_dim)
+    if whole.root_translation is None:
+        lower, root = np.zeros((upper.n_frames, len(LOWER_JOINTS), 3)), np.zeros((upper.n_frames, 3))
+    else:
+        lower, root = whole.rotations[:, [whole.joint_names.index(j) for j in LOWER_JOINTS]], whole.root_translation
+    values = bundle.normalise(layout.join(np.concatenate([upper.rotations, lower], axis=1), upper.face, root))
+    hold = np.zeros(values.shape, dtype=bool)
+    if whole.root_translation is None:
+        values[:, legs] = 0.0  # the mean
+    else:
+        hold[:, legs] = True
+    return values.astype(np.float32), hold
+
+
 def _hold_pins(bundle: ModelBundle, normalised: np.ndarray, hold: np.ndarray, pins, start: int, end: int) -> None:
     """Write each pin's pose into the (T, D) normalised motion and mark it held."""
     for pin in pins:
@@ -505,6 +543,10 @@ def _hold_pins(bundle: ModelBundle, normalised: np.ndarray, hold: np.ndarray, pi
 def _pin_channels(layout, pin: Pin, start: int, end: int) -> np.ndarray:
     """The model channels of a pin's joint; a pin outside the range or on a joint the
     model does not move raises DiffshegError."""
+    if pin.joint in LOWER_JOINTS:
+        raise DiffshegError(f"pin on '{pin.joint}': the hips and legs are not pinned (a take's stay as they are "
+                            "when a range is regenerated, and the feet are planted where they land): pin a joint of "
+                            "the upper body, or key the legs yourself")
     if pin.joint not in layout.gesture_joints:
         raise DiffshegError(f"pin on '{pin.joint}': the model does not move that joint (it moves "
                             f"{', '.join(layout.gesture_joints[:4])}, ...)")
@@ -537,8 +579,10 @@ def open_speech(audio: AudioInput, sample_rate: Optional[int] = None) -> Union[A
 def to_motion(bundle: ModelBundle, normalised: np.ndarray, meta: dict) -> Motion:
     """Denormalise (T, D) model output and split it into named rotations and face weights."""
     layout = bundle.layout
-    rotations, face = layout.split(bundle.denormalise(normalised).astype(np.float32, copy=False))
-    if layout.name == "beat":
+    values = bundle.denormalise(normalised).astype(np.float32, copy=False)
+    rotations, face = layout.split(values)
+    if layout.rig == "beat":
         face = np.clip(face, 0.0, 1.0)  # ARKit weights are defined on [0, 1]
-    return Motion(fps=bundle.config.fps, rig=layout.name, joint_names=list(layout.joint_names),
-                  rotations=rotations, face_names=list(layout.face_names), face=face, meta=meta)
+    return Motion(fps=bundle.config.fps, rig=layout.rig, joint_names=list(layout.joint_names),
+                  rotations=rotations, face_names=list(layout.face_names), face=face,
+                  root_translation=layout.root(values), meta=meta)

@@ -29,6 +29,10 @@ def _beat_side(side: str) -> tuple[str, ...]:
 
 BEAT_JOINTS: tuple[str, ...] = ("Spine", "Neck", "Neck1") + _beat_side("Right") + _beat_side("Left")
 
+BEAT_LOWER_JOINTS: tuple[str, ...] = ("Hips", "RightUpLeg", "RightLeg", "RightFoot", "RightToeBase",
+                                      "LeftUpLeg", "LeftLeg", "LeftFoot", "LeftToeBase")
+"""The BEAT skeleton's hips and legs, below the `beat` layout's joints."""
+
 ARKIT52: tuple[str, ...] = (
     "browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight",
     "cheekPuff", "cheekSquintLeft", "cheekSquintRight",
@@ -80,7 +84,10 @@ class Layout:
     """How a model's flat motion vector maps to named joints and face channels.
 
     `face_rotation_joints` are joints whose axis-angle rotations sit at the start of
-    the expression part (SMPL-X's jaw); they join `joint_names` in a Motion.
+    the expression part (SMPL-X's jaw); they join `joint_names` in a Motion. With
+    `root_translation` the gesture part ends with the hips' translation (metres, 3
+    channels), a Motion's `root_translation`. `skeleton` is the rig a Motion of the layout
+    is on (its `rig`): the layout's name unless a layout widens another's joints.
     """
 
     name: str
@@ -88,10 +95,16 @@ class Layout:
     gesture_joints: tuple[str, ...]
     face_names: tuple[str, ...]
     face_rotation_joints: tuple[str, ...] = ()
+    root_translation: bool = False
+    skeleton: str = ""
+
+    @property
+    def rig(self) -> str:
+        return self.skeleton or self.name
 
     @property
     def gesture_dim(self) -> int:
-        return 3 * len(self.gesture_joints)
+        return 3 * len(self.gesture_joints) + 3 * self.root_translation
 
     @property
     def expression_dim(self) -> int:
@@ -111,24 +124,50 @@ class Layout:
             raise DiffshegError(
                 f"motion of shape {motion.shape} does not fit layout '{self.name}' "
                 f"({self.dim} channels per frame)")
-        gesture, expression = motion[:, : self.gesture_dim], motion[:, self.gesture_dim :]
+        gesture, expression = motion[:, : self.joint_channels], motion[:, self.gesture_dim :]
         n_face_rot = 3 * len(self.face_rotation_joints)
         rotations = np.concatenate([gesture, expression[:, :n_face_rot]], axis=1)
         return rotations.reshape(len(motion), rotations.shape[1] // 3, 3), expression[:, n_face_rot:]
 
-    def join(self, rotations: np.ndarray, face: np.ndarray) -> np.ndarray:
-        """Inverse of `split`."""
+    def root(self, motion: np.ndarray) -> np.ndarray | None:
+        """(T, 3) hips translation of (T, dim) model-space motion (None: the layout has none)."""
+        return motion[:, self.joint_channels:self.gesture_dim] if self.root_translation else None
+
+    def join(self, rotations: np.ndarray, face: np.ndarray, root: np.ndarray | None = None) -> np.ndarray:
+        """Inverse of `split` (and `root`: the layout's hips translation, which it needs)."""
+        if self.root_translation and root is None:
+            raise DiffshegError(f"layout '{self.name}' holds the hips' translation: the motion has none")
         flat = rotations.reshape(len(rotations), -1)
-        gesture, face_rot = flat[:, : self.gesture_dim], flat[:, self.gesture_dim :]
-        return np.concatenate([gesture, face_rot, face], axis=1)
+        gesture, face_rot = flat[:, : self.joint_channels], flat[:, self.joint_channels :]
+        parts = [gesture] + ([root.reshape(len(flat), 3)] if self.root_translation else []) + [face_rot, face]
+        return np.concatenate(parts, axis=1)
+
+    def widened_channels(self, narrower: "Layout") -> np.ndarray | None:
+        """Where each channel of `narrower` sits in this layout, when this one widens it (the
+        same gesture joints first, more joints or the hips' translation after them, the
+        same face); else None. A model of `narrower` can be fine-tuned into one of this."""
+        if (self.gesture_joints[:len(narrower.gesture_joints)] != narrower.gesture_joints or narrower.root_translation
+                or self.face_names != narrower.face_names or self.face_rotation_joints != narrower.face_rotation_joints
+                or self.dim <= narrower.dim):
+            return None
+        return np.concatenate([np.arange(narrower.gesture_dim), self.gesture_dim + np.arange(narrower.expression_dim)])
+
+    @property
+    def joint_channels(self) -> int:
+        """Channels of the gesture joints' rotations (the gesture part less any translation)."""
+        return 3 * len(self.gesture_joints)
 
 
 BEAT = Layout(name="beat", fps=15.0, gesture_joints=BEAT_JOINTS, face_names=ARKIT51)
+BEAT_BODY = Layout(name="beat_body", fps=15.0, gesture_joints=BEAT_JOINTS + BEAT_LOWER_JOINTS, face_names=ARKIT51,
+                   root_translation=True, skeleton="beat")
+"""The whole body on the BEAT skeleton: `beat`'s joints, then the hips and legs, then the
+hips' translation (171 gesture channels); a Motion of it is a `beat` Motion with legs."""
 SMPLX = Layout(
     name="smplx", fps=15.0, gesture_joints=SMPLX_GESTURE_JOINTS,
     face_names=SMPLX_EXPRESSION, face_rotation_joints=("jaw",),
 )
-LAYOUTS: dict[str, Layout] = {BEAT.name: BEAT, SMPLX.name: SMPLX}
+LAYOUTS: dict[str, Layout] = {BEAT.name: BEAT, BEAT_BODY.name: BEAT_BODY, SMPLX.name: SMPLX}
 
 
 def get_layout(name: str) -> Layout:

@@ -25,7 +25,7 @@ from diffsheg_core.motion import Motion
 from diffsheg_core.training.metrics.blinks import detect_blinks
 from diffsheg_core.training.metrics.lipsync import envelope_correlation, phoneme_contrast
 from diffsheg_core.training.metrics.textgrid import phone_tier, read_textgrid
-from diffsheg_core.rigs import ARKIT51, BEAT_JOINTS
+from diffsheg_core.rigs import ARKIT51, BEAT_JOINTS, BEAT_LOWER_JOINTS
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SENTENCES = (
@@ -185,7 +185,9 @@ def test_build_writes_utterances_and_manifest(corpus):
         assert sr == 16000 and samples.ndim == 1
         motion, phones, info = load_utterance(out / rec["npz"])
         assert motion.n_frames == n_motion_frames(Audio(samples, sr), 15.0) == rec["frames"]
-        assert motion.fps == 15.0 and motion.rotations.shape[1:] == (len(BEAT_JOINTS), 3)
+        # teacher v4: the whole body, the hips' translation and the contact spans it planted
+        assert motion.fps == 15.0 and motion.joint_names == list(BEAT_JOINTS + BEAT_LOWER_JOINTS)
+        assert motion.root_translation.shape == (motion.n_frames, 3) and set(motion.meta["contacts"]) == {"right", "left"}
         assert motion.face.shape[1] == 51 and info["text"] == rec["text"]
         check_phones(phones)
         assert phones[-1].end == pytest.approx(len(samples) / sr, abs=1e-3)

@@ -3,6 +3,7 @@ formats from the real take 2_scott_0_1_1 (motion capture, SMPL-X and audio), bro
 takes included."""
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,7 @@ from diffsheg_core.training.data import (
 from diffsheg_core.training.data.beat2 import read_motion
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.motion import Motion, write_arkit_json, write_livelink_csv
-from diffsheg_core.rigs import ARKIT51, BEAT, SMPLX
+from diffsheg_core.rigs import ARKIT51, BEAT, BEAT_BODY, SMPLX
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 REAL_BVH = DATA / "beat" / "2_scott_0_1_1.bvh"
@@ -298,7 +299,8 @@ def test_corpus_reader(corpus_root, tmp_path):
         # for utterances of a corpus made before named styles
         assert take.style == STYLE_NAMES.index(info["style"]) and take.mask.all()
         assert abs(take.n_frames - record["frames"]) <= 1 and take.mel.shape == (take.n_frames, 128)
-        np.testing.assert_allclose(take.motion, BEAT.join(motion.rotations, motion.face)[: take.n_frames])
+        upper = motion.rotations[:, :len(BEAT.gesture_joints)]
+        np.testing.assert_allclose(take.motion, BEAT.join(upper, motion.face)[: take.n_frames])
     # the teacher's jaw moves with the speech, and the clips are cut and normalised
     jaw = np.concatenate([t.motion[:, BEAT.gesture_dim + ARKIT51.index("jawOpen")] for t in train.takes])
     assert jaw.max() > 0.2 and jaw.min() < 0.05
@@ -307,6 +309,30 @@ def test_corpus_reader(corpus_root, tmp_path):
     again = load_takes(config, "train")
     np.testing.assert_array_equal(again.takes[0].mel, train.takes[0].mel)
     assert len(list((tmp_path / "cache").glob("*.npz"))) == len(good)
+
+    # whole_body: the teacher's hips, legs and hips' translation too (layout beat_body)
+    whole = load_takes(replace(config, whole_body=True), "train")
+    assert whole.layout is BEAT_BODY and [t.name for t in whole.takes] == [t.name for t in train.takes]
+    for take, record in zip(whole.takes, good):
+        motion, _, _ = load_utterance(root / record["npz"])
+        assert take.motion.shape[1] == BEAT_BODY.dim == 222
+        np.testing.assert_allclose(take.motion, BEAT_BODY.join(motion.rotations, motion.face,
+                                                               motion.root_translation)[: take.n_frames])
+    with pytest.raises(DiffshegError, match="whole_body needs the project's corpus"):
+        _ = DataConfig(kind="beat", whole_body=True).layout
+    # an utterance of an older teacher has no legs: named, with the fix
+    from diffsheg_core.lower_body import upper_body
+    from diffsheg_core.training.corpus.teacher import save_utterance
+    from diffsheg_core.training.data import corpus as corpus_reader
+    from diffsheg_core.training.data.sources import TakeSource
+
+    motion, phones, info = load_utterance(root / good[0]["npz"])
+    old = save_utterance(tmp_path / "old.npz", upper_body(motion), phones, {**info, "teacher_version": 3})
+    source = TakeSource("old", {"audio": root / good[0]["wav"], "motion": old}, 0, None)
+    assert corpus_reader.read_take(source, config).motion.shape[1] == BEAT.dim
+    with pytest.raises(DiffshegError, match=r"holds no lower body \(teacher v3\): whole_body needs a corpus built "
+                                            "with teacher v4 or later"):
+        corpus_reader.read_take(source, replace(config, whole_body=True))
 
 
 def test_bad_configuration_is_reported(tmp_path):

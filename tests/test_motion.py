@@ -243,3 +243,29 @@ def test_face_writers_refuse_non_arkit_motion(smplx_motion, tmp_path):
         write_arkit_json(smplx_motion, tmp_path / "x.json")
     with pytest.raises(DiffshegError, match="ARKit.*npz"):
         write_livelink_csv(smplx_motion, tmp_path / "x.csv")
+
+
+def test_the_whole_body_layout_holds_the_legs_and_the_hips_translation():
+    """beat_body: beat's 47 joints, the 9 of the hips and legs, then the hips' translation
+    (171 gesture channels), the same face; a Motion of it is on the BEAT skeleton. It widens
+    beat (a beat model can be fine-tuned into it), and joining needs the translation."""
+    from diffsheg_core.errors import DiffshegError
+    from diffsheg_core.rigs import BEAT, BEAT_BODY, BEAT_LOWER_JOINTS, SMPLX, get_layout
+
+    assert get_layout("beat_body") is BEAT_BODY and BEAT_BODY.rig == BEAT.rig == "beat"
+    assert BEAT_BODY.gesture_dim == 171 and BEAT_BODY.dim == 222
+    assert BEAT_BODY.joint_names == BEAT.joint_names + BEAT_LOWER_JOINTS
+    rng = np.random.default_rng(0)
+    rotations, face, root = rng.normal(size=(5, 56, 3)), rng.random((5, 51)), rng.normal(size=(5, 3))
+    flat = BEAT_BODY.join(rotations, face, root)
+    assert flat.shape == (5, 222)
+    got_rotations, got_face = BEAT_BODY.split(flat)
+    np.testing.assert_array_equal(got_rotations, rotations)
+    np.testing.assert_array_equal(got_face, face)
+    np.testing.assert_array_equal(BEAT_BODY.root(flat), root)
+    assert BEAT.root(flat[:, :192]) is None
+    channels = BEAT_BODY.widened_channels(BEAT)
+    np.testing.assert_array_equal(flat[:, channels], BEAT.join(rotations[:, :47], face))
+    assert BEAT.widened_channels(BEAT_BODY) is None and BEAT_BODY.widened_channels(SMPLX) is None
+    with pytest.raises(DiffshegError, match="layout 'beat_body' holds the hips' translation: the motion has none"):
+        BEAT_BODY.join(rotations, face)

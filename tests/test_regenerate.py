@@ -77,7 +77,8 @@ def test_a_pin_is_met_and_flowed_into(speech, take):
     (170, 100, (), "must lie within"),
     (0, 10_000, (), "must lie within"),
     (START, END, (Pin(50, "RightArm", (0.0, 0.0, 0.0)),), "outside the range"),
-    (START, END, (Pin(120, "Hips", (0.0, 0.0, 0.0)),), "does not move that joint"),
+    (START, END, (Pin(120, "Hips", (0.0, 0.0, 0.0)),), "the hips and legs are not pinned"),
+    (START, END, (Pin(120, "Head", (0.0, 0.0, 0.0)),), "does not move that joint"),
 ])
 def test_bad_ranges_and_pins_are_refused(speech, take, start, end, pins, match):
     with pytest.raises(DiffshegError, match=match):

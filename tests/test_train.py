@@ -481,3 +481,84 @@ def test_the_bundled_models_training_recipes_read():
     assert len(ids) == len(recipes)
     languages = TrainConfig.from_dict(read_config_file(recipes[0].with_name("default_languages.toml")))
     assert languages.stats_tolerance == 0.3 and not languages.freeze_expression and languages.data.root.endswith("v5")
+
+
+def test_a_beat_model_widens_into_a_whole_body_one_that_starts_as_it(tmp_path):
+    """init_from a `beat` model with whole_body data (layout beat_body: 30 more gesture
+    channels, the hips, legs and hips' translation): the widened network predicts the old
+    channels exactly as the source does (their input and output rows are the source's, the
+    new channels' input starts at zero), the run keeps the source's normalisation for the
+    old channels and takes the data's for the new ones, and training moves the new rows.
+    The teacher's corpus (v4) holds the legs; any other dataset is refused."""
+    from diffsheg_core.rigs import BEAT, BEAT_BODY
+    from diffsheg_core.training.corpus.build import BuildConfig, build
+
+    text = tmp_path / "one.txt"
+    text.write_text("Peter and Bob bought a map of the big park before the rain.")
+    build(BuildConfig(out=tmp_path / "c", hours=6 / 3600, jobs=1, seed=5, engines=("espeak",), text_files=(text,)),
+          progress=False)
+    data = {"kind": "corpus", "root": str(tmp_path / "c"), "clip_len": 16, "stride": 4, "val_fraction": 0.0,
+            "cache_dir": str(tmp_path / "cache")}
+    model = {**TINY, "style_dim": 3}
+    base = tmp_path / "base"
+    train(TrainConfig.from_dict(config(tmp_path, base, steps=5, checkpoint_every=5, model=model, data=data)))
+    settings = config(tmp_path, tmp_path / "body", steps=6, checkpoint_every=100, freeze_expression=True,
+                      init_from=str(base / MODEL_FILE), model=model, data={**data, "whole_body": True})
+    start = Trainer(TrainConfig.from_dict(settings), Dist())
+    assert not start.begin() and start.model_cfg.layout == "beat_body" and start.model_cfg.gesture_dim == 171
+    source = load_model(base / MODEL_FILE)
+    channels = BEAT_BODY.widened_channels(BEAT)
+    np.testing.assert_array_equal(start.stats.mean[channels], source.mean)
+    np.testing.assert_array_equal(start.stats.std[channels], source.std)
+
+    old = UniEG(source.config).eval()
+    old.load_state_dict({k: torch.from_numpy(np.array(v)).float() for k, v in source.weights.items()})
+    torch.manual_seed(2)
+    x = torch.randn(2, 16, BEAT_BODY.dim)
+    t, mel, style = torch.tensor([900, 40]), torch.rand(2, 16, 128), torch.eye(3)[:2]
+    coefs = (torch.full((2, 1, 1), 1.5), torch.full((2, 1, 1), 0.5))
+    with torch.no_grad():
+        wide = start.model.eval()(x, t, mel, None, style, coefs)
+        narrow = old(x[..., torch.from_numpy(channels)], t, mel, None, style, coefs)
+    np.testing.assert_allclose(wide[..., channels].numpy(), narrow.numpy(), atol=1e-5)
+
+    train(TrainConfig.from_dict(settings))
+    tuned = load_model(tmp_path / "body" / MODEL_FILE)
+    assert tuned.layout is BEAT_BODY and tuned.prior.dims == 171
+    new_rows = tuned.weights["encoder_ges.joint_embed.weight"][:, BEAT.gesture_dim:BEAT_BODY.gesture_dim]
+    assert np.abs(new_rows).max() > 0
+    for key in ("encoder_exp.out.weight", "encoder_aud.ffn.linear2.weight"):
+        if key in source.weights:
+            np.testing.assert_array_equal(tuned.weights[key], source.weights[key])
+    with pytest.raises(DiffshegError, match="whole_body needs the project's corpus"):
+        Trainer(TrainConfig.from_dict(config(tmp_path, tmp_path / "x", model=model,
+                                             data={"kind": "folder", "root": str(tmp_path), "whole_body": True})),
+                Dist())
+
+    # generating with it: the network's own hips and legs, planted; none with upper_body_only;
+    # a regenerated range keeps the take's legs
+    from diffsheg_core import lower_body as lb
+    from diffsheg_core.pipeline import Pin, regenerate
+
+    speech = DATA / "beat2" / "2_scott_0_1_1.wav"
+    y, sr = sf.read(speech, dtype="float32")
+    audio = (y[:4 * sr], sr)
+    motion = generate(*audio, model=tuned, steps=3, device="cpu", seed=1)
+    assert motion.rig == "beat" and motion.joint_names == list(BEAT_BODY.joint_names)
+    assert motion.meta["lower_body"] == "model" and motion.root_translation.shape == (motion.n_frames, 3)
+    soles = lb.foot_positions(motion.rotations[:, len(BEAT.joint_names):].astype(np.float64),
+                              motion.root_translation.astype(np.float64))
+    for side, spans in motion.meta["contacts"].items():
+        for a, b in spans:
+            assert np.linalg.norm(np.diff(soles[side][1][a:b + 1], axis=0), axis=-1).max() < 0.01
+    upper = generate(*audio, model=tuned, steps=3, device="cpu", seed=1, upper_body_only=True)
+    assert upper.joint_names == list(BEAT.joint_names) and upper.root_translation is None
+    again = regenerate(motion, *audio, model=tuned, start=10, end=30, steps=3, device="cpu", seed=2)
+    np.testing.assert_array_equal(again.rotations[:, len(BEAT.joint_names):], motion.rotations[:, len(BEAT.joint_names):])
+    np.testing.assert_array_equal(again.root_translation, motion.root_translation)
+    np.testing.assert_array_equal(again.rotations[:10], motion.rotations[:10])
+    assert not np.array_equal(again.rotations[10:30], motion.rotations[10:30])
+    again = regenerate(upper, *audio, model=tuned, start=10, end=30, steps=3, device="cpu", seed=2)
+    assert again.joint_names == list(BEAT.joint_names) and again.root_translation is None
+    with pytest.raises(DiffshegError, match="the hips and legs are not pinned"):
+        regenerate(motion, *audio, model=tuned, start=10, end=30, pins=(Pin(15, "LeftLeg", (0.0, 0.0, 0.0)),))

@@ -123,7 +123,7 @@ def _vmc_sender(address: str, session):
     from .vmc import VmcSender, parse_address
 
     host, port = parse_address(address)
-    return VmcSender(host, port, session.bundle.layout, legs=session.legs is not None)
+    return VmcSender(host, port, session.bundle.rig_layout, legs=session.legs is not None)
 
 
 def _write_recording(result, record: Path, audio_out: Path) -> None:

@@ -33,7 +33,7 @@ from ..audio import Audio
 from ..checkpoints import ModelBundle, load_model
 from ..emotion import EmotionStream
 from ..errors import DiffshegError
-from ..lower_body import JOINTS as LEG_JOINTS, LAYOUTS as WHOLE_BODY_LAYOUTS, LowerBodyStream, with_lower_body
+from ..lower_body import JOINTS as LEG_JOINTS, LAYOUTS as WHOLE_BODY_LAYOUTS, LowerBodyStream, upper_body, with_lower_body
 from ..motion import Motion
 from ..pipeline import to_motion
 from ..runtime.backends import open_network
@@ -161,7 +161,9 @@ class LiveSession:
         # the emotion and the hips and legs laid over what the model makes, as `generate` lays them
         self.mood = EmotionStream(settings.emotion, self.bundle.config.fps)  # set_emotion changes it
         self._moods: list[Motion] = []  # the frames made, with the emotion (the recording's)
-        self.legs = (None if settings.upper_body_only or self.bundle.layout.name not in WHOLE_BODY_LAYOUTS
+        # live, the legs are always cut from the capture to go with the arms (LowerBodyStream): a
+        # whole-body model's own are left out, as planting them would need frames not yet made
+        self.legs = (None if settings.upper_body_only or self.bundle.rig_layout.name not in WHOLE_BODY_LAYOUTS
                      else LowerBodyStream(self.bundle.config.fps, settings.seed))
         self.feed = AudioFeed(source.sample_rate)
         # a file played faster than real time for a demo (its `speed`) is shown that much faster too
@@ -185,7 +187,7 @@ class LiveSession:
     @property
     def joint_names(self) -> list[str]:
         """The joints of every frame's rotations: the model's layout, then the legs'."""
-        return list(self.bundle.layout.joint_names) + (list(LEG_JOINTS) if self.legs else [])
+        return list(self.bundle.rig_layout.joint_names) + (list(LEG_JOINTS) if self.legs else [])
 
     # --- running -----------------------------------------------------------------------
     def start(self) -> None:
@@ -222,12 +224,13 @@ class LiveSession:
         meta = engine.meta()
         meta["emotion_at"] = [[t, e] for t, e in self.mood.changes]
         meta["warnings"] = meta["warnings"] + self._warnings()
-        motion = engine.motion(meta=meta)
+        motion = upper_body(engine.motion(meta=meta))
         if self._moods:
             motion = replace(motion, rotations=np.concatenate([m.rotations for m in self._moods]),
                              face=np.concatenate([m.face for m in self._moods]))
         if self.legs is not None:
             motion = with_lower_body(motion, self.legs.lower, self.legs.trans, self.legs.contacts())
+            motion = replace(motion, meta={**motion.meta, "lower_body": "capture"})
         return LiveResult(motion, engine.audio(), list(self.latencies), self.compute,
                           self.underrun_seconds, self.feed.dropped_seconds, self.error)
 
@@ -313,7 +316,7 @@ class LiveSession:
         if not len(normalised):
             self.compute += time.perf_counter() - started
             return
-        part = self.mood.add(to_motion(self.bundle, normalised, meta={}))
+        part = self.mood.add(upper_body(to_motion(self.bundle, normalised, meta={})))
         self._moods.append(part)
         rotations, roots, down = part.rotations, [None] * part.n_frames, [None] * part.n_frames
         if self.legs is not None:

@@ -41,6 +41,7 @@ from ..diffusion import Schedule
 from ..errors import DiffshegError
 from ..foppas import PRESETS, FoppasConfig, with_overrides
 from ..pipeline import check_skip_guidance, hubert_encoding
+from ..rigs import get_layout
 from ..settings import check_number
 from .train_phonetic import load_phonetic, speech_encoding as phonetic_speech
 from ..prior import GesturePrior
@@ -379,16 +380,28 @@ def phonetic_encoder(cfg: TrainConfig, model_cfg: ModelConfig) -> PhoneticEncode
     return load_phonetic(cfg.phonetic)
 
 
+WIDENED = ("encoder_ges.joint_embed.weight", "encoder_ges.out.weight", "encoder_ges.out.bias")
+"""The weights whose size follows the gesture channels (see Trainer.init_weights)."""
+
+
 def fine_tuning_statistics(path: str, source: NormStats, data: NormStats,
-                           tolerance: float = TrainConfig.stats_tolerance) -> NormStats:
+                           tolerance: float = TrainConfig.stats_tolerance,
+                           channels: np.ndarray | None = None) -> NormStats:
     """The normalisation a run fine-tuned from a model trains in: the model's own (its weights
     work in it), once the data's statistics are seen to lie within `tolerance` (a share of
-    each channel's standard deviation) of it."""
+    each channel's standard deviation) of it. For a model widened to more channels
+    (`channels`: where each of the source's channels sits, rigs.Layout.widened_channels) the
+    new channels take the data's statistics."""
     worst = float("inf")
-    if source.mean.shape == data.mean.shape:
-        away = np.maximum(np.abs(source.mean - data.mean), np.abs(source.std - data.std))
+    channels = np.arange(len(data.mean)) if channels is None else channels
+    if source.mean.shape == channels.shape:
+        away = np.maximum(np.abs(source.mean - data.mean[channels]), np.abs(source.std - data.std[channels]))
         if np.all(away <= tolerance * source.std):
-            return source
+            if len(channels) == len(data.mean):
+                return source
+            mean, std = data.mean.copy(), data.std.copy()
+            mean[channels], std[channels] = source.mean, source.std
+            return NormStats(mean, std)
         worst = float(np.max(away / source.std))
     raise DiffshegError(f"init_from {path}: it was trained with other normalisation statistics "
                         f"(up to {worst:.2f} of a channel's spread away, the limit is {tolerance}), "
@@ -432,7 +445,7 @@ class Trainer:
         self.source = load_model(cfg.init_from) if cfg.init_from and not (self.out / STATE_FILE).is_file() else None
         if self.source is not None:
             self.stats = fine_tuning_statistics(cfg.init_from, NormStats(self.source.mean, self.source.std),
-                                                self.stats, cfg.stats_tolerance)
+                                                self.stats, cfg.stats_tolerance, self.widened_channels())
         self.train_set = ClipDataset(train.takes, cfg.data.clip_len, cfg.data.stride, self.stats)
         self.val_set = ClipDataset(val.takes, cfg.data.clip_len, cfg.data.clip_len, self.stats) \
             if val.takes and any(t.n_frames >= cfg.data.clip_len for t in val.takes) else None
@@ -498,23 +511,48 @@ class Trainer:
         self.step = int(state["step"])
         return True
 
+    def widened_channels(self) -> np.ndarray | None:
+        """Where each channel of the model fine-tuned from sits in this run's, when this run
+        widens its layout (a `beat` model into `beat_body`); None when the layouts are the same."""
+        theirs, ours = get_layout(self.source.config.layout), get_layout(self.model_cfg.layout)
+        return None if theirs == ours else ours.widened_channels(theirs)
+
     def init_weights(self, source: ModelBundle, path: str) -> None:
         """Model and EMA from a generation checkpoint (`source`, read from `path`) of the same
         network on the same data (see fine_tuning_statistics).
 
         The differences allowed are parts the checkpoint lacks, which keep their fresh
         initialisation: a learned null condition (classifier_free), so an unguided model can
-        be fine-tuned into a guided one, and temporal convolutions (temporal_kernel, which
-        start as the identity), added to a model without them.
+        be fine-tuned into a guided one; temporal convolutions (temporal_kernel, which start
+        as the identity), added to a model without them; and gesture channels a wider
+        layout adds (the gesture branch's input and output rows of its own channels come
+        from the checkpoint; the new channels' output rows start fresh and their input at
+        zero, so the checkpoint's channels are predicted exactly as it predicts them).
+        Starting the new output rows at zero too was tried (with lr 2e-4): the gestures
+        came out calmer still (see the model card).
         """
         theirs, ours = source.config.to_dict(), self.model_cfg.to_dict()
         added = {"classifier_free"} | ({"temporal_kernel"} if not theirs.get("temporal_kernel") else set())
+        channels = self.widened_channels()
+        if channels is not None:
+            added |= {"layout", "gesture_dim"}
         differ = sorted(k for k in ours if k not in added and theirs.get(k) != ours[k])
         if differ:
             raise DiffshegError(f"init_from {path}: its model differs in {', '.join(differ)}; "
                                 "make the [model] settings match it")
-        state = {**self.model.state_dict(),
-                 **{k: torch.from_numpy(np.array(v)).float() for k, v in source.weights.items()}}
+        state = self.model.state_dict()
+        for name, value in source.weights.items():
+            value = torch.from_numpy(np.array(value)).float()
+            if channels is not None and name in WIDENED and value.shape != state[name].shape:
+                kept = torch.from_numpy(channels[:source.config.gesture_dim])
+                if name.endswith(".out.weight") or name.endswith(".out.bias"):
+                    grown = state[name].clone()
+                    grown[kept] = value
+                else:  # the new channels' input starts at zero: the old channels' predictions start as the checkpoint's
+                    grown = torch.zeros_like(state[name])
+                    grown[:, kept] = value
+                value = grown
+            state[name] = value
         load_state_strict(self.model, state, f"init_from {path}")
         self.ema.load_state_dict(self.model.state_dict())
 

@@ -19,7 +19,7 @@ from torch import nn
 from tqdm import tqdm
 
 from ..audio import load_audio
-from ..checkpoints import read_safetensors, write_safetensors
+from ..checkpoints import FORMAT as MODEL_FORMAT, load_model, read_safetensors, write_safetensors
 from ..errors import CheckpointError, DiffshegError
 from ..torch_layer.model import PhoneticEncoder, load_state_strict, state_arrays
 from ..phonetic import BILABIALS, PHONES, PhoneticConfig, fingerprint, log_mel, phonetic_encoding
@@ -65,13 +65,20 @@ def save_phonetic(encoder: PhoneticEncoder, path: str | Path, info: dict) -> Pat
 
 
 def load_phonetic(path: str | Path) -> PhoneticEncoder:
+    """The encoder of an encoder file (train-phonetic) or the one stored in a model file."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no such phonetic encoder file; train one with "
                               "python -m diffsheg_core train-phonetic")
     meta, tensors = read_safetensors(path, "train the encoder again (python -m diffsheg_core train-phonetic)")
+    if meta.get("format") == MODEL_FORMAT:  # a model file: the encoder stored in it
+        model = load_model(path)
+        if model.phonetic is None:
+            raise CheckpointError(f"{path}: this model holds no phonetic encoder (its speech input is "
+                                  f"{model.config.speech_encoder or 'the mel alone'})")
+        return encoder_from(model.phonetic, model.phonetic_weights, str(path))
     if meta.get("format") != FORMAT:
-        raise CheckpointError(f"{path}: not a phonetic encoder (format {meta.get('format')!r})")
+        raise CheckpointError(f"{path}: not a phonetic encoder nor a model file (format {meta.get('format')!r})")
     return encoder_from(PhoneticConfig.from_metadata(meta["config"], str(path)), tensors, str(path))
 
 

@@ -14,12 +14,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.signal import find_peaks
 
 from ...errors import DiffshegError
+from ...lower_body import LowerBodyLibrary, contacts
 from ...rigs import BEAT_JOINTS
 from ...rotations import axis_angle_to_quaternion, quaternion_sequence_continuous, quaternion_to_axis_angle
 from .prosody import Accent
@@ -111,12 +113,28 @@ def _angular_speed(quats: np.ndarray, joints: list[int]) -> np.ndarray:
 
 
 class GestureLibrary:
-    """Phrases and calm (idle) stretches of one take, and sampling at fractional frames."""
+    """Phrases and calm (idle) stretches of one take, and sampling at fractional frames.
 
-    def __init__(self, rotations: np.ndarray):
+    With `lower` (the same take's hips and legs, frame for frame: `lower_body.build` of its
+    BEAT2 SMPL-X capture) the library holds the whole body: the lower-body joints follow
+    the `beat` ones, and the hips' translation is read beside them (`root`)."""
+
+    def __init__(self, rotations: np.ndarray, lower: LowerBodyLibrary | None = None):
         if rotations.ndim != 3 or rotations.shape[1:] != (len(BEAT_JOINTS), 3) or len(rotations) < 60:
             raise DiffshegError(f"gesture capture must be (T >= 60, {len(BEAT_JOINTS)}, 3) axis-angle "
                                 f"in the beat layout, got {rotations.shape}")
+        self.lower = lower
+        self.root = self.down = None
+        if lower is not None:  # the lower body's last frame held where the capture is a few frames shorter
+            frames = np.minimum(np.arange(len(rotations)), len(lower.rotations) - 1)
+            rotations = np.concatenate([rotations, lower.rotations[frames]], axis=1)
+            self.root = lower.translation[frames]
+            spans = contacts(lower.rotations, lower.translation, lower.fps)
+            down = np.zeros((len(lower.rotations), len(spans)))
+            for k, side in enumerate(spans.values()):
+                for a, b in side:
+                    down[a:b + 1, k] = 1.0
+            self.down = down[frames]
         self.quats = quaternion_sequence_continuous(axis_angle_to_quaternion(rotations))
         arms = [BEAT_JOINTS.index(n) for n in _ARM_JOINTS]
         self.speed = gaussian_filter1d(_angular_speed(self.quats, arms), 1.0)
@@ -150,15 +168,34 @@ class GestureLibrary:
 
     def sample(self, pos: np.ndarray) -> np.ndarray:
         """(len(pos), J, 4) quaternions at fractional source frames (clamped to the take)."""
+        i0, w = self._between(pos)
+        return _slerp(self.quats[i0], self.quats[i0 + 1], np.broadcast_to(w[:, None], (len(pos), self.quats.shape[1])))
+
+    def root_step(self, pos: np.ndarray, rate: float) -> np.ndarray:
+        """(len(pos), 3) the hips at fractional source frames played at `rate` source frames
+        per output frame: x and z as the step to the next output frame, y as the height."""
+        i0, w = self._between(pos)
+        step = (self.root[i0 + 1] - self.root[i0]) * rate
+        return np.stack([step[:, 0], (1 - w) * self.root[i0, 1] + w * self.root[i0 + 1, 1], step[:, 2]], axis=1)
+
+    def contact(self, pos: np.ndarray) -> np.ndarray:
+        """(len(pos), 2) 1 where the capture's right and left foot is in contact at the
+        nearest source frame, else 0."""
+        return self.down[np.clip(np.rint(pos).astype(int), 0, self.n_frames - 1)]
+
+    def _between(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The source frame before each fractional frame (clamped to the take) and the weight of the next."""
         pos = np.clip(pos, 0, self.n_frames - 1)
         i0 = np.minimum(np.floor(pos).astype(int), self.n_frames - 2)
-        w = np.broadcast_to((pos - i0)[:, None], (len(pos), self.quats.shape[1]))
-        return _slerp(self.quats[i0], self.quats[i0 + 1], w)
+        return i0, pos - i0
 
 
 @lru_cache(maxsize=2)
 def load_library(path: str | None = None) -> GestureLibrary:
-    """The library of a BEAT BVH take (default: the real take 2_scott_0_1_1)."""
+    """The library of a BEAT BVH take (default: the real take 2_scott_0_1_1) with its hips
+    and legs: the package's lower-body library is cut from the BEAT2 capture of that take,
+    frame for frame with the BVH and with the same last HELD_OUT_SECONDS left out. Another
+    take has no lower body to go with it, so its library is the upper body alone."""
     from ...bvh import bvh_to_motion, read_bvh
 
     bvh = Path(path) if path else DEFAULT_MOCAP
@@ -166,7 +203,8 @@ def load_library(path: str | None = None) -> GestureLibrary:
         raise DiffshegError(f"gesture capture {bvh} not found: pass the BEAT take "
                             "2_scott_0_1_1.bvh (shared/data/beat) with --mocap")
     rotations = bvh_to_motion(read_bvh(bvh, fps=MOCAP_FPS)).rotations
-    return GestureLibrary(rotations[: len(rotations) - int(HELD_OUT_SECONDS * MOCAP_FPS)])
+    lower = LowerBodyLibrary.load() if bvh.name == DEFAULT_MOCAP.name else None
+    return GestureLibrary(rotations[: len(rotations) - int(HELD_OUT_SECONDS * MOCAP_FPS)], lower)
 
 
 @dataclass(frozen=True)
@@ -227,26 +265,54 @@ def _timeline(lib: GestureLibrary, strokes: list[float], n_frames: int, fps: flo
     return clips
 
 
-def _render(lib: GestureLibrary, clips: list[_Clip], n_frames: int) -> np.ndarray:
-    """(n_frames, J, 4): each frame reads its clip; within _FADE frames of a cut it is the
-    smoothstep slerp of the two clips meeting there."""
+def _render(clips: list[_Clip], n_frames: int, read: Callable[[_Clip, np.ndarray], np.ndarray],
+            mix: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
+    """(n_frames, ...): each frame reads its clip (`read(clip, frames)`); within _FADE frames
+    of a cut it is `mix(a, b, w)` of the two clips meeting there, w the smoothstep of the fade."""
     u = np.arange(n_frames, dtype=np.float64)
     starts = np.array([c.out_start for c in clips])
     k = np.clip(np.searchsorted(starts, u, side="right") - 1, 0, len(clips) - 1)
-    q = np.empty((n_frames, lib.quats.shape[1], 4))
+    out = None
     for i, clip in enumerate(clips):
         sel = k == i
         if sel.any():
-            q[sel] = lib.sample(clip.source(u[sel]))
+            values = read(clip, u[sel])
+            out = np.empty((n_frames,) + values.shape[1:]) if out is None else out
+            out[sel] = values
     for i in range(1, len(clips)):
         cut = clips[i].out_start
         sel = np.abs(u - cut) < _FADE
         if sel.any():
             x = (u[sel] - (cut - _FADE)) / (2 * _FADE)
-            w = x * x * (3 - 2 * x)
-            a, b = lib.sample(clips[i - 1].source(u[sel])), lib.sample(clips[i].source(u[sel]))
-            q[sel] = _slerp(a, b, np.broadcast_to(w[:, None], a.shape[:2]))
-    return q
+            out[sel] = mix(read(clips[i - 1], u[sel]), read(clips[i], u[sel]), x * x * (3 - 2 * x))
+    return out
+
+
+def _render_quats(lib: GestureLibrary, clips: list[_Clip], n_frames: int) -> np.ndarray:
+    """(n_frames, J, 4) rotations of the clips, slerped across each cut."""
+    return _render(clips, n_frames, lambda clip, u: lib.sample(clip.source(u)),
+                   lambda a, b, w: _slerp(a, b, np.broadcast_to(w[:, None], a.shape[:2])))
+
+
+def _mix(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
+    return (1 - w[:, None]) * a + w[:, None] * b
+
+
+def _render_root(lib: GestureLibrary, clips: list[_Clip], n_frames: int) -> np.ndarray:
+    """(n_frames, 3) the hips' translation of the clips: their steps over the floor blended
+    across each cut and summed, so the hips go on from where they are at every cut, and
+    their height blended."""
+    step = _render(clips, n_frames, lambda clip, u: lib.root_step(clip.source(u), clip.rate), _mix)
+    floor = np.cumsum(step[:, [0, 2]], axis=0)
+    return np.stack([floor[:, 0], step[:, 1], floor[:, 1]], axis=1)
+
+
+def _render_contacts(lib: GestureLibrary, clips: list[_Clip], n_frames: int) -> dict[str, np.ndarray]:
+    """Per foot ("right", "left"), (n_frames,) whether it is in contact: in the capture frames
+    the clips read (the one weighing more across a cut). A foot is planted where the capture
+    had it planted, even where a cross-fade would move it."""
+    down = _render(clips, n_frames, lambda clip, u: lib.contact(clip.source(u)), _mix) >= 0.5
+    return {"right": down[:, 0], "left": down[:, 1]}
 
 
 def _nod(quats: np.ndarray, accents: list[Accent], fps: float, degrees: float) -> np.ndarray:
@@ -286,14 +352,33 @@ def choose_strokes(accents: list[Accent], min_gap: float, rng: np.random.Generat
     return sorted(chosen)
 
 
+@dataclass(frozen=True)
+class GestureTrack:
+    """What the body teacher made: (T, J, 3) axis-angle rotations, the beat layout's 47
+    joints and, from a whole-body library, the 9 of the lower body (lower_body.JOINTS)
+    after them; the stroke times (s); and from a whole-body library the hips' (T, 3)
+    translation as the clips move them (before lower_body.settle) and per foot whether the
+    capture has it in contact."""
+
+    rotations: np.ndarray
+    strokes: list[float]
+    root: np.ndarray | None = None
+    contacts: dict[str, np.ndarray] | None = None
+
+
 def gesture_rotations(accents: list[Accent], n_frames: int, fps: float, style: GestureStyle,
-                      rng: np.random.Generator, library: GestureLibrary | None = None
-                      ) -> tuple[np.ndarray, list[float]]:
-    """(n_frames, 47, 3) axis-angle rotations in the beat layout, and the stroke times (s)."""
+                      rng: np.random.Generator, library: GestureLibrary | None = None) -> GestureTrack:
+    """The gestures (and with a whole-body library the lower body) of an utterance; the
+    style's energy scales the upper body's gestures, never the legs, which stand as captured."""
     lib = library or load_library()
     strokes = choose_strokes(accents, style.min_gap, rng)
-    quats = _render(lib, _timeline(lib, [t * fps for t in strokes], n_frames, fps, style, rng), n_frames)
-    quats = _slerp(np.broadcast_to(lib.mean_pose, quats.shape), quats,
-                   np.full(quats.shape[:2], style.energy))
+    clips = _timeline(lib, [t * fps for t in strokes], n_frames, fps, style, rng)
+    quats = _render_quats(lib, clips, n_frames)
+    energy = np.full(quats.shape[:2], style.energy)
+    energy[:, len(BEAT_JOINTS):] = 1.0
+    quats = _slerp(np.broadcast_to(lib.mean_pose, quats.shape), quats, energy)
     quats = _nod(quats, accents, fps, style.nod)
-    return quaternion_to_axis_angle(quats).astype(np.float32), strokes
+    rotations = quaternion_to_axis_angle(quats).astype(np.float32)
+    if lib.root is None:
+        return GestureTrack(rotations, strokes)
+    return GestureTrack(rotations, strokes, _render_root(lib, clips, n_frames), _render_contacts(lib, clips, n_frames))

@@ -1,6 +1,7 @@
 """The project's synthetic speech corpus (`python -m diffsheg_core.training.corpus build`):
 `manifest.jsonl` at the root lists every utterance, its `.wav` and the teacher motion
-`.npz` in the `beat` layout. Utterances the builder failed on are reported and skipped.
+`.npz` in the `beat` layout (with `whole_body`, `beat_body`: the hips, legs and hips'
+translation too). Utterances the builder failed on are reported and skipped.
 The corpus has no split file: utterances are split by name (`val_fraction`). Each gets
 the style class of its teacher's named gesture style (teacher.STYLE_NAMES); utterances of a
 corpus made before named styles get the style class of the data configuration."""
@@ -46,8 +47,13 @@ def read_take(source: TakeSource, config: DataConfig) -> Take:
         motion, _, info = load_utterance(source.files["motion"])
     except DiffshegError as exc:
         raise TakeError(str(exc)) from exc
-    values = decimate(BEAT.join(motion.rotations, motion.face), motion.fps, config.fps,
-                      str(source.files["motion"]))
+    layout = config.layout
+    if layout.root_translation and motion.root_translation is None:
+        raise TakeError(f"{source.files['motion']}: the utterance holds no lower body (teacher "
+                        f"v{info.get('teacher_version', '?')}): whole_body needs a corpus built with teacher v4 or later")
+    joints = len(layout.gesture_joints)
+    values = decimate(layout.join(motion.rotations[:, :joints], motion.face, motion.root_translation), motion.fps,
+                      config.fps, str(source.files["motion"]))
     style = STYLE_NAMES.index(info["style"]) if "style" in info else config.style
     return make_take(source.name, values, load_audio(source.files["audio"]), config.fps,
-                     style, np.ones(LAYOUT.dim, bool), config.max_length_mismatch)
+                     style, np.ones(layout.dim, bool), config.max_length_mismatch)

@@ -13,7 +13,7 @@ from tqdm import tqdm
 
 from ...audio import SpeechEncoding, load_audio
 from ...errors import DiffshegError
-from ...rigs import Layout
+from ...rigs import BEAT_BODY, Layout
 from . import beat, beat2, corpus, folder
 from .cache import cached_take
 from .normalise import NormStats, compute_stats, official_stats
@@ -32,7 +32,8 @@ class DataConfig:
     kind: 'beat', 'beat2', 'folder' or 'corpus' (the project's synthetic speech corpus).
     stats: 'train' computes normalisation statistics from the training split; otherwise a
     folder with the official statistics files. style: the style class of every take of a
-    'folder' or 'corpus' dataset (BEAT names carry theirs).
+    'folder' or 'corpus' dataset (BEAT names carry theirs). whole_body: a corpus's hips,
+    legs and hips' translation too (layout `beat_body`; teacher v4 and later makes them).
     """
 
     kind: str = "beat"
@@ -45,6 +46,7 @@ class DataConfig:
     val_fraction: float = 0.1
     style: int = 0
     max_length_mismatch: float = MAX_LENGTH_MISMATCH_S
+    whole_body: bool = False
 
     def reader(self) -> ModuleType:
         if self.kind not in READERS:
@@ -53,7 +55,12 @@ class DataConfig:
 
     @property
     def layout(self) -> Layout:
-        return self.reader().LAYOUT
+        if not self.whole_body:
+            return self.reader().LAYOUT
+        if self.kind != "corpus":
+            raise DiffshegError(f"whole_body needs the project's corpus (kind = \"corpus\"): a '{self.kind}' "
+                                "dataset holds no lower body in the beat layout")
+        return BEAT_BODY
 
 
 @dataclass
@@ -82,8 +89,8 @@ def load_takes(config: DataConfig, split: str = "train", speech: SpeechEncoding 
     """Read (or take from the cache) every take of `split`; broken takes are logged and
     skipped. `speech`: the model's second speech input, computed for every take."""
     reader = config.reader()
-    result = TakeSet(reader.LAYOUT, [])
-    settings = f"{config.kind}|{config.fps}|{config.style}|{config.max_length_mismatch}"
+    result = TakeSet(config.layout, [])
+    settings = f"{config.kind}|{config.fps}|{config.style}|{config.max_length_mismatch}|{config.layout.name}"
     if speech is not None:
         settings += f"|{speech.key}"
     for source in tqdm(find_sources(config, split), desc=f"reading {split} takes", unit="take",
