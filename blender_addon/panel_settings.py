@@ -157,11 +157,11 @@ def check_targets(settings):
     from .bake import check_frames  # numpy: checked above
 
     check_frames(options.start_frame)
-    from diffsheg_core.checkpoints import stored_layout  # the runtime's packages: checked above
+    from diffsheg_core.checkpoints import stored_rig  # the runtime's packages: checked above
 
-    layout = stored_layout(bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None)
-    if options.armature is not None and layout is not None and options.preset is not None:
-        options.preset.joint_map(layout)  # names the missing section before generating
+    rig = stored_rig(bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None)
+    if options.armature is not None and rig is not None and options.preset is not None:
+        options.preset.joint_map(rig)  # names the missing section before generating
     return options
 
 

@@ -595,11 +595,12 @@ def _stored_config(meta: Optional[dict]) -> Optional[ModelConfig]:
         return None
 
 
-def stored_layout(source: str | Path | None = None) -> Optional[str]:
-    """The channel layout of one of our model files from its metadata alone (None: official
-    checkpoints, whose layout shows in their tensors, and files that cannot tell)."""
+def stored_rig(source: str | Path | None = None) -> Optional[str]:
+    """The rig (its layout's skeleton: what presets map) of one of our model files from its
+    metadata alone (None: official checkpoints, whose layout shows in their tensors, and
+    files that cannot tell)."""
     cfg = _stored_config(_stored_metadata(source))
-    return cfg.layout if cfg else None
+    return get_layout(cfg.layout).rig if cfg else None
 
 
 def stored_style_names(source: str | Path | None = None) -> list[str]:

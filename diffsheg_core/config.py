@@ -41,6 +41,12 @@ class ModelConfig:
     # 0: none (official)
     temporal_kernel: int = 0
     log_mel: bool = False         # feed log10(mel + 1e-5) instead of the raw power mel (official: raw)
+    # the last `lower_dim` gesture channels (a whole-body layout's hips, legs and hips'
+    # translation) made by a branch of their own, with `lower_layers` layers, fed the other
+    # gesture channels' noisy motion and noise prediction as the gesture branch is fed the
+    # expression's x0; 0: none (official)
+    lower_dim: int = 0
+    lower_layers: int = 1
     clip_len: int = 34            # frames per diffusion window (n_poses)
     fps: float = 15.0
     layout: str = "beat"
@@ -49,6 +55,9 @@ class ModelConfig:
         if self.speech_encoder is not None and self.speech_encoder not in SPEECH_ENCODERS:
             raise ValueError(f"speech_encoder must be one of {', '.join(SPEECH_ENCODERS)} or none, "
                              f"got {self.speech_encoder!r}")
+        if not isinstance(self.lower_dim, int) or not 0 <= self.lower_dim < self.gesture_dim:
+            raise ValueError(f"lower_dim must be a whole number from 0 to below gesture_dim ({self.gesture_dim}), "
+                             f"got {self.lower_dim}")
         k = self.temporal_kernel
         if isinstance(k, bool) or not isinstance(k, int) or k < 0 or (k and k % 2 == 0):
             raise ValueError(f"temporal_kernel must be 0 (none) or an odd number of frames, "
@@ -57,6 +66,11 @@ class ModelConfig:
     @property
     def dim(self) -> int:
         return self.gesture_dim + self.expression_dim
+
+    @property
+    def upper_dim(self) -> int:
+        """The gesture channels the gesture branch makes (all but the lower branch's)."""
+        return self.gesture_dim - self.lower_dim
 
     @property
     def has_speech_input(self) -> bool:

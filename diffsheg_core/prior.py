@@ -58,6 +58,15 @@ class GesturePrior:
         # rounded to the float32 it is stored in, so a saved model samples as the fitted one
         return cls(*(a.astype(np.float32).astype(np.float64) for a in (mean, axes, autocov)))
 
+    def beside(self, other: "GesturePrior") -> "GesturePrior":
+        """This prior's channels, then `other`'s, drawn apart (block-diagonal axes): a model
+        widened with channels of a branch of their own keeps its source's prior for its own."""
+        if other.max_len != self.max_len:
+            raise DiffshegError(f"gesture priors over {self.max_len} and {other.max_len} frames cannot be joined")
+        axes = np.zeros((self.dims + other.dims,) * 2)
+        axes[:self.dims, :self.dims], axes[self.dims:, self.dims:] = self.axes, other.axes
+        return GesturePrior(np.concatenate([self.mean, other.mean]), axes, np.concatenate([self.autocov, other.autocov]))
+
     def propose(self, known: np.ndarray, length: int, generator: np.random.Generator) -> np.ndarray:
         """A (length, dims) draw of the gesture channels whose first frames are those of
         `known` (n, >= dims), n < length <= max_len."""

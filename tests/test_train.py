@@ -483,13 +483,14 @@ def test_the_bundled_models_training_recipes_read():
     assert languages.stats_tolerance == 0.3 and not languages.freeze_expression and languages.data.root.endswith("v5")
 
 
-def test_a_beat_model_widens_into_a_whole_body_one_that_starts_as_it(tmp_path):
+def test_a_beat_model_widens_into_a_whole_body_one_that_keeps_its_upper_body(tmp_path):
     """init_from a `beat` model with whole_body data (layout beat_body: 30 more gesture
-    channels, the hips, legs and hips' translation): the widened network predicts the old
-    channels exactly as the source does (their input and output rows are the source's, the
-    new channels' input starts at zero), the run keeps the source's normalisation for the
-    old channels and takes the data's for the new ones, and training moves the new rows.
-    The teacher's corpus (v4) holds the legs; any other dataset is refused."""
+    channels, the hips, legs and hips' translation, made by a lower-body branch of their
+    own): the widened network predicts the old channels exactly as the source does, the run
+    keeps the source's normalisation for the old channels and takes the data's for the new
+    ones, and with freeze_gesture and freeze_expression only the lower-body branch trains.
+    The teacher's corpus (v4) holds the legs; any other dataset is refused, and so is a
+    widening without the branch."""
     from diffsheg_core.rigs import BEAT, BEAT_BODY
     from diffsheg_core.training.corpus.build import BuildConfig, build
 
@@ -503,7 +504,10 @@ def test_a_beat_model_widens_into_a_whole_body_one_that_starts_as_it(tmp_path):
     base = tmp_path / "base"
     train(TrainConfig.from_dict(config(tmp_path, base, steps=5, checkpoint_every=5, model=model, data=data)))
     settings = config(tmp_path, tmp_path / "body", steps=6, checkpoint_every=100, freeze_expression=True,
-                      init_from=str(base / MODEL_FILE), model=model, data={**data, "whole_body": True})
+                      freeze_gesture=True, init_from=str(base / MODEL_FILE),
+                      model={**model, "lower_dim": 30, "lower_layers": 1}, data={**data, "whole_body": True})
+    with pytest.raises(DiffshegError, match="which a branch of their own makes: set lower_dim = 30"):
+        Trainer(TrainConfig.from_dict({**settings, "model": model, "freeze_gesture": False}), Dist()).begin()
     start = Trainer(TrainConfig.from_dict(settings), Dist())
     assert not start.begin() and start.model_cfg.layout == "beat_body" and start.model_cfg.gesture_dim == 171
     source = load_model(base / MODEL_FILE)
@@ -525,11 +529,17 @@ def test_a_beat_model_widens_into_a_whole_body_one_that_starts_as_it(tmp_path):
     train(TrainConfig.from_dict(settings))
     tuned = load_model(tmp_path / "body" / MODEL_FILE)
     assert tuned.layout is BEAT_BODY and tuned.prior.dims == 171
-    new_rows = tuned.weights["encoder_ges.joint_embed.weight"][:, BEAT.gesture_dim:BEAT_BODY.gesture_dim]
-    assert np.abs(new_rows).max() > 0
-    for key in ("encoder_exp.out.weight", "encoder_aud.ffn.linear2.weight"):
-        if key in source.weights:
-            np.testing.assert_array_equal(tuned.weights[key], source.weights[key])
+    # the upper body's windows start from the source's prior, the legs' from one fitted beside it
+    np.testing.assert_array_equal(tuned.prior.axes[:BEAT.gesture_dim, :BEAT.gesture_dim], source.prior.axes)
+    assert not tuned.prior.axes[:BEAT.gesture_dim, BEAT.gesture_dim:].any()
+    for key, value in source.weights.items():  # the upper body and the face are the source's to the bit
+        np.testing.assert_array_equal(tuned.weights[key], value)
+    lower = [k for k in tuned.weights if k.startswith("encoder_low.")]
+    assert lower and set(tuned.weights) == set(source.weights) | set(lower)
+    assert not all(np.array_equal(start.bundle().weights[k], tuned.weights[k]) for k in lower)
+    with pytest.raises(DiffshegError, match="its gesture prior covers 171 channels, but the gesture branch makes 141"):
+        Trainer(TrainConfig.from_dict({**settings, "init_from": str(tmp_path / "body" / MODEL_FILE),
+                                       "out_dir": str(tmp_path / "again")}), Dist())
     with pytest.raises(DiffshegError, match="whole_body needs the project's corpus"):
         Trainer(TrainConfig.from_dict(config(tmp_path, tmp_path / "x", model=model,
                                              data={"kind": "folder", "root": str(tmp_path), "whole_body": True})),

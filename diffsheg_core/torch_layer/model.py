@@ -169,7 +169,10 @@ class Branch(nn.Module):
     """One motion branch (expression or gesture): embeds its noisy motion, fuses it
     with speech (and, for gesture, expression) in every layer, predicts its noise."""
 
-    def __init__(self, motion_dim: int, extra_dim: int, cfg: ModelConfig, temporal_kernel: int = 0):
+    def __init__(self, motion_dim: int, extra_dim: int, cfg: ModelConfig, temporal_kernel: int = 0,
+                 layers: int | None = None, embeds: bool = True):
+        """`embeds`: the branch embeds the time step and style itself (else it is given the
+        embedding of the branch it follows: the lower-body branch)."""
         super().__init__()
         speech = cfg.speech_latent if cfg.has_speech_input else 0
         cond_dim = cfg.audio_latent + speech + extra_dim
@@ -185,24 +188,31 @@ class Branch(nn.Module):
                 nn.GELU(),
                 nn.Conv1d(cfg.speech_latent, cfg.speech_latent, 3, 1, 1, bias=False),
             )
-        self.time_embed = _mlp(cfg.latent, cfg.time_embed_dim)
-        self.pid_embed = _mlp(cfg.style_dim, cfg.time_embed_dim)
+        if embeds:
+            self.time_embed = _mlp(cfg.latent, cfg.time_embed_dim)
+            self.pid_embed = _mlp(cfg.style_dim, cfg.time_embed_dim)
         self.temporal_decoder_blocks = nn.ModuleList(Layer(cfg.latent, cond_dim, cfg, temporal_kernel)
-                                                     for _ in range(cfg.layers))
+                                                     for _ in range(cfg.layers if layers is None else layers))
         self.out = nn.Linear(cfg.latent, motion_dim)
         self.latent = cfg.latent
 
+    def embed(self, timesteps: torch.Tensor, style: torch.Tensor) -> torch.Tensor:
+        """The time step's and style's embedding the layers are modulated by."""
+        return self.time_embed(timestep_embedding(timesteps, self.latent)) + self.pid_embed(style)
+
     def forward(self, x: torch.Tensor, timesteps: torch.Tensor, audio: torch.Tensor,
                 speech: torch.Tensor | None, extra: torch.Tensor | None, style: torch.Tensor,
-                null: torch.Tensor | None = None, attend: torch.Tensor | None = None) -> torch.Tensor:
-        """The branch's noise prediction for every batch row (see Layer for null / attend)."""
+                null: torch.Tensor | None = None, attend: torch.Tensor | None = None,
+                emb: torch.Tensor | None = None) -> torch.Tensor:
+        """The branch's noise prediction for every batch row (see Layer for null / attend;
+        `emb`, the embedding of the time step and style, when the branch has none)."""
         parts = [self.audio_proj(audio)]
         if speech is not None:
             parts.append(self.hubert_encoder(speech.transpose(1, 2)).transpose(1, 2))
         if extra is not None:
             parts.append(extra)
         cond = torch.cat(parts, dim=-1)
-        emb = self.time_embed(timestep_embedding(timesteps, self.latent)) + self.pid_embed(style)
+        emb = self.embed(timesteps, style) if emb is None else emb
         h = self.PE(self.joint_embed(x))
         null_cond = getattr(self, "null_cond_emb", None)
         if null is not None and null_cond is None:
@@ -224,7 +234,10 @@ class UniEG(nn.Module):
         self.time_embed = _mlp(cfg.latent, cfg.time_embed_dim)
         self.encoder_aud = Layer(cfg.mel_dim, 0, cfg)
         self.encoder_exp = Branch(cfg.expression_dim, 0, cfg)
-        self.encoder_ges = Branch(cfg.gesture_dim, cfg.expression_dim, cfg, cfg.temporal_kernel)
+        self.encoder_ges = Branch(cfg.upper_dim, cfg.expression_dim, cfg, cfg.temporal_kernel)
+        if cfg.lower_dim:  # the hips and legs, fed the upper body as the gestures are fed the face
+            self.encoder_low = Branch(cfg.lower_dim, 2 * cfg.upper_dim, cfg, cfg.temporal_kernel, cfg.lower_layers,
+                                      embeds=False)
 
     def _check_speech(self, speech: torch.Tensor | None) -> None:
         if (speech is not None) != self.cfg.has_speech_input:
@@ -250,10 +263,19 @@ class UniEG(nn.Module):
                 speech: torch.Tensor | None, expression_x0: torch.Tensor, style: torch.Tensor,
                 null: torch.Tensor | None = None, attend: torch.Tensor | None = None) -> torch.Tensor:
         """The gesture branch, which sees the expression branch's predicted x0 (the
-        uni-directional expression-to-gesture flow). attend: (B,) bool, false for rows
+        uni-directional expression-to-gesture flow), and with `lower_dim` the lower-body
+        branch after it, which sees the upper body's noisy motion and noise prediction (the
+        flow goes on: face, then gestures, then legs). attend: (B,) bool, false for rows
         without self-attention (skip guidance: see `guidance`)."""
         self._check_speech(speech)
-        return self.encoder_ges(gesture, timesteps, audio, speech, expression_x0, style, null, attend)
+        if not self.cfg.lower_dim:
+            return self.encoder_ges(gesture, timesteps, audio, speech, expression_x0, style, null, attend)
+        upper, lower = gesture.split([self.cfg.upper_dim, self.cfg.lower_dim], dim=-1)
+        emb = self.encoder_ges.embed(timesteps, style)
+        eps_upper = self.encoder_ges(upper, timesteps, audio, speech, expression_x0, style, null, attend, emb)
+        seen = torch.cat([upper, eps_upper.detach()], dim=-1)  # x_t and eps: the upper body's x0 at any t
+        eps_lower = self.encoder_low(lower, timesteps, audio, speech, seen, style, null, attend, emb.detach())
+        return torch.cat([eps_upper, eps_lower], dim=-1)
 
     def forward(self, x_t: torch.Tensor, timesteps: torch.Tensor, mel: torch.Tensor,
                 speech: torch.Tensor | None, style: torch.Tensor,

@@ -89,6 +89,10 @@ class TrainConfig:
     # train the gesture branch alone: the expression branch and the speech layer both branches
     # read keep the weights they start with, so a fine-tuned model keeps its source's face
     freeze_expression: bool = False
+    # train the lower-body branch alone (models with lower_dim): the gesture branch keeps the
+    # weights it starts with, so a whole-body model widened from one without legs keeps its
+    # source's upper body (with freeze_expression, its face too)
+    freeze_gesture: bool = False
     # how far the data's normalisation statistics may lie from those of the model a run is
     # fine-tuned from, as a share of each channel's spread: a rebuild of the same corpus moves
     # them by up to 2 %, other data by far more; raise it only for data widened on purpose
@@ -306,11 +310,20 @@ def diffsheg_loss(model: torch.nn.Module, schedule: Schedule, batch: dict[str, t
 
 # ---------------------------------------------------------------- the trainer
 
-def fit_prior(takes: list, stats: NormStats, model_cfg: ModelConfig) -> GesturePrior | None:
-    """The gesture prior of the training takes that hold every gesture channel (None if none does)."""
+def fit_prior(takes: list, stats: NormStats, model_cfg: ModelConfig,
+              kept: GesturePrior | None = None) -> GesturePrior | None:
+    """The gesture prior of the training takes that hold every gesture channel (None if none
+    does); with `kept` (the prior of a model whose gesture branch the run keeps as it is),
+    that one for the gesture branch's channels and one fitted beside it for the lower-body
+    branch's, so the upper body starts its windows as the source's did."""
     g = model_cfg.gesture_dim
     full = [stats.normalise(t.motion) for t in takes if t.mask[:g].all() and t.n_frames >= model_cfg.clip_len]
-    return GesturePrior.fit(full, g, model_cfg.clip_len) if full else None
+    if not full:
+        return None
+    if kept is None:
+        return GesturePrior.fit(full, g, model_cfg.clip_len)
+    lower = GesturePrior.fit([t[:, model_cfg.upper_dim:g] for t in full], model_cfg.lower_dim, model_cfg.clip_len)
+    return kept.beside(lower)
 
 
 def sampling_config(cfg: TrainConfig) -> FoppasConfig:
@@ -378,10 +391,6 @@ def phonetic_encoder(cfg: TrainConfig, model_cfg: ModelConfig) -> PhoneticEncode
         raise DiffshegError("speech_encoder = \"phonetic\" needs the encoder file: set phonetic = "
                             "\"path.safetensors\" (train one with python -m diffsheg_core train-phonetic)")
     return load_phonetic(cfg.phonetic)
-
-
-WIDENED = ("encoder_ges.joint_embed.weight", "encoder_ges.out.weight", "encoder_ges.out.bias")
-"""The weights whose size follows the gesture channels (see Trainer.init_weights)."""
 
 
 def fine_tuning_statistics(path: str, source: NormStats, data: NormStats,
@@ -459,8 +468,16 @@ class Trainer:
         self.ema = UniEG(self.model_cfg).to(env.device).eval()
         self.ema.load_state_dict(self.model.state_dict())
         self.ema.requires_grad_(False)
-        self.frozen = [self.model.time_embed, self.model.encoder_aud, self.model.encoder_exp] \
-            if cfg.freeze_expression else []
+        if cfg.freeze_gesture and not self.model_cfg.lower_dim:
+            raise DiffshegError("freeze_gesture trains the lower-body branch alone, and this model has none: "
+                                "set lower_dim in [model], or leave freeze_gesture off")
+        prior = self.source.prior if cfg.freeze_gesture and self.source is not None else None
+        if prior is not None and prior.dims != self.model_cfg.upper_dim:
+            raise DiffshegError(f"init_from {cfg.init_from}: its gesture prior covers {prior.dims} channels, but the "
+                                f"gesture branch makes {self.model_cfg.upper_dim}: start a lower-body branch from a "
+                                "model without one (v9's recipe starts from v8)")
+        self.frozen = ([self.model.time_embed, self.model.encoder_aud, self.model.encoder_exp]
+                       if cfg.freeze_expression else []) + ([self.model.encoder_ges] if cfg.freeze_gesture else [])
         for part in self.frozen:
             part.requires_grad_(False)
         # a rank whose batch drew no null rows leaves the null condition without a gradient
@@ -524,35 +541,25 @@ class Trainer:
         The differences allowed are parts the checkpoint lacks, which keep their fresh
         initialisation: a learned null condition (classifier_free), so an unguided model can
         be fine-tuned into a guided one; temporal convolutions (temporal_kernel, which start
-        as the identity), added to a model without them; and gesture channels a wider
-        layout adds (the gesture branch's input and output rows of its own channels come
-        from the checkpoint; the new channels' output rows start fresh and their input at
-        zero, so the checkpoint's channels are predicted exactly as it predicts them).
-        Starting the new output rows at zero too was tried (with lr 2e-4): the gestures
-        came out calmer still (see the model card).
+        as the identity), added to a model without them; and the channels a wider layout adds
+        (a whole-body layout's legs), which a lower-body branch of their own makes
+        (lower_dim), so the checkpoint's channels are predicted exactly as it predicts them.
         """
         theirs, ours = source.config.to_dict(), self.model_cfg.to_dict()
         added = {"classifier_free"} | ({"temporal_kernel"} if not theirs.get("temporal_kernel") else set())
-        channels = self.widened_channels()
-        if channels is not None:
-            added |= {"layout", "gesture_dim"}
+        if self.widened_channels() is not None:
+            added |= {"layout", "gesture_dim", "lower_dim", "lower_layers"}
+            grown = self.model_cfg.gesture_dim - source.config.gesture_dim
+            if self.model_cfg.lower_dim != grown:
+                raise DiffshegError(f"init_from {path}: layout {self.model_cfg.layout} adds {grown} gesture channels "
+                                    f"to its {source.config.layout}, which a branch of their own makes: set "
+                                    f"lower_dim = {grown} in [model]")
         differ = sorted(k for k in ours if k not in added and theirs.get(k) != ours[k])
         if differ:
             raise DiffshegError(f"init_from {path}: its model differs in {', '.join(differ)}; "
                                 "make the [model] settings match it")
-        state = self.model.state_dict()
-        for name, value in source.weights.items():
-            value = torch.from_numpy(np.array(value)).float()
-            if channels is not None and name in WIDENED and value.shape != state[name].shape:
-                kept = torch.from_numpy(channels[:source.config.gesture_dim])
-                if name.endswith(".out.weight") or name.endswith(".out.bias"):
-                    grown = state[name].clone()
-                    grown[kept] = value
-                else:  # the new channels' input starts at zero: the old channels' predictions start as the checkpoint's
-                    grown = torch.zeros_like(state[name])
-                    grown[:, kept] = value
-                value = grown
-            state[name] = value
+        state = {**self.model.state_dict(),
+                 **{k: torch.from_numpy(np.array(v)).float() for k, v in source.weights.items()}}
         load_state_strict(self.model, state, f"init_from {path}")
         self.ema.load_state_dict(self.model.state_dict())
 
@@ -569,7 +576,8 @@ class Trainer:
         weights as stored (float16 weights run in float32 on both backends)."""
         training = {k: v for k, v in asdict(self.cfg).items() if k not in ("data", "card")}
         if self._prior is None:
-            self._prior = fit_prior(self.train_set.takes, self.stats, self.model_cfg)
+            kept = load_model(self.cfg.init_from).prior if self.cfg.freeze_gesture and self.cfg.init_from else None
+            self._prior = fit_prior(self.train_set.takes, self.stats, self.model_cfg, kept)
         return with_graphs(ModelBundle(
             config=self.model_cfg, weights=state_arrays(self.ema, dtype), mean=self.stats.mean,
             std=self.stats.std,
