@@ -467,8 +467,8 @@ def test_settings_no_run_can_use_are_refused_before_anything_is_written(small_ro
 
 
 def test_the_bundled_models_training_recipes_read():
-    """Every stage's settings in diffsheg_core/weights (base, guided, temporal, acceleration and
-    the multilingual retraining) read with their `extends` chain resolved."""
+    """Every stage's settings in diffsheg_core/weights (base, guided, temporal, acceleration, the
+    multilingual retraining and the whole body) read with their `extends` chain resolved."""
     from pathlib import Path
 
     recipes = sorted((Path(__file__).resolve().parents[1] / "diffsheg_core" / "weights").glob("*.toml"))
@@ -481,6 +481,8 @@ def test_the_bundled_models_training_recipes_read():
     assert len(ids) == len(recipes)
     languages = TrainConfig.from_dict(read_config_file(recipes[0].with_name("default_languages.toml")))
     assert languages.stats_tolerance == 0.3 and not languages.freeze_expression and languages.data.root.endswith("v5")
+    body = TrainConfig.from_dict(read_config_file(recipes[0].with_name("default_body.toml")))
+    assert body.freeze_gesture and body.freeze_expression and body.data.whole_body and body.model["lower_dim"] == 30
 
 
 def test_a_beat_model_widens_into_a_whole_body_one_that_keeps_its_upper_body(tmp_path):
