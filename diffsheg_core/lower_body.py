@@ -1,10 +1,10 @@
 """The lower body: hips (rotation and translation) and legs under the generated upper body,
 with the feet planted.
 
-A whole-body model (layout `beat_body`, the bundled one) makes the hips, legs and the hips'
-translation itself: `plant` low-passes them, keeps the hips within the real capture's range
-and plants the contact feet. For a model whose layout stops at the waist (`beat`: the
-official BEAT checkpoint and earlier bundled models) and live (where planting a network's
+A whole-body model (layout `beat_body`, with a lower-body branch) makes the hips, legs and
+the hips' translation itself: `plant` low-passes them, keeps the hips within the real
+capture's range and plants the contact feet. For a model whose layout stops at the waist
+(`beat`: the bundled model and the official BEAT checkpoint) and live (where planting a network's
 legs would need frames not yet made), this module adds what a standing talker's hips and
 legs do: weight shifts, sway and turns cut from the real full-body capture of BEAT2 take
 2_scott_0_1_1 (SMPL-X, with root translation), stored beside the model

@@ -1,6 +1,6 @@
-"""The whole body (issue 29, item 1): the bundled model (layout beat_body) makes the hips
-(rotation and translation) and legs itself, which are low-passed, kept within the real
-capture's range and planted (lower_body.plant); a `beat`-layout model's take and live get
+"""The whole body (issue 29, item 1): a whole-body model makes the hips (rotation and
+translation) and legs itself, which are low-passed, kept within the real capture's range and
+planted (lower_body.plant); a `beat`-layout model's take (the bundled model's) and live get
 them cut from the real SMPL-X capture of 2_scott_0_1_1 by the arms' energy, with the feet
 planted the same way (lower_body.add_lower_body, LowerBodyStream). Measured on the real
 take's speech against the capture, on its held-out last 20 s (never in the teacher's
