@@ -73,7 +73,7 @@ def main() -> int:
         started = time.perf_counter()
         for seed in SEEDS:
             motion = generate(audio, model=bundle, seed=seed)
-            legs = motion.rotations[:, [motion.joint_names.index(j) for j in lb.JOINTS]].astype(np.float64)
+            legs = lb.lower_rotations(motion)
             root, spans = motion.root_translation.astype(np.float64), motion.meta["contacts"]
             made["take"].append(figures(legs, root, spans))
             made["last 20 s"].append(figures(legs[held], root[held], part_spans(spans, held, motion.n_frames)))

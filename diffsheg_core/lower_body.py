@@ -455,13 +455,17 @@ def plant(motion: Motion, library: LowerBodyLibrary | None = None) -> Motion:
         raise DiffshegError("planting the feet needs a motion with the hips, legs and root translation "
                             "of a whole-body model")
     sigma = MODEL_SMOOTH_S * motion.fps
-    q = quaternion_sequence_continuous(axis_angle_to_quaternion(
-        motion.rotations[:, [motion.joint_names.index(j) for j in JOINTS]].astype(np.float64)))
+    q = quaternion_sequence_continuous(axis_angle_to_quaternion(lower_rotations(motion)))
     q = smooth_frames(q, sigma)
     lower = quaternion_to_axis_angle(q / np.linalg.norm(q, axis=-1, keepdims=True))
     trans = settle(lower, smooth_frames(motion.root_translation.astype(np.float64), sigma), library)
     lower, spans = plant_feet(lower, trans, motion.fps)
     return with_lower_body(upper_body(motion), lower, trans, spans)
+
+
+def lower_rotations(motion: Motion) -> np.ndarray:
+    """(T, 9, 3) the rotations of `motion`'s hips and legs (JOINTS, in that order), float64."""
+    return motion.rotations[:, [motion.joint_names.index(j) for j in JOINTS]].astype(np.float64)
 
 
 def with_lower_body(motion: Motion, lower: np.ndarray, trans: np.ndarray, spans: dict) -> Motion:

@@ -26,7 +26,8 @@ from .emotion import apply_emotion, emotion_track, remove_emotion, take_emotion
 from .errors import DiffshegError
 from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, inpaint_range, with_overrides
 from .guidance import Guidance, step_eps
-from .lower_body import JOINTS as LOWER_JOINTS, LAYOUTS as WHOLE_BODY_LAYOUTS, add_lower_body, plant, upper_body
+from .lower_body import (JOINTS as LOWER_JOINTS, LAYOUTS as WHOLE_BODY_LAYOUTS, add_lower_body, lower_rotations,
+                         plant, upper_body)
 from .motion import Motion
 from .phonetic import (PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel, recogniser_frames,
                        stack_posteriors)
@@ -521,7 +522,7 @@ def _known(bundle: ModelBundle, upper: Motion, whole: Motion) -> tuple[np.ndarra
     if whole.root_translation is None:
         lower, root = np.zeros((upper.n_frames, len(LOWER_JOINTS), 3)), np.zeros((upper.n_frames, 3))
     else:
-        lower, root = whole.rotations[:, [whole.joint_names.index(j) for j in LOWER_JOINTS]], whole.root_translation
+        lower, root = lower_rotations(whole), whole.root_translation
     values = bundle.normalise(layout.join(np.concatenate([upper.rotations, lower], axis=1), upper.face, root))
     hold = np.zeros(values.shape, dtype=bool)
     if whole.root_translation is None:

@@ -43,10 +43,6 @@ def take(bundle):
     return tail, [generate(tail, model=bundle, seed=seed, device="cpu") for seed in (0, 1)]
 
 
-def _lower(motion):
-    return motion.rotations[:, [motion.joint_names.index(j) for j in lb.JOINTS]].astype(np.float64)
-
-
 def _figures(lower: np.ndarray, trans: np.ndarray) -> dict[str, float]:
     return lb.figures(lower, trans, FPS)
 
@@ -67,7 +63,7 @@ def _stands_on_planted_feet(motion, library, skating: float = 0.02) -> None:
     the frames, each contact foot on the floor moving under 1 cm between frames, little
     skating (under `skating`)."""
     assert motion.joint_names[-len(lb.JOINTS):] == list(lb.JOINTS)
-    lower, trans = _lower(motion), motion.root_translation.astype(np.float64)
+    lower, trans = lb.lower_rotations(motion), motion.root_translation.astype(np.float64)
     assert np.all(trans >= library.translation_low - 1e-6) and np.all(trans <= library.translation_high + 1e-6)
     soles = lb.foot_positions(lower, trans)
     contacts = motion.meta["contacts"]
@@ -111,7 +107,7 @@ def test_a_whole_body_models_legs_are_smoothed_settled_and_planted():
     planted = lb.plant(made)
     _stands_on_planted_feet(planted, library, skating=0.03)  # the teacher's re-timed steps slide a little more
     np.testing.assert_array_equal(planted.rotations[:, :legs[0]], made.rotations[:, :legs[0]])  # the upper body as made
-    figures = _figures(_lower(planted), planted.root_translation.astype(np.float64))
+    figures = _figures(lb.lower_rotations(planted), planted.root_translation.astype(np.float64))
     assert figures["sway speed"] < 0.2  # the wobble (1 cm a frame: 0.2 m/s and more) is gone
     with pytest.raises(DiffshegError, match="planting the feet needs a motion with the hips, legs and root"):
         lb.plant(lb.upper_body(made))
@@ -124,7 +120,7 @@ def test_it_moves_as_the_capture_does(take, capture):
     held = int(lb.HELD_OUT_S * FPS)
     real = _figures(lower, trans)
     real_held = _figures(lower[-held:], trans[-held:])
-    made = [_figures(_lower(m), m.root_translation.astype(np.float64)) for m in motions]
+    made = [_figures(lb.lower_rotations(m), m.root_translation.astype(np.float64)) for m in motions]
     for name in ("sway speed", "knee range"):
         mean = np.mean([f[name] for f in made])
         assert 0.4 * min(real[name], real_held[name]) < mean < 2.5 * max(real[name], real_held[name]), (name, mean)
@@ -202,7 +198,7 @@ def test_live_legs_plant_the_feet_and_move_as_offline_ones_do(take):
                 assert np.abs(sole[a:b + 1, 1]).max() < lb.CONTACT_HEIGHT + 0.01
         assert lb.foot_skating(lower, trans, FPS) < 0.03
         cut = lb.add_lower_body(lb.upper_body(motion), seed)
-        live, offline = _figures(lower, trans), _figures(_lower(cut), cut.root_translation.astype(np.float64))
+        live, offline = _figures(lower, trans), _figures(lb.lower_rotations(cut), cut.root_translation.astype(np.float64))
         for name in ("sway speed", "knee range"):
             assert 0.5 * offline[name] < live[name] < 2.0 * offline[name], (name, live[name], offline[name])
 

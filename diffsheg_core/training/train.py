@@ -471,11 +471,14 @@ class Trainer:
         if cfg.freeze_gesture and not self.model_cfg.lower_dim:
             raise DiffshegError("freeze_gesture trains the lower-body branch alone, and this model has none: "
                                 "set lower_dim in [model], or leave freeze_gesture off")
-        prior = self.source.prior if cfg.freeze_gesture and self.source is not None else None
-        if prior is not None and prior.dims != self.model_cfg.upper_dim:
-            raise DiffshegError(f"init_from {cfg.init_from}: its gesture prior covers {prior.dims} channels, but the "
-                                f"gesture branch makes {self.model_cfg.upper_dim}: start a lower-body branch from a "
-                                "model without one (v9's recipe starts from v8)")
+        # the gesture prior of the model whose gesture branch the run keeps as it is (read once;
+        # a resumed run reads init_from again for it)
+        self.kept_prior = ((self.source or load_model(cfg.init_from)).prior
+                           if cfg.freeze_gesture and cfg.init_from else None)
+        if self.kept_prior is not None and self.kept_prior.dims != self.model_cfg.upper_dim:
+            raise DiffshegError(f"init_from {cfg.init_from}: its gesture prior covers {self.kept_prior.dims} channels, "
+                                f"but the gesture branch makes {self.model_cfg.upper_dim}: start a lower-body branch "
+                                "from a model without one (v9's recipe starts from v8)")
         self.frozen = ([self.model.time_embed, self.model.encoder_aud, self.model.encoder_exp]
                        if cfg.freeze_expression else []) + ([self.model.encoder_ges] if cfg.freeze_gesture else [])
         for part in self.frozen:
@@ -576,8 +579,7 @@ class Trainer:
         weights as stored (float16 weights run in float32 on both backends)."""
         training = {k: v for k, v in asdict(self.cfg).items() if k not in ("data", "card")}
         if self._prior is None:
-            kept = load_model(self.cfg.init_from).prior if self.cfg.freeze_gesture and self.cfg.init_from else None
-            self._prior = fit_prior(self.train_set.takes, self.stats, self.model_cfg, kept)
+            self._prior = fit_prior(self.train_set.takes, self.stats, self.model_cfg, self.kept_prior)
         return with_graphs(ModelBundle(
             config=self.model_cfg, weights=state_arrays(self.ema, dtype), mean=self.stats.mean,
             std=self.stats.std,
