@@ -54,6 +54,7 @@ from .settings import CANDIDATES
 
 PROPOSAL_STREAM = 0x5EED0F9A0D  # the proposal's generator is seeded with (seed, this)
 FACE_STREAM = 0xFACE5EED  # the face's generator is seeded with (face_seed, this)
+BRANCH_STREAM = 0xB4A9C5  # a lower branch's channels: generators seeded with (seed, this[, PROPOSAL_STREAM])
 SEAM_FRAMES = 5  # frames either side of a seam that best-of-N selection compares
 HOLD_CARRY = 16  # frames at least that a held value's gap is carried into (a pin flows in and out)
 
@@ -194,9 +195,11 @@ class Foppas:
     """Samples one window at a time with a fixed schedule, settings and window size."""
 
     def __init__(self, schedule: Schedule, config: FoppasConfig, clip_len: int, dim: int,
-                 proposal: Optional[Proposal] = None, gestures: Optional[int] = None):
+                 proposal: Optional[Proposal] = None, gestures: Optional[int] = None, branch: int = 0):
         """gestures: how many leading channels are gestures, the rest face (default: all
-        gestures). Best-of-N compares the gestures; a face seed draws the face's noise apart."""
+        gestures). Best-of-N compares the gestures; a face seed draws the face's noise apart.
+        branch: how many of the gestures, the last, a lower branch makes: their noise comes
+        from streams of their own (see `Noise`), and best-of-N compares the others."""
         config.check(clip_len)
         self.schedule = schedule.respaced(config.steps)
         self.config = config
@@ -204,6 +207,12 @@ class Foppas:
         self.dim = dim
         self.proposal = proposal
         self.gestures = dim if gestures is None else gestures
+        self.branch = branch
+
+    def noise(self, seed: int, face_seed: Optional[int] = None) -> "Noise":
+        """The random numbers of one sampling run with `seed` (and `face_seed`)."""
+        branch = (self.gestures - self.branch, self.gestures) if self.branch else None
+        return Noise(seed, face_seed, self.gestures, branch)
 
     def times(self, has_known: bool) -> list[int]:
         if not has_known:
@@ -249,7 +258,8 @@ class Foppas:
             on_step(call, n_calls)
             call += 1
         if batch > 1:
-            best = int(np.argmin(seam_scores(x[..., : self.gestures], known[..., : self.gestures])))
+            upper = self.gestures - self.branch  # the branch follows them: the best of those is the best
+            best = int(np.argmin(seam_scores(x[..., :upper], known[..., :upper])))
             x = x[best: best + 1]
         if config.refine is not None:
             x = self.refine_window(eps_fn, x, known, fixed)
@@ -368,15 +378,26 @@ class Noise:
     with the sampling seed, the same on every backend and device. With a `face_seed`, the
     channels from `face_from` on (the face) come from a stream of their own: the expression
     branch sees only them, so the face is the same whatever the seed, while the gestures,
-    which see the face, follow it and the seed. The gesture prior draws from a third stream."""
+    which see the face, follow it and the seed. The gesture prior draws from a third stream.
 
-    def __init__(self, seed: int, face_seed: Optional[int] = None, face_from: Optional[int] = None):
-        self.main = np.random.default_rng(check_seed(seed))
+    With `branch` (start, stop), the channels a lower branch makes draw from streams of their
+    own too, in the sampler and in the prior's proposal. The branch sees the other channels and
+    they never see it, so a model widened with one samples its source's channels exactly as the
+    source does for the same seed: the same gestures and face, now with legs."""
+
+    def __init__(self, seed: int, face_seed: Optional[int] = None, face_from: Optional[int] = None,
+                 branch: Optional[tuple[int, int]] = None):
+        seed = check_seed(seed)
         self.face = None if face_seed is None else np.random.default_rng([check_seed(face_seed), FACE_STREAM])
         if self.face is not None and face_from is None:
             raise ValueError("a face seed needs the channel the face starts at")
         self.face_from = face_from
+        self.main = np.random.default_rng(seed)
         self.proposal = np.random.default_rng([seed, PROPOSAL_STREAM])
+        if branch is not None:
+            self.main = _Spliced(self.main, np.random.default_rng([seed, BRANCH_STREAM]), branch, axis=-1)
+            self.proposal = _Spliced(self.proposal, np.random.default_rng([seed, BRANCH_STREAM, PROPOSAL_STREAM]),
+                                     branch, axis=0)  # the prior draws (channels, frames)
 
     def draw(self, *shape: int) -> np.ndarray:
         """Noise of `shape` (batch, frames, channels); with a face seed, every candidate of a
@@ -387,6 +408,21 @@ class Noise:
         face = self.face.standard_normal((1,) + lead[1:] + (channels - self.face_from,), dtype=np.float32)
         return np.concatenate([self.main.standard_normal(lead + (self.face_from,), dtype=np.float32),
                                np.broadcast_to(face, lead + face.shape[-1:])], axis=-1)
+
+
+class _Spliced:
+    """Draws of `main` with the entries [start, stop) along `axis` spliced in from `own`."""
+
+    def __init__(self, main: np.random.Generator, own: np.random.Generator, span: tuple[int, int], axis: int):
+        self.main, self.own, self.span, self.axis = main, own, span, axis
+
+    def standard_normal(self, shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
+        shape, (start, stop) = tuple(shape), self.span
+        axis = self.axis % len(shape)
+        around = self.main.standard_normal(shape[:axis] + (shape[axis] - (stop - start),) + shape[axis + 1:], dtype=dtype)
+        inside = self.own.standard_normal(shape[:axis] + (stop - start,) + shape[axis + 1:], dtype=dtype)
+        return np.concatenate([around.take(range(start), axis), inside,
+                               around.take(range(start, around.shape[axis]), axis)], axis=axis)
 
 
 class FoppasStream:
@@ -404,7 +440,7 @@ class FoppasStream:
                  face_seed: Optional[int] = None):
         self.sampler = sampler
         self.make_eps_fn = make_eps_fn
-        self.noise = Noise(seed, face_seed, sampler.gestures)
+        self.noise = sampler.noise(seed, face_seed)
         self.progress = progress
         self.cancel = cancel
         self.expected_windows = (
@@ -481,9 +517,9 @@ def inpaint_range(sampler: Foppas, make_eps_fn: Callable[[np.ndarray], EpsFn], c
     held[end - s0:] = True
     held[: start - s0] = True
     width = max(sampler.config.carry, HOLD_CARRY)
-    pins = np.flatnonzero(held[: end - s0, : sampler.gestures].any(axis=1))
+    pins = np.flatnonzero(held[: end - s0, : sampler.gestures - sampler.branch].any(axis=1))  # a branch's held legs are none
     windows = _range_windows(e0 - s0, start - s0, length, overlap, pins, width)
-    noise = Noise(seed, face_seed, sampler.gestures)
+    noise = sampler.noise(seed, face_seed)
     done = start - s0
     for w, (a, b) in enumerate(windows):
         n_known = max(0, done - a) if w else 0  # the first window holds the left context as it holds the right

@@ -302,7 +302,7 @@ def build_sampling(bundle: ModelBundle, network, plan: Plan) -> tuple[Foppas, Ca
     try:
         sampler = Foppas(Schedule.linear(), config, bundle.config.clip_len, bundle.config.dim,
                          proposal=bundle.prior.propose if uses_prior(bundle, config) else None,
-                         gestures=bundle.config.gesture_dim)
+                         gestures=bundle.config.gesture_dim, branch=bundle.config.lower_dim)
     except ValueError as exc:
         raise DiffshegError(str(exc)) from None
     vector = None if plan.track is not None else style_vector(bundle, plan.style_weights)

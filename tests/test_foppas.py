@@ -12,7 +12,8 @@ from diffsheg_core.audio import load_audio, n_motion_frames
 from diffsheg_core.diffusion import Schedule
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.foppas import (PROPOSAL_STREAM, Foppas, FoppasConfig, FoppasStream, PRESETS,
-                                  carry_overlap, check_seed, jump_schedule, model_calls, plan_windows, sample_long)
+                                  carry_overlap, check_seed, inpaint_range, jump_schedule, model_calls, plan_windows,
+                                  sample_long)
 from diffsheg_core.guidance import Guidance
 from diffsheg_core.pipeline import generate, make_eps_fn_factory, style_vector
 from diffsheg_core.prior import GesturePrior
@@ -374,6 +375,52 @@ def test_a_proposal_of_some_channels_leaves_the_others_noise_unchanged():
     assert np.array_equal(plain[:, 2:], proposed[:, 2:])
     assert np.array_equal(plain[:30, :2], proposed[:30, :2])  # the first window has no proposal
     assert not np.allclose(plain[30:, :2], proposed[30:, :2])
+
+
+def widened(upper: int, branch: int, face: int):
+    """A toy UniEG widened with a lower branch: its first `upper` gesture channels and the
+    face treat each channel apart (eps = 0.1 x); the branch's `branch` channels, after them,
+    also see the others (their mean), as the lower branch sees the upper body."""
+
+    def make(cond):
+        def eps_fn(x, index, refine=False):
+            eps = 0.1 * x
+            eps[..., upper: upper + branch] += 0.05 * x[..., :upper].mean(-1, keepdims=True)
+            return eps
+        return eps_fn
+
+    return make
+
+
+@pytest.mark.parametrize("options", [{}, {"face_seed": 9}, {"candidates": 3}])
+def test_a_lower_branch_leaves_the_other_channels_as_the_model_without_it_samples_them(options):
+    """A model widened with a lower branch samples its source's channels exactly as the source
+    does for the same seed (the branch's noise, in the sampler and in the prior's proposal,
+    comes from streams of its own, and best-of-N compares the source's channels): after the
+    widening, a seed gives the same gestures and face, now with legs. So does a regenerated range."""
+    upper, branch, face, frames = 3, 2, 2, 100
+    rng = np.random.default_rng(1)
+    walk = np.cumsum(rng.standard_normal((2000, upper + branch)), axis=0) * 0.05
+    walk -= walk.mean(0)
+    prior = GesturePrior.fit([walk[:, :upper]], upper, 34)
+    legs = GesturePrior.fit([walk[:, upper:]], branch, 34)
+    config = replace(PRESETS["official-beat"], candidates=options.get("candidates", 1))
+
+    def run(g: int, with_branch: int, proposal) -> tuple[np.ndarray, np.ndarray]:
+        sampler = Foppas(Schedule.linear(), config, 34, g + face, proposal=proposal.propose, gestures=g,
+                         branch=with_branch)
+        cond = np.zeros((frames, 1), np.float32)
+        make = widened(upper, with_branch, face)
+        stream = FoppasStream(sampler, make, 4, face_seed=options.get("face_seed"), expected_frames=frames)
+        whole = np.concatenate([stream.push(cond), stream.finish()])
+        ranged = inpaint_range(sampler, make, cond, whole, 40, 70, 5, face_seed=options.get("face_seed"))
+        own = np.r_[0:upper, g:g + face]  # the source's channels
+        return whole[:, own], ranged[:, own]
+
+    source = run(upper, 0, prior)
+    with_legs = run(upper + branch, branch, prior.beside(legs))
+    for a, b in zip(source, with_legs):
+        np.testing.assert_allclose(a, b, atol=1e-5)
 
 
 # ---------------------------------------------------------------- seeds

@@ -30,7 +30,7 @@ import numpy as np
 from ..audio import MIN_SAMPLE_RATE, Audio, mel_frames, n_motion_frames
 from ..checkpoints import ModelBundle
 from ..errors import DiffshegError
-from ..foppas import Foppas, FoppasConfig, Noise
+from ..foppas import Foppas, FoppasConfig
 from ..phonetic import log_mel, receptive_field, stack_posteriors
 from ..pipeline import build_sampling, check_finite, generation_meta, make_plan, to_motion
 from ..motion import Motion
@@ -114,7 +114,7 @@ class LiveEngine:
         self.config: FoppasConfig = self.plan.config
         self.sampler: Foppas
         self.sampler, self._make_eps_fn = build_sampling(bundle, network, self.plan)
-        self.noise = Noise(settings.seed, settings.face_seed, self.sampler.gestures)
+        self.noise = self.sampler.noise(settings.seed, settings.face_seed)
         self._align = _alignment(sample_rate, self.fps)
         self._margin = _margin_frames(bundle, self.fps)
         self._context = max(int(math.ceil(live.context * self.fps)), cfg.clip_len + self._margin)
