@@ -18,6 +18,7 @@ For each hop H tried (and the diffusion steps), on one real take with its phone 
 
     python bench/bench_live.py                         # quality and compute, hops 3 4 6, lookahead 0 2
     python bench/bench_live.py --realtime --seconds 20 --busy
+    python bench/bench_live.py --model ../runs/default-v8.safetensors   # another model
 
 One thread (DIFFSHEG_THREADS=1, the default). Say which machine the figures came from.
 """
@@ -183,7 +184,7 @@ def bench_latency(args, audio_path: Path) -> None:
             hog.start()
         try:
             for steps, hop, lookahead in settings_tried(args):
-                settings = GenerateSettings(seed=0, steps=steps, threads=1)
+                settings = GenerateSettings(model=args.model, seed=0, steps=steps, threads=1)
                 session = LiveSession(FileSource(str(clip)), settings, LiveConfig(hop=hop, lookahead=lookahead))
                 result = session.run_to_end()
                 s = latency_summary(result.latencies)
@@ -205,12 +206,13 @@ def main() -> int:
     p.add_argument("--busy", action="store_true", help="real time also with one core kept busy")
     p.add_argument("--no-quality", action="store_true")
     p.add_argument("--no-legs", action="store_true")
+    p.add_argument("--model", help="checkpoint (default: the bundled model)")
     p.add_argument("--out", default="/tmp")
     args = p.parse_args()
     args.steps = [s or None for s in args.steps]
     os.environ.setdefault("DIFFSHEG_THREADS", "1")
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
-    bundle = load_model()
+    bundle = load_model(args.model)
     network = open_network(bundle, "auto", "auto", "fp32", 1)
     audio = read_audio_file(TAKE.with_suffix(".wav"))
     phones = phone_tier(read_textgrid(TAKE.with_suffix(".TextGrid")))

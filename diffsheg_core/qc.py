@@ -48,7 +48,7 @@ FLOOR_DB = 60.0
 MOUTH_VOICE_MIN = 0.2
 """Below this mouth-to-voice correlation the lips are flagged as not following the voice.
 
-Measured with the bundled model (diffsheg-default-v8, seed 0) on the 25 real speech files
+Measured with diffsheg-default-v8 (seed 0; the bundled v9 makes the same face) on the 25 real speech files
 of shared/data/audio (English, Mandarin, Japanese, Swedish, Spanish, German, French,
 Russian, Hindi; 3.6-119 s), each given at 16 kHz (since the phonetic encoder is fed speech
 capped at 16 kHz, files at 22.05 and 44.1 kHz score within 0.01 of their 16 kHz figures):

@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # Debian packages the project uses outside Python: espeak-ng and flite (sample speech,
-# corpus), sox (corpus augmentation). Festival voices and fortunes are optional extras for
-# building the full training corpus: pass --corpus to install them too.
+# corpus), sox (corpus augmentation), PortAudio (live from a microphone: sounddevice loads
+# it). Festival voices and fortunes are optional extras for building the full training
+# corpus: pass --corpus to install them too.
 set -euo pipefail
-packages=(espeak-ng flite sox)
+packages=(espeak-ng flite sox libportaudio2)
 if [ "${1:-}" = "--corpus" ]; then
   packages+=(festival festvox-kallpc16k festvox-kdlpc16k festvox-us-slt-hts fortunes)
 fi
