@@ -206,6 +206,21 @@ def test_a_producer_faster_than_real_time_is_bounded_and_reported(speech, model)
     assert abs(result.motion.n_frames - n_motion_frames(result.audio, result.motion.fps)) <= 1
 
 
+def test_a_machine_that_falls_behind_says_so(tmp_path, speech, model):
+    """Speech played at 16x real time: no CPU makes a second of motion in 1/16 s, so the
+    status line and the recording say that the machine falls behind, with its compute per
+    second of speech at the source's pace; before 2 s of speech nothing is judged."""
+    clip = tmp_path / "speech.wav"
+    sf.write(clip, speech.samples[: 3 * speech.sample_rate], speech.sample_rate)
+    session = LiveSession(FileSource(clip, speed=16.0), GenerateSettings(seed=0), bundle=model[0], network=model[1])
+    assert session.load() is None and "falling behind" not in session.status()
+    result = session.run_to_end()
+    assert result.dropped_seconds == 0 and session.load() > 1.0
+    assert session.load() == pytest.approx(16 * result.compute / (result.motion.n_frames / result.motion.fps), rel=0.05)
+    assert "falling behind real time" in session.status()
+    assert any(w.startswith("the machine was falling behind real time") for w in result.motion.meta["warnings"])
+
+
 def test_the_engine_refuses_what_live_cannot_do(model):
     bundle, network = model
     with pytest.raises(DiffshegError, match="style over time"):

@@ -45,6 +45,7 @@ from .sources import Source
 UNDERRUN_AFTER_S = 0.3  # no audio for this long: the gap is filled with silence (far above a 20-50 ms chunk)
 CUSHION_S = 0.02  # the pacer shows frames this much after the earliest it could, against compute jitter
 TIGHTEN_S = 0.01  # ... and takes back at most this much waiting per hop once compute is faster again
+JUDGED_AFTER_S = 2.0  # speech made before the session says whether the machine keeps up with it
 
 
 @dataclass(frozen=True)
@@ -234,9 +235,25 @@ class LiveSession:
         return LiveResult(motion, engine.audio(), list(self.latencies), self.compute,
                           self.underrun_seconds, self.feed.dropped_seconds, self.error)
 
+    def load(self) -> Optional[float]:
+        """Seconds of compute per second of speech made so far, for the source's pace (a file
+        played at `speed` x real time counts that many times): above 1 the machine falls
+        behind and the latency grows. None before JUDGED_AFTER_S of speech."""
+        made = self.engine.emitted / self.engine.fps
+        if made < JUDGED_AFTER_S:
+            return None
+        return self.compute / made * getattr(self.source, "speed", 1.0)
+
+    def _behind(self) -> Optional[str]:
+        load = self.load()
+        if load is None or load <= 1.0:
+            return None
+        return (f"falling behind real time: {load:.2f} s of compute per second of speech "
+                "(a larger hop, fewer steps or a faster machine keeps up)")
+
     def _warnings(self) -> list[str]:
         """What the recording should say about how it was heard."""
-        out = []
+        out = [] if self._behind() is None else [f"the machine was {self._behind()}"]
         if self.underrun_seconds:
             out.append(f"{self.underrun_seconds:.1f} s without audio from the source were filled with silence")
         if self.feed.dropped:
@@ -267,7 +284,8 @@ class LiveSession:
         return self.finish()
 
     def status(self) -> str:
-        """One line for a status bar: time heard, latency, underruns and drops."""
+        """One line for a status bar: time heard, latency, underruns, drops and whether the
+        machine keeps up."""
         recent = latency_summary(self.latencies[-150:])
         parts = [f"{self.engine.emitted / self.engine.fps:5.1f} s",
                  f"latency {recent['p50']:.2f} s (p95 {recent['p95']:.2f})" if self.latencies else "waiting for audio"]
@@ -275,6 +293,8 @@ class LiveSession:
             parts.append(f"{self.underrun_seconds:.1f} s without audio")
         if self.feed.dropped:
             parts.append(f"{self.feed.dropped_seconds:.1f} s dropped (audio came faster than real time)")
+        if self._behind() is not None:
+            parts.append(self._behind())
         return ", ".join(parts)
 
     # --- the generation thread ---------------------------------------------------------
