@@ -444,11 +444,12 @@ def map_shape_keys(mesh, preset: Preset, motion: Motion) -> ShapeKeyMapping:
     empty = [kb.name for kb in keys.key_blocks[1:] if kb.name not in working]
     pairs, unmatched = [], []
     for i, name in enumerate(motion.face_names):
-        found = find_name([name] + preset.shape_key_aliases.get(name, []), working)
-        if found is None:
-            unmatched.append(name)
-        else:
+        names = [name] + preset.shape_key_aliases.get(name, [])
+        found = find_name(names, working)
+        if found is not None:
             pairs.append((i, found))
+        elif find_name(names, empty) is None:  # a key that moves no vertex is reported as such, not as missing
+            unmatched.append(name)
     used = {key for _, key in pairs}
     for i, _ in list(pairs):
         for extra in preset.also_drives.get(motion.face_names[i], []):
