@@ -8,10 +8,11 @@ For each hop H tried (and the diffusion steps), on one real take with its phone 
   seam) over that elsewhere, lip-sync (mouth-to-voice envelope correlation; jawOpen at
   open vowels over bilabials);
 - compute per second of speech (the audio fed as fast as the engine takes it);
-- the legs (lower_body.LowerBodyStream, fed each hop of the upper body as a live session
-  does) against offline legs on the same upper body and against the capture: hips sway
-  speed and range, knee bend range, foot skating, time in contact, the most a contact foot
-  moves between frames, and the milliseconds per hop they cost;
+- the legs, as a live session makes them (a whole-body model's own, from the live engine,
+  planted as they come: lower_body.PlantStream; a `beat` model's cut from the capture to go
+  with each hop of the upper body: lower_body.LowerBodyStream) against offline legs and the
+  capture: hips sway speed and range, knee bend range, foot skating, time in contact, the
+  most a contact foot moves between frames, and the milliseconds per hop they cost;
 - with --realtime: latency p50/p95/max from the audio arriving to the frame being shown,
   the file played at real time through a `LiveSession` (as `diffsheg live` runs it), idle
   and with another process keeping one core busy (--busy).
@@ -112,22 +113,29 @@ def bench_quality(args, bundle, network, audio: Audio, phones) -> None:
         print(f"{label(steps, hop, lookahead):<22}{cells}{compute:>10.3f}s", flush=True)
 
 
-def bench_legs(args, bundle, audio: Audio) -> None:
+def bench_legs(args, bundle, network, audio: Audio) -> None:
+    """Live legs against offline's: a whole-body model's own legs as the live engine makes
+    them, planted as they come (PlantStream); a `beat` model's cut from the capture to go
+    with the offline arms (LowerBodyStream)."""
     from dataclasses import replace
 
     from diffsheg_core import lower_body as lb
 
     capture = lb.read_capture(TAKE.with_suffix(".npz"), bundle.config.fps)
-    fps = bundle.config.fps
-    print(f"\nlegs, {audio.duration:.1f} s of speech, seeds {list(range(args.seeds))}, hops of {args.hops[0]} "
-          f"(capture: {_legs_cells(lb.figures(capture[0], capture[1], fps))})")
+    fps, own = bundle.config.fps, bool(bundle.layout.root_translation)
+    print(f"\nlegs ({'the model' if own else 'the capture'}'s), {audio.duration:.1f} s of speech, seeds "
+          f"{list(range(args.seeds))}, hops of {args.hops[0]} (capture: {_legs_cells(lb.figures(capture[0], capture[1], fps))})")
     for seed in range(args.seeds):
-        offline = generate(audio, settings=GenerateSettings(model=bundle, seed=seed, threads=1))
-        upper = lb.upper_body(offline)
-        stream, hop, started = lb.LowerBodyStream(fps, seed), args.hops[0], time.perf_counter()
-        for i in range(0, upper.n_frames, hop):
-            stream.add(replace(upper, rotations=upper.rotations[i:i + hop], face=upper.face[i:i + hop]))
-        per_hop = (time.perf_counter() - started) / -(-upper.n_frames // hop) * 1000
+        settings = GenerateSettings(model=bundle, seed=seed, threads=1)
+        offline = generate(audio, settings=settings)
+        hop = args.hops[0]
+        made = run_live(bundle, network, audio, LiveConfig(hop=hop), settings)[0] if own else lb.upper_body(offline)
+        stream, started = lb.PlantStream(fps) if own else lb.LowerBodyStream(fps, seed), time.perf_counter()
+        for i in range(0, made.n_frames, hop):
+            root = None if made.root_translation is None else made.root_translation[i:i + hop]
+            stream.add(replace(made, rotations=made.rotations[i:i + hop], face=made.face[i:i + hop],
+                               root_translation=root))
+        per_hop = (time.perf_counter() - started) / -(-made.n_frames // hop) * 1000
         lower = offline.rotations[:, -len(lb.JOINTS):].astype(np.float64)
         trans = offline.root_translation.astype(np.float64)
         spans = {side: [tuple(s) for s in v] for side, v in offline.meta["contacts"].items()}
@@ -219,7 +227,7 @@ def main() -> int:
     if not args.no_quality:
         bench_quality(args, bundle, network, audio, phones)
     if not args.no_legs:
-        bench_legs(args, bundle, audio)
+        bench_legs(args, bundle, network, audio)
     if args.realtime:
         bench_latency(args, TAKE.with_suffix(".wav"))
     return 0

@@ -1,14 +1,14 @@
 """The lower body: hips (rotation and translation) and legs under the generated upper body,
 with the feet planted.
 
-A whole-body model (layout `beat_body`, with a lower-body branch) makes the hips, legs and
-the hips' translation itself: `plant` low-passes them, keeps the hips within the real
-capture's range and plants the contact feet. For a model whose layout stops at the waist
-(`beat`: the bundled model and the official BEAT checkpoint) and live (where planting a network's
-legs would need frames not yet made), this module adds what a standing talker's hips and
-legs do: weight shifts, sway and turns cut from the real full-body capture of BEAT2 take
-2_scott_0_1_1 (SMPL-X, with root translation), stored beside the model
-(`assets/lower_body.npz`, a few thousand numbers). That flow is one way, as DiffSHEG's
+A whole-body model (layout `beat_body`, with a lower-body branch: the bundled model) makes
+the hips, legs and the hips' translation itself: `plant` low-passes them, keeps the hips
+within the real capture's range and plants the contact feet (live, `PlantStream` does so as
+the frames come). For a model whose layout stops at the waist (`beat`: v8 and the official
+BEAT checkpoint), this module adds what a standing talker's hips and legs do: weight shifts,
+sway and turns cut from the real full-body capture of BEAT2 take 2_scott_0_1_1 (SMPL-X,
+with root translation), stored beside the model (`assets/lower_body.npz`, a few thousand
+numbers). That flow is one way, as DiffSHEG's
 expression-to-gesture flow: the upper body the model made drives the lower body, never
 the reverse, so the upper body and face are the model's to the bit.
 
@@ -583,6 +583,113 @@ class LowerBodyStream:
         spans = [(a, b) for a, b in _runs(track["down"]) if b - a + 1 >= MIN_CONTACT and b + EASE >= first]
         return [(a - first, b - first, spot, rotation)
                 for a, b, spot, rotation in _leg_pins(side, track["ankle"], track["hip"], track["foot"], spans)]
+
+
+class PlantStream:
+    """`plant` live: a whole-body model's own hips and legs, a hop of frames at a time, each
+    frame final as it comes (no frame waits for later ones).
+
+    As offline: low-passed, the hips' drift taken out about the capture's centre and kept
+    within its range, the body on the floor, each contact foot pinned with two-bone IK. What
+    differs, because the future is unknown: the filters look back only (the legs' Gaussian,
+    offline's MODEL_SMOOTH_S, is centred two sigma back, so the legs follow the arms 0.4 s
+    late; DRIFT_S and GROUND_S are one-pole time constants); a contact is pinned where the foot is
+    when it is first low and slow, eased in over the EASE frames after (offline: the EASE
+    frames before), and let go, easing out, on the first frame the foot lifts or the leg
+    could no longer reach the spot."""
+
+    def __init__(self, fps: float, library: LowerBodyLibrary | None = None):
+        self.library = _library_at(fps, library)
+        self.fps = fps
+        # the legs' low-pass: offline's Gaussian over the frames up to the newest, centred 2
+        # sigma back (so the legs follow the arms that late); one-pole gains per frame for the
+        # hips' drift and the floor
+        sigma = MODEL_SMOOTH_S * fps
+        lags = np.arange(int(np.ceil(4 * sigma)) + 1)[::-1]  # oldest first
+        self._window = np.exp(-0.5 * ((lags - 2 * sigma) / sigma) ** 2)
+        self._gain = {name: 1.0 - np.exp(-1.0 / (tau * fps)) for name, tau in (("drift", DRIFT_S), ("floor", GROUND_S))}
+        self._q: list[np.ndarray] = []       # the last frames' (9, 4) quaternions, as the model made them
+        self._t: list[np.ndarray] = []       # ... and (3,) translations
+        self._drift: np.ndarray | None = None  # the hips' slow wander over the floor (x, z)
+        self._floor: float | None = None       # the lowest foot point's smoothed height
+        self._ankle = {side: None for side in LEGS}  # each ankle's last free position
+        # per foot its pins: [first, last or None while held, ankle spot, foot rotation matrix]
+        self._pins: dict[str, list[list]] = {side: [] for side in LEGS}
+        self.lower = np.zeros((0, len(JOINTS), 3))  # what was emitted
+        self.trans = np.zeros((0, 3))
+
+    def add(self, part: Motion) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """(n, 9, 3) planted hips and legs, (n, 3) hips translation and per foot (n,) whether
+        it is pinned, for the next n frames `part` holds as the model made them (its hips,
+        legs and root translation)."""
+        first, n = len(self.lower), part.n_frames
+        if not n:
+            return np.zeros((0, len(JOINTS), 3)), np.zeros((0, 3)), {side: np.zeros(0, bool) for side in LEGS}
+        if part.root_translation is None or not set(JOINTS) <= set(part.joint_names):
+            raise DiffshegError("planting the feet needs a motion with the hips, legs and root translation "
+                                "of a whole-body model")
+        lower, trans = self._smoothed(lower_rotations(part), part.root_translation.astype(np.float64))
+        world = _world(lower, trans)
+        for side, (ankle, sole) in _feet(world).items():
+            self._track(side, first, world, ankle, sole)
+        pins = {side: [(a - first, n if b is None else b - first, spot, rotation)  # those reaching this hop
+                       for a, b, spot, rotation in self._pins[side] if b is None or b + EASE >= first]
+                for side in LEGS}
+        lower = _solve(lower, world, pins)
+        self.lower = np.concatenate([self.lower, lower])
+        self.trans = np.concatenate([self.trans, trans])
+        down = {side: np.zeros(n, bool) for side in LEGS}
+        for side, side_pins in pins.items():
+            for a, b, _, _ in side_pins:
+                down[side][max(a, 0):max(min(b, n - 1) + 1, 0)] = True
+        return lower, trans, down
+
+    def contacts(self) -> dict[str, list[tuple[int, int]]]:
+        """Per foot the [first, last] spans pinned so far (frames emitted)."""
+        n = len(self.lower)
+        return {side: [(a, n - 1 if b is None else b) for a, b, _, _ in pins if a <= (n - 1 if b is None else b)]
+                for side, pins in self._pins.items()}
+
+    def _smoothed(self, lower: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The hop's hips and legs low-passed, drift taken out, within range and on the floor."""
+        g, weights = self._gain, self._window
+        out_q, out_t = np.zeros(lower.shape[:2] + (4,)), np.zeros_like(trans)
+        for i, (q, t) in enumerate(zip(axis_angle_to_quaternion(lower), trans)):
+            if self._q:  # the same hemisphere as the frame before, joint by joint
+                q = np.where(np.sum(q * self._q[-1], axis=-1, keepdims=True) < 0, -q, q)
+            self._q, self._t = (self._q + [q])[-len(weights):], (self._t + [t])[-len(weights):]
+            w = weights[-len(self._q):] / weights[-len(self._q):].sum()
+            mixed = np.einsum("k,kjc->jc", w, np.array(self._q))
+            out_q[i] = mixed / np.linalg.norm(mixed, axis=-1, keepdims=True)
+            out_t[i] = w @ np.array(self._t)
+            self._drift = out_t[i, [0, 2]].copy() if self._drift is None else \
+                self._drift + g["drift"] * (out_t[i, [0, 2]] - self._drift)
+            out_t[i, [0, 2]] += self.library.centre - self._drift
+        smoothed = quaternion_to_axis_angle(out_q)
+        out_t = np.clip(out_t, self.library.translation_low, self.library.translation_high)
+        world = _world(smoothed, out_t)
+        lowest = np.min([world[f"{p}{point}"][1][:, 1] for p in ("Right", "Left") for point in ("Sole", "ToeEnd")],
+                        axis=0)
+        for i, height in enumerate(lowest):
+            self._floor = height if self._floor is None else self._floor + g["floor"] * (height - self._floor)
+            out_t[i, 1] -= self._floor
+        return smoothed, out_t
+
+    def _track(self, side: str, first: int, world: dict, ankle: np.ndarray, sole: np.ndarray) -> None:
+        """Start, hold or end the foot's pin at each of the hop's frames (its frames `first` on)."""
+        up, knee, foot = LEGS[side]
+        down = _down(ankle, sole, self.fps, None if self._ankle[side] is None else self._ankle[side][None])
+        off = _offsets()
+        reach = np.linalg.norm(off[knee]) + np.linalg.norm(off[foot]) + REACH_SLACK
+        pins = self._pins[side]
+        for k in range(len(ankle)):
+            held = pins and pins[-1][1] is None
+            if held and (not down[k] or np.linalg.norm(pins[-1][2] - world[up][1][k]) >= reach):
+                pins[-1][1] = first + k - 1  # let go: the foot lifts, or the leg cannot reach
+            elif not held and down[k]:
+                pins.append([first + k + EASE, None, ankle[k].copy(),
+                             convert(world[foot][0][k], "quaternion", "matrix")])
+        self._ankle[side] = ankle[-1]
 
 
 @lru_cache(maxsize=1)

@@ -24,7 +24,7 @@ from diffsheg_core.checkpoints import load_model
 from diffsheg_core.live.engine import LiveConfig, LiveEngine
 from diffsheg_core.live.session import LiveSession
 from diffsheg_core.live.sources import FileSource, TcpSource
-from diffsheg_core.lower_body import JOINTS as LEG_JOINTS
+from diffsheg_core.lower_body import JOINTS as LEG_JOINTS, foot_positions, lower_rotations
 from diffsheg_core.motion import Motion
 from diffsheg_core.pipeline import generate
 from diffsheg_core.runtime.backends import open_network
@@ -118,6 +118,11 @@ def test_live_cli_on_a_real_file_at_real_time_records_logs_and_streams_vmc(tmp_p
     # the whole body, live: hips and legs recorded with their contacts, sent as VMC bones
     assert take.joint_names[-len(LEG_JOINTS):] == list(LEG_JOINTS) and take.root_translation.shape == (take.n_frames, 3)
     assert take.meta["hips_height"] > 0 and sum(len(v) for v in take.meta["contacts"].values()) > 0
+    assert take.meta["lower_body"] == "model"  # the bundled model's own, planted as they come
+    soles = foot_positions(lower_rotations(take), take.root_translation.astype(np.float64))
+    for side, spans in take.meta["contacts"].items():  # a contact foot does not slide
+        for a, b in spans:
+            assert np.linalg.norm(np.diff(soles[side][1][a:b + 1], axis=0), axis=-1).max(initial=0.0) < 0.01
     assert {"LeftUpperLeg", "RightLowerLeg", "LeftFoot", "RightToes"} <= bones
     hips = np.array([values[1:4] for _, address, values in listener.messages
                      if address == "/VMC/Ext/Bone/Pos" and values[0] == "Hips"])
@@ -149,8 +154,11 @@ def _send_at_real_time(sock: socket.socket, pcm: bytes, rate: int, chunk_s: floa
 
 
 def test_a_stalling_producer_eases_the_avatar_to_rest_and_it_resumes(speech, model):
+    """The stall shows only on a machine that keeps up with the speech (one that falls
+    behind is still working through what came before it): 10 steps, a third of the compute."""
     rate = speech.sample_rate
-    session = LiveSession(TcpSource(sample_rate=rate), GenerateSettings(seed=0), bundle=model[0], network=model[1])
+    session = LiveSession(TcpSource(sample_rate=rate), GenerateSettings(seed=0, steps=10), bundle=model[0],
+                          network=model[1])
     thread, out = _serve(session)
     first, second = Audio(speech.samples[: 3 * rate], rate), Audio(speech.samples[3 * rate: 6 * rate], rate)
     with socket.create_connection(("127.0.0.1", session.source.port)) as sock:
@@ -159,7 +167,7 @@ def test_a_stalling_producer_eases_the_avatar_to_rest_and_it_resumes(speech, mod
         _send_at_real_time(sock, _pcm(second), rate)
     thread.join(60)
     result = out["result"]
-    assert result.error is None
+    assert result.error is None and session.load() < 1.0, "the machine falls behind live speech even at 10 steps"
     assert 1.2 < result.underrun_seconds < 2.5
     fps = result.motion.fps
     assert result.motion.n_frames >= int((6 + result.underrun_seconds - 0.1) * fps)

@@ -33,7 +33,8 @@ from ..audio import Audio
 from ..checkpoints import ModelBundle, load_model
 from ..emotion import EmotionStream
 from ..errors import DiffshegError
-from ..lower_body import JOINTS as LEG_JOINTS, LAYOUTS as WHOLE_BODY_LAYOUTS, LowerBodyStream, upper_body, with_lower_body
+from ..lower_body import (JOINTS as LEG_JOINTS, LAYOUTS as WHOLE_BODY_LAYOUTS, LowerBodyStream, PlantStream,
+                          upper_body, with_lower_body)
 from ..motion import Motion
 from ..pipeline import to_motion
 from ..runtime.backends import open_network
@@ -162,10 +163,14 @@ class LiveSession:
         # the emotion and the hips and legs laid over what the model makes, as `generate` lays them
         self.mood = EmotionStream(settings.emotion, self.bundle.config.fps)  # set_emotion changes it
         self._moods: list[Motion] = []  # the frames made, with the emotion (the recording's)
-        # live, the legs are always cut from the capture to go with the arms (LowerBodyStream): a
-        # whole-body model's own are left out, as planting them would need frames not yet made
-        self.legs = (None if settings.upper_body_only or self.bundle.rig_layout.name not in WHOLE_BODY_LAYOUTS
-                     else LowerBodyStream(self.bundle.config.fps, settings.seed))
+        # a whole-body model's own hips and legs, planted as they come (PlantStream); for a model
+        # whose layout stops at the waist, legs cut from the capture to go with the arms
+        # (LowerBodyStream); none with upper_body_only
+        fps, rig = self.bundle.config.fps, self.bundle.rig_layout.name
+        self.legs_source = (None if settings.upper_body_only or rig not in WHOLE_BODY_LAYOUTS
+                            else "model" if self.bundle.layout.root_translation else "capture")
+        self.legs = (PlantStream(fps) if self.legs_source == "model"
+                     else LowerBodyStream(fps, settings.seed) if self.legs_source == "capture" else None)
         self.feed = AudioFeed(source.sample_rate)
         # a file played faster than real time for a demo (its `speed`) is shown that much faster too
         self.pacer = Pacer(self.bundle.config.fps * getattr(source, "speed", 1.0))
@@ -231,7 +236,7 @@ class LiveSession:
                              face=np.concatenate([m.face for m in self._moods]))
         if self.legs is not None:
             motion = with_lower_body(motion, self.legs.lower, self.legs.trans, self.legs.contacts())
-            motion = replace(motion, meta={**motion.meta, "lower_body": "capture"})
+            motion = replace(motion, meta={**motion.meta, "lower_body": self.legs_source})
         return LiveResult(motion, engine.audio(), list(self.latencies), self.compute,
                           self.underrun_seconds, self.feed.dropped_seconds, self.error)
 
@@ -336,15 +341,16 @@ class LiveSession:
         if not len(normalised):
             self.compute += time.perf_counter() - started
             return
-        part = self.mood.add(upper_body(to_motion(self.bundle, normalised, meta={})))
+        made = to_motion(self.bundle, normalised, meta={})
+        part = self.mood.add(upper_body(made))  # the emotion never touches the legs
         self._moods.append(part)
         rotations, roots, down = part.rotations, [None] * part.n_frames, [None] * part.n_frames
-        if self.legs is not None:
-            lower, roots, feet = self.legs.add(part)
+        if self.legs is not None:  # the model's own legs, or legs to go with the arms as shown
+            lower, roots, feet = self.legs.add(made if self.legs_source == "model" else part)
             down = [{side: bool(v[k]) for side, v in feet.items()} for k in range(part.n_frames)]
             rotations = np.concatenate([rotations, lower.astype(rotations.dtype)], axis=1)
         self.compute += time.perf_counter() - started
-        made = time.monotonic()
+        made_at = time.monotonic()
         fps = self.engine.fps
-        self.pacer.add([LiveFrame(first + k, (first + k) / fps, rotations[k], part.face[k], made, roots[k], down[k])
+        self.pacer.add([LiveFrame(first + k, (first + k) / fps, rotations[k], part.face[k], made_at, roots[k], down[k])
                         for k in range(part.n_frames)])
