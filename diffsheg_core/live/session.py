@@ -253,8 +253,7 @@ class LiveSession:
         load = self.load()
         if load is None or load <= 1.0:
             return None
-        return (f"falling behind real time: {load:.2f} s of compute per second of speech "
-                "(a larger hop, fewer steps or a faster machine keeps up)")
+        return f"falling behind: {load:.1f} s of compute a second (a larger hop or fewer steps helps)"
 
     def _warnings(self) -> list[str]:
         """What the recording should say about how it was heard."""
