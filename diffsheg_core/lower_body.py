@@ -615,14 +615,24 @@ class PlantStream:
         self._ankle = {side: None for side in LEGS}  # each ankle's last free position
         # per foot its pins: [first, last or None while held, ankle spot, foot rotation matrix]
         self._pins: dict[str, list[list]] = {side: [] for side in LEGS}
-        self.lower = np.zeros((0, len(JOINTS), 3))  # what was emitted
-        self.trans = np.zeros((0, 3))
+        self._emitted: list[tuple[np.ndarray, np.ndarray]] = []  # each hop's legs and translation
+        self._n = 0
+
+    @property
+    def lower(self) -> np.ndarray:
+        """(T, 9, 3) every frame's hips and legs emitted so far."""
+        return np.concatenate([lower for lower, _ in self._emitted]) if self._emitted else np.zeros((0, len(JOINTS), 3))
+
+    @property
+    def trans(self) -> np.ndarray:
+        """(T, 3) every frame's hips translation emitted so far."""
+        return np.concatenate([trans for _, trans in self._emitted]) if self._emitted else np.zeros((0, 3))
 
     def add(self, part: Motion) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """(n, 9, 3) planted hips and legs, (n, 3) hips translation and per foot (n,) whether
         it is pinned, for the next n frames `part` holds as the model made them (its hips,
         legs and root translation)."""
-        first, n = len(self.lower), part.n_frames
+        first, n = self._n, part.n_frames
         if not n:
             return np.zeros((0, len(JOINTS), 3)), np.zeros((0, 3)), {side: np.zeros(0, bool) for side in LEGS}
         if part.root_translation is None or not set(JOINTS) <= set(part.joint_names):
@@ -636,8 +646,8 @@ class PlantStream:
                        for a, b, spot, rotation in self._pins[side] if b is None or b + EASE >= first]
                 for side in LEGS}
         lower = _solve(lower, world, pins)
-        self.lower = np.concatenate([self.lower, lower])
-        self.trans = np.concatenate([self.trans, trans])
+        self._emitted.append((lower, trans))
+        self._n += n
         down = {side: np.zeros(n, bool) for side in LEGS}
         for side, side_pins in pins.items():
             for a, b, _, _ in side_pins:
@@ -646,7 +656,7 @@ class PlantStream:
 
     def contacts(self) -> dict[str, list[tuple[int, int]]]:
         """Per foot the [first, last] spans pinned so far (frames emitted)."""
-        n = len(self.lower)
+        n = self._n
         return {side: [(a, n - 1 if b is None else b) for a, b, _, _ in pins if a <= (n - 1 if b is None else b)]
                 for side, pins in self._pins.items()}
 
