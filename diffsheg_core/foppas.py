@@ -209,10 +209,14 @@ class Foppas:
         self.gestures = dim if gestures is None else gestures
         self.branch = branch
 
+    @property
+    def upper(self) -> int:
+        """The gesture channels before a lower branch's (all of them without one)."""
+        return self.gestures - self.branch
+
     def noise(self, seed: int, face_seed: Optional[int] = None) -> "Noise":
         """The random numbers of one sampling run with `seed` (and `face_seed`)."""
-        branch = (self.gestures - self.branch, self.gestures) if self.branch else None
-        return Noise(seed, face_seed, self.gestures, branch)
+        return Noise(seed, face_seed, self.gestures, (self.upper, self.gestures) if self.branch else None)
 
     def times(self, has_known: bool) -> list[int]:
         if not has_known:
@@ -258,7 +262,7 @@ class Foppas:
             on_step(call, n_calls)
             call += 1
         if batch > 1:
-            upper = self.gestures - self.branch  # the branch follows them: the best of those is the best
+            upper = self.upper  # a lower branch follows them: the best of those is the best
             best = int(np.argmin(seam_scores(x[..., :upper], known[..., :upper])))
             x = x[best: best + 1]
         if config.refine is not None:
@@ -517,7 +521,7 @@ def inpaint_range(sampler: Foppas, make_eps_fn: Callable[[np.ndarray], EpsFn], c
     held[end - s0:] = True
     held[: start - s0] = True
     width = max(sampler.config.carry, HOLD_CARRY)
-    pins = np.flatnonzero(held[: end - s0, : sampler.gestures - sampler.branch].any(axis=1))  # a branch's held legs are none
+    pins = np.flatnonzero(held[: end - s0, : sampler.upper].any(axis=1))  # a lower branch's held legs are no pins
     windows = _range_windows(e0 - s0, start - s0, length, overlap, pins, width)
     noise = sampler.noise(seed, face_seed)
     done = start - s0

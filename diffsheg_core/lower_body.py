@@ -302,11 +302,24 @@ def _pins(world: dict, side: str, spans: list[tuple[int, int]]) -> list:
 
 def _leg_pins(side: str, ankle: np.ndarray, hip: np.ndarray, foot: np.ndarray, spans: list[tuple[int, int]]) -> list:
     """Pins of one leg's contact `spans` from its ankle and hip positions and foot quaternions."""
+    return [(a, b, spot, convert(foot[a + MIN_CONTACT // 2], "quaternion", "matrix"))
+            for span in spans for a, b, spot in _reachable(ankle, hip, span, _reach(side))]
+
+
+def _reach(side: str) -> float:
+    """How far from the hip a pinned ankle may lie on that leg (thigh + shin + REACH_SLACK)."""
     off = _offsets()
     _, knee, shin = LEGS[side]
-    reach = np.linalg.norm(off[knee]) + np.linalg.norm(off[shin]) + REACH_SLACK
-    return [(a, b, spot, convert(foot[a + MIN_CONTACT // 2], "quaternion", "matrix"))
-            for span in spans for a, b, spot in _reachable(ankle, hip, span, reach)]
+    return float(np.linalg.norm(off[knee]) + np.linalg.norm(off[shin]) + REACH_SLACK)
+
+
+def _pinned(pins: dict[str, list], n: int) -> dict[str, np.ndarray]:
+    """Per foot (n,) whether one of its `pins` (first, last, ...), in a hop's frames, holds it."""
+    down = {side: np.zeros(n, bool) for side in LEGS}
+    for side, side_pins in pins.items():
+        for a, b, _, _ in side_pins:
+            down[side][max(a, 0):max(b + 1, 0)] = True
+    return down
 
 
 def _solve(lower: np.ndarray, world: dict, pins: dict[str, list]) -> np.ndarray:
@@ -404,11 +417,14 @@ class _Planner:
 def _on_floor(lower: np.ndarray, trans: np.ndarray, fps: float) -> np.ndarray:
     """`trans` lowered or raised so the lowest foot point is on the floor (smoothed over
     GROUND_S): segments stood a little higher or lower in the capture than its floor."""
-    world = _world(lower, trans)
-    lowest = np.min([world[f"{p}{point}"][1][:, 1] for p in ("Right", "Left") for point in ("Sole", "ToeEnd")], axis=0)
     out = trans.copy()
-    out[:, 1] -= smooth_frames(lowest[:, None], GROUND_S * fps)[:, 0]
+    out[:, 1] -= smooth_frames(_lowest(_world(lower, trans))[:, None], GROUND_S * fps)[:, 0]
     return out
+
+
+def _lowest(world: dict) -> np.ndarray:
+    """(T,) the height of the lowest foot point (either sole or toe end)."""
+    return np.min([world[f"{p}{point}"][1][:, 1] for p in ("Right", "Left") for point in ("Sole", "ToeEnd")], axis=0)
 
 
 def sample(library: LowerBodyLibrary, energy: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -540,11 +556,7 @@ class LowerBodyStream:
         lower = _solve(lower, world, pins)
         self.lower = np.concatenate([self.lower, lower])
         self.trans = np.concatenate([self.trans, self._floored[hop]])
-        down = {side: np.zeros(n, bool) for side in LEGS}
-        for side, side_pins in pins.items():
-            for a, b, _, _ in side_pins:
-                down[side][max(a, 0):max(b + 1, 0)] = True
-        return lower, self._floored[hop].copy(), down
+        return lower, self._floored[hop].copy(), _pinned(pins, n)
 
     def contacts(self) -> dict[str, list[tuple[int, int]]]:
         """Per foot the [first, last] spans pinned so far (frames emitted)."""
@@ -642,17 +654,12 @@ class PlantStream:
         world = _world(lower, trans)
         for side, (ankle, sole) in _feet(world).items():
             self._track(side, first, world, ankle, sole)
-        pins = {side: [(a - first, n if b is None else b - first, spot, rotation)  # those reaching this hop
-                       for a, b, spot, rotation in self._pins[side] if b is None or b + EASE >= first]
-                for side in LEGS}
+        pins = {side: [(a - first, n if b is None else b - first, spot, rotation)
+                       for a, b, spot, rotation in self._reaching(side, first)] for side in LEGS}
         lower = _solve(lower, world, pins)
         self._emitted.append((lower, trans))
         self._n += n
-        down = {side: np.zeros(n, bool) for side in LEGS}
-        for side, side_pins in pins.items():
-            for a, b, _, _ in side_pins:
-                down[side][max(a, 0):max(min(b, n - 1) + 1, 0)] = True
-        return lower, trans, down
+        return lower, trans, _pinned(pins, n)
 
     def contacts(self) -> dict[str, list[tuple[int, int]]]:
         """Per foot the [first, last] spans pinned so far (frames emitted)."""
@@ -660,13 +667,24 @@ class PlantStream:
         return {side: [(a, n - 1 if b is None else b) for a, b, _, _ in pins if a <= (n - 1 if b is None else b)]
                 for side, pins in self._pins.items()}
 
+    def _reaching(self, side: str, first: int) -> list[list]:
+        """The foot's pins that hold or ease frame `first` or later: the last few (pins come in
+        order, so the walk back stops at the first that has eased out before it)."""
+        recent = []
+        for pin in reversed(self._pins[side]):
+            if pin[1] is not None and pin[1] + EASE < first:
+                break
+            recent.append(pin)
+        return recent[::-1]
+
     def _smoothed(self, lower: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The hop's hips and legs low-passed, drift taken out, within range and on the floor."""
         g, weights = self._gain, self._window
         out_q, out_t = np.zeros(lower.shape[:2] + (4,)), np.zeros_like(trans)
-        for i, (q, t) in enumerate(zip(axis_angle_to_quaternion(lower), trans)):
-            if self._q:  # the same hemisphere as the frame before, joint by joint
-                q = np.where(np.sum(q * self._q[-1], axis=-1, keepdims=True) < 0, -q, q)
+        # each frame's quaternions in the hemisphere of the frame before (across hops too)
+        before = np.array(self._q[-1:]).reshape(-1, len(JOINTS), 4)
+        quats = quaternion_sequence_continuous(np.concatenate([before, axis_angle_to_quaternion(lower)]))[len(before):]
+        for i, (q, t) in enumerate(zip(quats, trans)):
             self._q, self._t = (self._q + [q])[-len(weights):], (self._t + [t])[-len(weights):]
             w = weights[-len(self._q):] / weights[-len(self._q):].sum()
             mixed = np.einsum("k,kjc->jc", w, np.array(self._q))
@@ -677,21 +695,16 @@ class PlantStream:
             out_t[i, [0, 2]] += self.library.centre - self._drift
         smoothed = quaternion_to_axis_angle(out_q)
         out_t = np.clip(out_t, self.library.translation_low, self.library.translation_high)
-        world = _world(smoothed, out_t)
-        lowest = np.min([world[f"{p}{point}"][1][:, 1] for p in ("Right", "Left") for point in ("Sole", "ToeEnd")],
-                        axis=0)
-        for i, height in enumerate(lowest):
+        for i, height in enumerate(_lowest(_world(smoothed, out_t))):
             self._floor = height if self._floor is None else self._floor + g["floor"] * (height - self._floor)
             out_t[i, 1] -= self._floor
         return smoothed, out_t
 
     def _track(self, side: str, first: int, world: dict, ankle: np.ndarray, sole: np.ndarray) -> None:
         """Start, hold or end the foot's pin at each of the hop's frames (its frames `first` on)."""
-        up, knee, foot = LEGS[side]
+        up, _, foot = LEGS[side]
         down = _down(ankle, sole, self.fps, None if self._ankle[side] is None else self._ankle[side][None])
-        off = _offsets()
-        reach = np.linalg.norm(off[knee]) + np.linalg.norm(off[foot]) + REACH_SLACK
-        pins = self._pins[side]
+        reach, pins = _reach(side), self._pins[side]
         for k in range(len(ankle)):
             held = pins and pins[-1][1] is None
             if held and (not down[k] or np.linalg.norm(pins[-1][2] - world[up][1][k]) >= reach):

@@ -129,25 +129,12 @@ def test_a_whole_body_models_legs_are_smoothed_settled_and_planted(wobbly):
         lb.plant(lb.upper_body(made))
 
 
-def _streamed(made, hop: int) -> lb.PlantStream:
-    """PlantStream fed `made` `hop` frames at a time, as a live session feeds it."""
-    from dataclasses import replace
-
-    stream = lb.PlantStream(FPS)
-    for i in range(0, made.n_frames, hop):
-        lower, trans, down = stream.add(replace(made, rotations=made.rotations[i:i + hop], face=made.face[i:i + hop],
-                                                root_translation=made.root_translation[i:i + hop]))
-        assert lower.shape == (min(hop, made.n_frames - i), len(lb.JOINTS), 3) and trans.shape == (len(lower), 3)
-        assert set(down) == set(lb.LEGS) and all(v.shape == (len(lower),) for v in down.values())
-    return stream
-
-
 def test_live_plants_a_whole_body_models_legs_as_they_come(wobbly):
     """PlantStream, `plant` for live: fed a hop at a time, each frame is final as it comes
     (hops of 1 and 4 give the same legs), the hips stay within the capture's range, each
     contact foot is on the floor and moves under 1 cm between frames, and the hips sway
     about as offline (their filters look back only, so they lag the arms a little)."""
-    one, four = _streamed(wobbly, 1), _streamed(wobbly, 4)
+    one, four = _feed(lb.PlantStream(FPS), wobbly, 1), _feed(lb.PlantStream(FPS), wobbly, 4)
     np.testing.assert_allclose(one.lower, four.lower, atol=1e-9)
     np.testing.assert_allclose(one.trans, four.trans, atol=1e-9)
     assert one.contacts() == four.contacts()
@@ -219,13 +206,19 @@ def test_the_shortest_speech_still_gets_legs(bundle):
 def _stream(upper, seed: int, hop: int, down_out: dict | None = None) -> lb.LowerBodyStream:
     """The live lower body of `upper`, fed `hop` frames at a time (each foot's contact flags
     gathered into `down_out`)."""
+    return _feed(lb.LowerBodyStream(upper.fps, seed), upper, hop, down_out)
+
+
+def _feed(stream, motion, hop: int, down_out: dict | None = None):
+    """`stream` (LowerBodyStream or PlantStream) fed `motion` `hop` frames at a time, as a live
+    session feeds it (each foot's contact flags gathered into `down_out`)."""
     from dataclasses import replace
 
-    stream = lb.LowerBodyStream(upper.fps, seed)
-    for i in range(0, upper.n_frames, hop):
-        lower, trans, down = stream.add(replace(upper, rotations=upper.rotations[i:i + hop],
-                                                face=upper.face[i:i + hop]))
-        assert lower.shape == (min(hop, upper.n_frames - i), len(lb.JOINTS), 3) and trans.shape == (len(lower), 3)
+    for i in range(0, motion.n_frames, hop):
+        root = None if motion.root_translation is None else motion.root_translation[i:i + hop]
+        lower, trans, down = stream.add(replace(motion, rotations=motion.rotations[i:i + hop],
+                                                face=motion.face[i:i + hop], root_translation=root))
+        assert lower.shape == (min(hop, motion.n_frames - i), len(lb.JOINTS), 3) and trans.shape == (len(lower), 3)
         assert set(down) == set(lb.LEGS) and all(v.shape == (len(lower),) for v in down.values())
         for side, flags in down.items():
             (down_out if down_out is not None else {}).setdefault(side, []).extend(flags)

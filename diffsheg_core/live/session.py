@@ -257,7 +257,8 @@ class LiveSession:
 
     def _warnings(self) -> list[str]:
         """What the recording should say about how it was heard."""
-        out = [] if self._behind() is None else [f"the machine was {self._behind()}"]
+        behind = self._behind()
+        out = [] if behind is None else [f"the machine was {behind}"]
         if self.underrun_seconds:
             out.append(f"{self.underrun_seconds:.1f} s without audio from the source were filled with silence")
         if self.feed.dropped:
@@ -297,8 +298,9 @@ class LiveSession:
             parts.append(f"{self.underrun_seconds:.1f} s without audio")
         if self.feed.dropped:
             parts.append(f"{self.feed.dropped_seconds:.1f} s dropped (audio came faster than real time)")
-        if self._behind() is not None:
-            parts.append(self._behind())
+        behind = self._behind()
+        if behind is not None:
+            parts.append(behind)
         return ", ".join(parts)
 
     # --- the generation thread ---------------------------------------------------------
