@@ -25,16 +25,25 @@ onto the recording (training.metrics.transcript_phones: approximate; on the take
 characters and pinyin) or there is no transcript; Japanese kanji are read as kana through UniDic
 (fugashi)
 and, for the English take, the phone-timed lip-sync of the model card (jaw open at open
-vowels over bilabials, mouthClose at bilabials minus at open vowels).
+vowels over bilabials, mouthClose at bilabials minus at open vowels), and the take's own
+motion capture as the reference for the loudness figure: what a real face scores on it
+(the BEAT2 SMPL-X jaw) and how closely the model's jaw and the exact visemes' agree with
+that captured jaw over voiced frames.
 
-    python bench/eval_languages.py [--seeds 0 1] [--steps N] [--model FILE]
+--loudness-gain K ... measures what the goal would cost if met by making the mouth follow the
+voice's level: every jawOpen is scaled by the level's amplitude ratio to the recording's
+median voiced level to the power K (6 dB louder opens 2**(K/2) times wider), and the x English
+ratios, the take's phone-following, its agreement with the captured jaw and its 99th
+percentile jawOpen (1 is a fully open ARKit jaw) are printed for each K.
+
+    python bench/eval_languages.py [--seeds 0 1] [--steps N] [--model FILE] [--loudness-gain K ...]
 """
 
 from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Optional
 
@@ -44,11 +53,13 @@ from diffsheg_core.audio import load_audio
 from diffsheg_core.checkpoints import load_model
 from diffsheg_core.motion import Motion
 from diffsheg_core.pipeline import generate
-from diffsheg_core.qc import (lip_closures, mouth_voice_correlation, voiced_frames, voiced_level_correlation,
-                              voiced_mouth_voice_correlation)
+from diffsheg_core.qc import (lip_closures, mouth_voice_correlation, speech_level,
+                              voiced_frames, voiced_level_correlation, voiced_mouth_voice_correlation)
+from diffsheg_core.training.evaluate import load_reference
 from diffsheg_core.training.metrics import face_channel, mouth_opening, phone_tier, phoneme_contrast, read_textgrid
 from diffsheg_core.training.metrics.lipsync import (BILABIALS, OPEN_VOWELS, base_phone, phone_following,
-                                                     phone_middles, values_at, viseme_jaw)
+                                                     phone_middles, values_at, viseme_jaw,
+                                                     voiced_reference_correlation)
 from diffsheg_core.training.metrics.transcript_phones import transcript_phones
 
 REPO = Path(__file__).resolve().parents[1]
@@ -56,6 +67,7 @@ DATA = REPO.parent / "shared" / "data"
 LANG = DATA / "audio" / "lang"
 TAKE_WAV = DATA / "beat2" / "2_scott_0_1_1.wav"
 TAKE_TEXTGRID = DATA / "beat2" / "2_scott_0_1_1.TextGrid"
+TAKE_CAPTURE = DATA / "beat2" / "2_scott_0_1_1.npz"
 ENGLISH = (TAKE_WAV, *(DATA / "audio" / name for name in (
     "2_scott_0_3_3.wav", "2_scott_0_4_4.wav", "12_zhao_2_3_3.wav", "2_scott_0_103_103_28s.wav")))
 ESPEAK_VOICES = {"de": "de", "es": "es", "fr": "fr", "hi": "hi", "ja": "ja", "ru": "ru", "sv": "sv"}
@@ -138,6 +150,63 @@ def take_contrast(motions: list[Motion]) -> str:
             f"at open vowels {np.mean(shut):.2f}")
 
 
+def captured_jaw(fps: float) -> np.ndarray:
+    """The take's real jaw opening: the BEAT2 SMPL-X capture's jaw rotation angle."""
+    return mouth_opening(load_reference(TAKE_CAPTURE, fps=fps))
+
+
+def agrees(curve: np.ndarray, real: np.ndarray, fps: float, audio) -> float:
+    """Correlation of a mouth curve of the take with its captured jaw over voiced frames."""
+    return voiced_reference_correlation(curve, real, fps, audio.samples, audio.sample_rate)
+
+
+def captured_face(motions: list[Motion]) -> str:
+    """The take's motion capture as the reference for the loudness figure."""
+    audio, fps, n = load_audio(TAKE_WAV), motions[0].fps, motions[0].n_frames
+    real = captured_jaw(fps)
+    visemes = viseme_jaw(phone_tier(read_textgrid(TAKE_TEXTGRID)), n, fps)
+    model = [agrees(mouth_opening(m), real, fps, audio) for m in motions]
+    return (f"English take's motion capture (BEAT2 SMPL-X jaw, {fps:g} fps): r voiced "
+            f"{voiced_level_correlation(real, fps, audio.samples, audio.sample_rate):.2f}; agreement with "
+            f"that captured jaw over voiced frames: the model {np.mean(model):.2f} "
+            f"(seeds {', '.join(f'{x:.2f}' for x in model)}), the exact visemes {agrees(visemes, real, fps, audio):.2f}")
+
+
+def with_loudness_gain(motion: Motion, audio, k: float) -> Motion:
+    """`motion` with jawOpen times (level's amplitude / the median voiced level's) ** k,
+    the level within +-12 dB of that median."""
+    level = speech_level(audio.samples, audio.sample_rate, motion.fps, motion.n_frames)
+    voiced = voiced_frames(audio.samples, audio.sample_rate, motion.fps, motion.n_frames)
+    median = np.median(level[voiced]) if voiced.any() else level.max()
+    face = motion.face.copy()
+    face[:, motion.face_names.index("jawOpen")] *= 10 ** (k * np.clip(level - median, -12, 12) / 20)
+    return replace(motion, face=face)
+
+
+def loudness_gain_table(generated: dict[Path, list[Motion]], gains: list[float]) -> str:
+    """What meeting the goal through the voice's level costs, for each gain (see --loudness-gain)."""
+    audios = {path: load_audio(path) for path in generated}
+    languages = list(dict.fromkeys(language(p) for p in generated if language(p) != "en"))
+    take, audio = generated[TAKE_WAV], audios[TAKE_WAV]
+    real, phones = captured_jaw(take[0].fps), phone_tier(read_textgrid(TAKE_TEXTGRID))
+    head = ["gain K", "English r voiced", *languages, "take follows", "agrees w/ capture", "jawOpen p99"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for k in gains:
+        voiced: dict[str, list[float]] = {}
+        for path, motions in generated.items():
+            a = audios[path]
+            voiced.setdefault(language(path), []).append(np.mean([voiced_mouth_voice_correlation(
+                with_loudness_gain(m, a, k), a.samples, a.sample_rate) for m in motions]))
+        english = np.mean(voiced["en"])
+        mouths = [(mouth_opening(with_loudness_gain(m, audio, k)), m.fps) for m in take]
+        follows = np.mean([phone_following(c, fps, phones, audio.samples, audio.sample_rate) for c, fps in mouths])
+        agree = np.mean([agrees(c, real, fps, audio) for c, fps in mouths])
+        p99 = np.mean([np.percentile(c, 99) for c, _ in mouths])
+        ratios = " | ".join(f"{np.mean(voiced[lang]) / english:.2f}" for lang in languages)
+        lines.append(f"| {k:g} | {english:.2f} | {ratios} | {follows:.2f} | {agree:.2f} | {p99:.2f} |")
+    return "\n".join(lines)
+
+
 def _mean_of(values) -> Optional[float]:
     known = [v for v in values if v is not None]
     return float(np.mean(known)) if known else None
@@ -175,17 +244,22 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--steps", type=int, default=None, help="sampling steps (default: the model's)")
     parser.add_argument("--model", default=None, help="model file (default: the bundled model)")
+    parser.add_argument("--loudness-gain", type=float, nargs="+", default=None, metavar="K",
+                        help="also measure the mouth made to follow the voice's level by these gains (0: as made)")
     args = parser.parse_args()
     bundle = load_model(args.model)
     options = {} if args.steps is None else {"steps": args.steps}
-    rows, take_motions, started = [], [], time.perf_counter()
+    generated, started = {}, time.perf_counter()
     for path in (*ENGLISH, *sorted(LANG.glob("*.wav"))):
-        motions = [generate(path, model=bundle, seed=s, **options) for s in args.seeds]
-        take_motions = motions if path == TAKE_WAV else take_motions
-        rows.append(measure(path, motions))
+        generated[path] = [generate(path, model=bundle, seed=s, **options) for s in args.seeds]
+    rows = [measure(path, motions) for path, motions in generated.items()]
     print(table(rows))
     print()
-    print(take_contrast(take_motions))
+    print(take_contrast(generated[TAKE_WAV]))
+    print(captured_face(generated[TAKE_WAV]))
+    if args.loudness_gain:
+        print()
+        print(loudness_gain_table(generated, args.loudness_gain))
     print(f"{len(rows)} recordings, seeds {args.seeds}: {time.perf_counter() - started:.0f} s")
 
 

@@ -14,7 +14,7 @@ from diffsheg_core.checkpoints import load_model
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.motion import Motion
 from diffsheg_core.pipeline import generate
-from diffsheg_core.qc import lip_closures, voiced_frames, voiced_mouth_voice_correlation
+from diffsheg_core.qc import lip_closures, voiced_frames, voiced_level_correlation, voiced_mouth_voice_correlation
 from diffsheg_core.training.metrics import phone_tier, read_textgrid
 from diffsheg_core.training.metrics.lipsync import BILABIALS, base_phone
 
@@ -87,6 +87,26 @@ def test_lips_close_during_speech(measured, lang):
     while the voice sounds, as in English."""
     rates = measured[lang]["closures"]
     assert np.mean(rates) > CLOSURES_MIN, (lang, rates)
+
+
+def test_a_captured_face_follows_the_voice_s_level_less_than_the_goal_asks(generated, measured):
+    """Why the goal is a loudness figure that faithful lip-sync need not reach: the take's own
+    motion capture (the BEAT2 SMPL-X jaw of the same take) follows the voice's level over
+    voiced frames at 0.30, under 0.9x the model's English (0.36), so the goal asks a language's
+    mouth to follow the level more than a real English face does. The model's jaw moves with
+    that captured jaw (0.51 over voiced frames; the exact visemes of the TextGrid 0.56), and
+    making it follow the level enough to meet the goal moves it away (bench/eval_languages.py
+    --loudness-gain)."""
+    from diffsheg_core.training.evaluate import load_reference
+    from diffsheg_core.training.metrics import mouth_opening
+    from diffsheg_core.training.metrics.lipsync import voiced_reference_correlation
+
+    audio, motion = generated[TAKE_WAV.name]
+    real = mouth_opening(load_reference(DATA / "beat2" / "2_scott_0_1_1.npz", fps=motion.fps))
+    english = np.mean(measured["en"]["voiced"])
+    assert voiced_level_correlation(real, motion.fps, audio.samples, audio.sample_rate) < GOAL * english
+    agree = voiced_reference_correlation(mouth_opening(motion), real, motion.fps, audio.samples, audio.sample_rate)
+    assert agree > 0.4, agree
 
 
 def test_closures_fall_on_bilabials_in_the_english_take(generated):

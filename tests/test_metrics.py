@@ -13,7 +13,7 @@ from diffsheg_core.training.metrics import (
     frechet_distance, mean_jerk, motion_beats, pcm, phone_tier, phoneme_contrast, read_textgrid,
     reference_correlation, seam_smoothness, srgr,
 )
-from diffsheg_core.training.metrics.lipsync import ENVELOPE_RATE, speech_envelope_db
+from diffsheg_core.training.metrics.lipsync import ENVELOPE_RATE, speech_envelope_db, voiced_reference_correlation
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 SPEECH = DATA / "audio" / "2_scott_0_3_3.wav"
@@ -164,6 +164,24 @@ def test_envelope_correlation_finds_the_lag():
     assert r_ref == pytest.approx(1.0) and lag_ref == 0.0
     noise = np.random.default_rng(5).random(len(mouth))
     assert envelope_correlation(noise, FPS, samples, audio.sample_rate)[0] < 0.3
+
+
+def test_voiced_reference_correlation_leaves_the_pauses_out():
+    """Two mouths that move together while the voice sounds agree fully over voiced frames,
+    however they differ in the pauses (where a whole-clip correlation is pulled down)."""
+    from diffsheg_core.qc import voiced_frames
+
+    audio = load_audio(TAKE_WAV)
+    samples = audio.samples[: 30 * audio.sample_rate]
+    n = int(30 * FPS)
+    voiced = voiced_frames(samples, audio.sample_rate, FPS, n)
+    assert 0.3 < voiced.mean() < 0.9
+    rng = np.random.default_rng(2)
+    mouth = rng.random(n)
+    other = np.where(voiced, mouth, 1.0 - mouth)
+    assert voiced_reference_correlation(mouth, other, FPS, samples, audio.sample_rate) == pytest.approx(1.0)
+    assert reference_correlation(mouth, other, FPS)[0] < 0.5
+    assert abs(voiced_reference_correlation(mouth, rng.random(n), FPS, samples, audio.sample_rate)) < 0.3
 
 
 def test_blink_rate_and_duration():

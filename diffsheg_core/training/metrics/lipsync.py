@@ -111,6 +111,19 @@ def reference_correlation(mouth: np.ndarray, reference: np.ndarray, fps: float,
                               ENVELOPE_RATE, max_lag)
 
 
+def voiced_reference_correlation(mouth: np.ndarray, reference: np.ndarray, fps: float, samples: np.ndarray,
+                                 sample_rate: int) -> float:
+    """reference_correlation over the voiced frames only (qc.voiced_frames), at the best lag
+    within qc.MAX_LAG: how closely a mouth moves with a reference mouth (a motion capture's)
+    while the voice sounds, which shared pauses cannot flatter."""
+    from ...qc import MAX_LAG, lagged_correlation, voiced_frames
+
+    n = min(len(mouth), len(reference))
+    voiced = voiced_frames(samples, sample_rate, fps, n)
+    return lagged_correlation(np.asarray(mouth[:n], np.float64), np.asarray(reference[:n], np.float64),
+                              int(MAX_LAG * fps + 1e-9), where=voiced)
+
+
 def phone_following(mouth: np.ndarray, fps: float, phones: list[Interval], samples: np.ndarray,
                     sample_rate: int) -> float:
     """Correlation over the voiced frames (qc.voiced_frames) of a mouth-opening curve with
