@@ -198,13 +198,9 @@ def output_stem(audio: Path, stems: dict[str, int]) -> str:
 
 def bake_options(args, scene, armature, faces):
     """The keying options of the command line (those of the panel's lower half)."""
-    preset = addon("preset")
-    return addon("bake").BakeOptions(
-        armature=armature, face_meshes=faces,
-        preset=None if args.preset == preset.AUTO else preset.load_preset(args.preset),
-        start_frame=scene.frame_start if args.start_frame is None else args.start_frame,
-        every_frame=args.every_frame, max_error=args.max_error, max_face_error=args.max_face_error,
-        smoothing=args.smoothing,
+    return addon("bake").keying_options(
+        scene, armature, faces, args.preset, args.start_frame, every_frame=args.every_frame,
+        max_error=args.max_error, max_face_error=args.max_face_error, smoothing=args.smoothing,
         add_sound=not args.no_sound, set_frame_range=not args.keep_frame_range)
 
 

@@ -22,7 +22,7 @@ from diffsheg_core.motion import Motion, resample_motion, smooth_frames
 from . import takes
 from .keying import Channel, Undo, new_action, rotation_channels, shape_key_channel, undone_on_error, write_channels
 from .feet import plant_foot, scene_spans
-from .preset import available_presets, choose_preset, load_preset, preset_fit
+from .preset import AUTO, available_presets, choose_preset, load_preset, preset_fit
 from .retarget import ArmatureMapping, Preset, ShapeKeyMapping, bone_quaternions, map_armature, map_shape_keys
 from .sound import NO_AUDIO_NOTE, add_sound_strip, audio_supported, remove_strips, strips_added_for
 
@@ -55,6 +55,14 @@ class BakeOptions:
                     or value < 0 or (value == 0 and name != "smoothing"):
                 raise DiffshegError(f"{name.replace('_', ' ')} must be a number "
                                     f"{'>= 0' if name == 'smoothing' else 'above 0'}, got {value!r}")
+
+
+def keying_options(scene, armature, faces: list, preset: str, start_frame: int | None, **keying) -> BakeOptions:
+    """BakeOptions from choices made by name, as a command line or a studio line makes them:
+    the preset's name or file (AUTO: the preset whose names the rig has) and the first frame
+    (None: the scene's start); `keying` is the rest of BakeOptions."""
+    return BakeOptions(armature=armature, face_meshes=faces, preset=None if preset == AUTO else load_preset(preset),
+                       start_frame=scene.frame_start if start_frame is None else start_frame, **keying)
 
 
 @dataclass

@@ -55,18 +55,14 @@ def process_line(line, out_dir: str) -> dict:
     import diffsheg_core
     from diffsheg_core.manifest import stage_name, staged_path
 
-    from .bake import BakeOptions, bake_motion
-    from .preset import AUTO, load_preset
+    from .bake import bake_motion, keying_options
 
     started = time.perf_counter()
     _open_character(line.blend)
     scene = bpy.context.scene
     armature, faces = find_targets(scene, line.armature, line.face)
-    options = BakeOptions(armature=armature, face_meshes=faces,
-                          preset=None if line.preset == AUTO else load_preset(line.preset),
-                          start_frame=scene.frame_start if line.start_frame is None else line.start_frame,
-                          every_frame=line.every_frame, max_error=line.max_error,
-                          max_face_error=line.max_face_error)
+    options = keying_options(scene, armature, faces, line.preset, line.start_frame, every_frame=line.every_frame,
+                             max_error=line.max_error, max_face_error=line.max_face_error)
     motion = diffsheg_core.generate(str(line.audio), settings=replace(line.settings, model=_model(line.settings.model)))
     undo: list = []
     staged = stage_name(line.id)

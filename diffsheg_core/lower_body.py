@@ -450,6 +450,15 @@ def settle(lower: np.ndarray, trans: np.ndarray, library: LowerBodyLibrary) -> n
     return _on_floor(lower, trans, fps)
 
 
+def legs_source(rig: str, whole_body: bool) -> str | None:
+    """Where generated motion's hips and legs come from: "model" (a whole-body model's own,
+    planted), "capture" (cut from the capture to go with the arms, for a model whose layout
+    stops at the waist on the BEAT skeleton), or None (a layout legs cannot be added to)."""
+    if whole_body:
+        return "model"
+    return "capture" if rig in LAYOUTS else None
+
+
 def add_lower_body(motion: Motion, seed: int, library: LowerBodyLibrary | None = None) -> Motion:
     """`motion` (a `beat` upper body) with the hips and legs (JOINTS) after its joints,
     `root_translation` (metres about the standing hips), and in its meta the hips' rest

@@ -26,8 +26,7 @@ from .emotion import apply_emotion, emotion_track, remove_emotion, take_emotion
 from .errors import DiffshegError
 from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, inpaint_range, with_overrides
 from .guidance import Guidance, step_eps
-from .lower_body import (JOINTS as LOWER_JOINTS, LAYOUTS as WHOLE_BODY_LAYOUTS, add_lower_body, lower_rotations,
-                         plant, upper_body)
+from .lower_body import JOINTS as LOWER_JOINTS, add_lower_body, legs_source, lower_rotations, plant, upper_body
 from .motion import Motion
 from .phonetic import (PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel, recogniser_frames,
                        stack_posteriors)
@@ -407,12 +406,10 @@ def with_legs(motion: Motion, s: GenerateSettings) -> Motion:
     "lower_body" says which ("model" or "capture")."""
     if s.upper_body_only:
         return upper_body(motion)
-    if motion.root_translation is not None:
-        legs, source = plant(motion), "model"
-    elif motion.rig in WHOLE_BODY_LAYOUTS:
-        legs, source = add_lower_body(motion, s.seed), "capture"
-    else:
+    source = legs_source(motion.rig, motion.root_translation is not None)
+    if source is None:
         return motion
+    legs = plant(motion) if source == "model" else add_lower_body(motion, s.seed)
     return replace(legs, meta={**legs.meta, "lower_body": source})
 
 

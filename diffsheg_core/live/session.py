@@ -33,8 +33,8 @@ from ..audio import Audio
 from ..checkpoints import ModelBundle, load_model
 from ..emotion import EmotionStream
 from ..errors import DiffshegError
-from ..lower_body import (JOINTS as LEG_JOINTS, LAYOUTS as WHOLE_BODY_LAYOUTS, LowerBodyStream, PlantStream,
-                          upper_body, with_lower_body)
+from ..lower_body import (JOINTS as LEG_JOINTS, LowerBodyStream, PlantStream, legs_source, upper_body,
+                          with_lower_body)
 from ..motion import Motion
 from ..pipeline import to_motion
 from ..runtime.backends import open_network
@@ -167,8 +167,8 @@ class LiveSession:
         # whose layout stops at the waist, legs cut from the capture to go with the arms
         # (LowerBodyStream); none with upper_body_only
         fps, rig = self.bundle.config.fps, self.bundle.rig_layout.name
-        self.legs_source = (None if settings.upper_body_only or rig not in WHOLE_BODY_LAYOUTS
-                            else "model" if self.bundle.layout.root_translation else "capture")
+        self.legs_source = (None if settings.upper_body_only
+                            else legs_source(rig, bool(self.bundle.layout.root_translation)))
         self.legs = (PlantStream(fps) if self.legs_source == "model"
                      else LowerBodyStream(fps, settings.seed) if self.legs_source == "capture" else None)
         self.feed = AudioFeed(source.sample_rate)
