@@ -84,6 +84,7 @@ class FoppasConfig:
     blend_below: float = 0.2           # ... those landing at noise level sqrt(1 - abar) below this
     reference_renoise: bool = True     # jump back with the beta of the current index, as the official code
     eta: float = 0.0                   # 0: deterministic DDIM
+    branch_eta: Optional[float] = None  # the eta of a lower branch's channels (None: eta)
     prior_start: bool = True           # later windows start from the model's gesture prior, if it has one
     candidates: int = 1                # later windows sampled this many times in one batch; the best continues
     carry: int = 0                     # frames the overlap's x0 gap is carried into (0: off, as the official code)
@@ -113,6 +114,10 @@ class FoppasConfig:
                                         or not 0 <= self.refine < self.steps):
             raise ValueError(f"refine must be None (off) or a step index from 0 to {self.steps - 1}, "
                              f"got {self.refine!r}")
+        if self.branch_eta is not None and (isinstance(self.branch_eta, bool)
+                                            or not isinstance(self.branch_eta, (int, float))
+                                            or not 0 <= self.branch_eta <= 1):
+            raise ValueError(f"branch_eta must be None (eta) or a number from 0 to 1, got {self.branch_eta!r}")
         if isinstance(self.refine_skip, bool) or not isinstance(self.refine_skip, (int, float)) \
                 or not 0 <= self.refine_skip < float("inf"):
             raise ValueError(f"refine_skip must be a finite number >= 0, got {self.refine_skip!r}")
@@ -252,7 +257,7 @@ class Foppas:
                 eps = carry_overlap(sched, x, t_now, eps, known, config.carry, self.gestures)
             if fixed is not None:
                 eps = carry_fixed(sched, x, t_now, eps, fixed, max(config.carry, HOLD_CARRY), self.gestures)
-            x, _ = sched.ddim_step(x, t_now, eps, config.eta, randn(*x.shape) if config.eta > 0 else None)
+            x = self.step(x, t_now, eps, randn(*x.shape) if config.eta > 0 or self.branch_eta > 0 else None)
             if known is not None:
                 level = sched.noise_level_prev(t_now)
                 noisy_known = float((1 - level ** 2) ** 0.5) * known + level * randn(batch, *known.shape[1:])
@@ -269,6 +274,22 @@ class Foppas:
             x = self.refine_window(eps_fn, x, known, fixed)
             on_step(call, n_calls)
         return x if fixed is None else fixed.paint(x, 0.0, x)
+
+    @property
+    def branch_eta(self) -> float:
+        """The eta a lower branch's channels are stepped with (0 without a branch)."""
+        if not self.branch:
+            return 0.0
+        return self.config.eta if self.config.branch_eta is None else self.config.branch_eta
+
+    def step(self, x: np.ndarray, index: int, eps: np.ndarray, noise: Optional[np.ndarray]) -> np.ndarray:
+        """One DDIM step of every channel from schedule `index`, a lower branch's with its own eta."""
+        x_next, _ = self.schedule.ddim_step(x, index, eps, self.config.eta, noise)
+        if self.branch and self.branch_eta != self.config.eta:
+            legs = slice(self.upper, self.gestures)
+            x_next[..., legs], _ = self.schedule.ddim_step(x[..., legs], index, eps[..., legs], self.branch_eta,
+                                                           None if noise is None else noise[..., legs])
+        return x_next
 
     def paint_overlap(self, x: np.ndarray, known: np.ndarray, level: float) -> np.ndarray:
         """`x` (B, L, C) with its first frames replaced by `known` (B or 1, n, C), already at

@@ -423,6 +423,29 @@ def test_a_lower_branch_leaves_the_other_channels_as_the_model_without_it_sample
         np.testing.assert_allclose(a, b, atol=1e-5)
 
 
+def test_a_lower_branch_can_be_stepped_with_an_eta_of_its_own():
+    """branch_eta steps only the lower branch's channels with another eta (live samples the
+    legs deterministically): the other channels are the same to the bit, the legs differ;
+    branch_eta equal to eta changes nothing, and one outside 0-1 is refused."""
+    upper, branch, face, frames = 3, 2, 2, 100
+    g = upper + branch
+
+    def run(**change) -> np.ndarray:
+        config = replace(PRESETS["official-beat"], eta=1.0, **change)
+        sampler = Foppas(Schedule.linear(), config, 34, g + face, gestures=g, branch=branch)
+        stream = FoppasStream(sampler, widened(upper, branch, face), 4, expected_frames=frames)
+        cond = np.zeros((frames, 1), np.float32)
+        return np.concatenate([stream.push(cond), stream.finish()])
+
+    model, same, legs_still = run(), run(branch_eta=1.0), run(branch_eta=0.0)
+    others = np.r_[0:upper, g:g + face]
+    assert np.array_equal(model, same)
+    assert np.array_equal(model[:, others], legs_still[:, others])
+    assert not np.allclose(model[:, upper:g], legs_still[:, upper:g])
+    with pytest.raises(ValueError, match="branch_eta"):
+        replace(PRESETS["official-beat"], branch_eta=1.5).check(34)
+
+
 # ---------------------------------------------------------------- seeds
 
 def first_model_inputs(seed, n_frames=80, proposal=None, dim=4):

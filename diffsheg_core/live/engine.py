@@ -52,12 +52,16 @@ class LiveConfig:
     - Later windows start at index 14 of 25 steps, FOPPAS's published value, rather than the
       bundled model's 17: 15 network calls a window instead of 18, with the same figures
       against offline (wrist speed 0.74x / 0.76x, jitter 0.96x / 1.03x, lip-sync 0.98x both);
-      at 12 the jaw contrast fell to 0.92x."""
+      at 12 the jaw contrast fell to 0.92x.
+    - A whole-body model's legs are stepped with eta 0 (no fresh noise at each step), the
+      rest with the model's eta: the hips sway at 0.66-0.74x offline's speed instead of
+      0.49-0.59x, the upper body and face are the same to the bit (README, Live)."""
 
     hop: int = 3                       # new frames per window
     lookahead: int = 1                 # frames of audio a window waits for past its new frames
     context: float = 3.0               # seconds of audio the speech features of a window are computed over
     later_start: Optional[int] = 14    # schedule index later windows start from, at 25 steps (None: the model's)
+    legs_eta: Optional[float] = 0.0    # eta of a whole-body model's legs (None: the model's eta)
 
     def check(self, clip_len: int) -> None:
         for name, value, (lo, hi) in (("hop", self.hop, HOPS), ("lookahead", self.lookahead, LOOKAHEADS)):
@@ -72,6 +76,10 @@ class LiveConfig:
                                              or not 0 <= self.later_start < LIVE_STEPS):
             raise DiffshegError(f"live later_start must be None (the model's) or a step index from 0 to "
                                 f"{LIVE_STEPS - 1}, got {self.later_start!r}")
+        if self.legs_eta is not None and (isinstance(self.legs_eta, bool) or not isinstance(self.legs_eta, (int, float))
+                                          or not 0 <= self.legs_eta <= 1):
+            raise DiffshegError(f"live legs_eta must be None (the model's eta) or a number from 0 to 1, "
+                                f"got {self.legs_eta!r}")
         if not isinstance(self.context, (int, float)) or not 0 < self.context <= 60:
             raise DiffshegError(f"live context must be a number of seconds above 0 and at most 60, "
                                 f"got {self.context!r}")
@@ -214,13 +222,17 @@ class LiveEngine:
     def meta(self) -> dict:
         """What a recording records of how it was made (as `generate`, plus the live settings)."""
         meta = generation_meta(self.bundle, self.settings, self.plan, self.network, self.audio())
-        meta["live"] = {"hop": self.live.hop, "lookahead": self.live.lookahead, "context": self.live.context}
+        meta["live"] = {"hop": self.live.hop, "lookahead": self.live.lookahead, "context": self.live.context,
+                        "legs_eta": self.sampler.branch_eta if self.sampler.branch else None}
         return meta
 
 
 def _live_sampling(sampling: FoppasConfig, live: LiveConfig) -> FoppasConfig:
     """The model's sampling settings with later windows starting at `live.later_start` (of
-    LIVE_STEPS steps, rescaled to the model's)."""
+    LIVE_STEPS steps, rescaled to the model's) and a lower branch's channels stepped with
+    `live.legs_eta`."""
+    if live.legs_eta is not None:
+        sampling = replace(sampling, branch_eta=live.legs_eta)
     if live.later_start is None:
         return sampling
     return replace(sampling.with_steps(LIVE_STEPS), later_start=live.later_start).with_steps(sampling.steps)
