@@ -145,9 +145,15 @@ def take_contrast(motions: list[Motion]) -> str:
     jaw = [phoneme_contrast(mouth_opening(m), m.fps, phones)["ratio"] for m in motions]
     close = [phoneme_contrast(face_channel(m, "mouthClose"), m.fps, phones) for m in motions]
     shut = [c["bilabial"] - c["open"] for c in close]
+    audio = load_audio(TAKE_WAV)
+    words = " ".join(w.label for w in read_textgrid(TAKE_TEXTGRID)["words"] if w.label.strip())
+    approximate = transcript_phones(audio.samples, audio.sample_rate, words, "en-us")
+    follows = [phone_following(mouth_opening(m), m.fps, approximate, audio.samples, audio.sample_rate)
+               for m in motions]
     return (f"English take 2_scott_0_1_1 with its phone timings: jaw open at open vowels / at p,b,m "
             f"{np.mean(jaw):.2f} (seeds {', '.join(f'{x:.2f}' for x in jaw)}); mouthClose at p,b,m minus "
-            f"at open vowels {np.mean(shut):.2f}")
+            f"at open vowels {np.mean(shut):.2f}; follows the phones of its words spoken by espeak-ng and "
+            f"warped onto it, as the other languages' are timed, at {np.mean(follows):.2f}")
 
 
 def captured_jaw(fps: float) -> np.ndarray:
