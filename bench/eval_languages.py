@@ -141,12 +141,13 @@ def _jaw_ratio(rows: list[Row]) -> Optional[float]:
 
 
 def take_contrast(motions: list[Motion]) -> str:
-    phones = phone_tier(read_textgrid(TAKE_TEXTGRID))
+    grid = read_textgrid(TAKE_TEXTGRID)
+    phones = phone_tier(grid)
     jaw = [phoneme_contrast(mouth_opening(m), m.fps, phones)["ratio"] for m in motions]
     close = [phoneme_contrast(face_channel(m, "mouthClose"), m.fps, phones) for m in motions]
     shut = [c["bilabial"] - c["open"] for c in close]
     audio = load_audio(TAKE_WAV)
-    words = " ".join(w.label for w in read_textgrid(TAKE_TEXTGRID)["words"] if w.label.strip())
+    words = " ".join(w.label for w in grid["words"] if w.label.strip())
     approximate = transcript_phones(audio.samples, audio.sample_rate, words, "en-us")
     follows = [phone_following(mouth_opening(m), m.fps, approximate, audio.samples, audio.sample_rate)
                for m in motions]
@@ -172,10 +173,11 @@ def captured_face(motions: list[Motion]) -> str:
     real = captured_jaw(fps)
     visemes = viseme_jaw(phone_tier(read_textgrid(TAKE_TEXTGRID)), n, fps)
     model = [agrees(mouth_opening(m), real, fps, audio) for m in motions]
+    exact = agrees(visemes, real, fps, audio)
     return (f"English take's motion capture (BEAT2 SMPL-X jaw, {fps:g} fps): r voiced "
             f"{voiced_level_correlation(real, fps, audio.samples, audio.sample_rate):.2f}; agreement with "
             f"that captured jaw over voiced frames: the model {np.mean(model):.2f} "
-            f"(seeds {', '.join(f'{x:.2f}' for x in model)}), the exact visemes {agrees(visemes, real, fps, audio):.2f}")
+            f"(seeds {', '.join(f'{x:.2f}' for x in model)}), the exact visemes {exact:.2f}")
 
 
 def with_loudness_gain(motion: Motion, audio, k: float) -> Motion:
