@@ -105,7 +105,7 @@ def bench_quality(args, bundle, network, audio: Audio, phones) -> None:
         rows, compute = [], 0.0
         for seed in seeds:
             settings = GenerateSettings(model=bundle, seed=seed, steps=steps, threads=1)
-            m, c = run_live(bundle, network, audio, LiveConfig(hop=hop, lookahead=lookahead), settings)
+            m, c = run_live(bundle, network, audio, live_config(args, hop, lookahead), settings)
             compute += c / audio.duration / len(seeds)
             rows.append(quality(m, audio, list(range(hop, m.n_frames, hop)), phones))
         q = mean_of(rows)
@@ -129,7 +129,7 @@ def bench_legs(args, bundle, network, audio: Audio) -> None:
         settings = GenerateSettings(model=bundle, seed=seed, threads=1)
         offline = generate(audio, settings=settings)
         hop = args.hops[0]
-        made = run_live(bundle, network, audio, LiveConfig(hop=hop), settings)[0] if own else lb.upper_body(offline)
+        made = run_live(bundle, network, audio, live_config(args, hop), settings)[0] if own else lb.upper_body(offline)
         stream, started = lb.PlantStream(fps) if own else lb.LowerBodyStream(fps, seed), time.perf_counter()
         for i in range(0, made.n_frames, hop):
             root = None if made.root_translation is None else made.root_translation[i:i + hop]
@@ -158,7 +158,13 @@ def _contact_cells(lower, trans, spans: dict, fps: float) -> str:
             if b > a:
                 worst = max(worst, float(np.linalg.norm(np.diff(soles[side][1][a:b + 1], axis=0), axis=-1).max()))
     share = np.mean([sum(b - a + 1 for a, b in v) / len(lower) for v in spans.values()])
-    return f"in contact {100 * share:.0f} %, contact foot moves <= {100 * worst:.2f} cm"
+    first = min((a for v in spans.values() for a, _ in v), default=None)
+    return (f"in contact {100 * share:.0f} %, first contact at "
+            f"{'never' if first is None else f'{first / fps:.1f} s'}, contact foot moves <= {100 * worst:.2f} cm")
+
+
+def live_config(args, hop: int, lookahead: int = LiveConfig.lookahead) -> LiveConfig:
+    return LiveConfig(hop=hop, lookahead=lookahead, legs_eta=args.legs_eta)
 
 
 def settings_tried(args) -> list[tuple]:
@@ -193,7 +199,7 @@ def bench_latency(args, audio_path: Path) -> None:
         try:
             for steps, hop, lookahead in settings_tried(args):
                 settings = GenerateSettings(model=args.model, seed=0, steps=steps, threads=1)
-                session = LiveSession(FileSource(str(clip)), settings, LiveConfig(hop=hop, lookahead=lookahead))
+                session = LiveSession(FileSource(str(clip)), settings, live_config(args, hop, lookahead))
                 result = session.run_to_end()
                 s = latency_summary(result.latencies)
                 print(f"{label(steps, hop, lookahead) + ' ' + load:<28}{s['p50']:>8.3f}{s['p95']:>8.3f}{s['max']:>8.3f}"
@@ -215,6 +221,8 @@ def main() -> int:
     p.add_argument("--no-quality", action="store_true")
     p.add_argument("--no-legs", action="store_true")
     p.add_argument("--model", help="checkpoint (default: the bundled model)")
+    p.add_argument("--legs-eta", type=float, default=LiveConfig.legs_eta,
+                   help="DDIM eta of a whole-body model's legs live (LiveConfig.legs_eta; default: the model's eta)")
     p.add_argument("--out", default="/tmp")
     args = p.parse_args()
     args.steps = [s or None for s in args.steps]

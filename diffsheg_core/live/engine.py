@@ -53,15 +53,17 @@ class LiveConfig:
       bundled model's 17: 15 network calls a window instead of 18, with the same figures
       against offline (wrist speed 0.74x / 0.76x, jitter 0.96x / 1.03x, lip-sync 0.98x both);
       at 12 the jaw contrast fell to 0.92x.
-    - A whole-body model's legs are stepped with eta 0 (no fresh noise at each step), the
-      rest with the model's eta: the hips sway at 0.66-0.74x offline's speed instead of
-      0.49-0.59x, the upper body and face are the same to the bit (README, Live)."""
+    - A whole-body model's legs are stepped with the model's eta (1: fresh noise at every
+      step). `legs_eta` 0 makes the hips sway at 0.66-0.74x offline's speed instead of
+      0.49-0.59x, with the upper body and face the same to the bit, but then neither foot
+      settled in the first 3 s of a session on real speech, so it is not the default
+      (README, Live; bench_live --legs-eta)."""
 
     hop: int = 3                       # new frames per window
     lookahead: int = 1                 # frames of audio a window waits for past its new frames
     context: float = 3.0               # seconds of audio the speech features of a window are computed over
     later_start: Optional[int] = 14    # schedule index later windows start from, at 25 steps (None: the model's)
-    legs_eta: Optional[float] = 0.0    # eta of a whole-body model's legs (None: the model's eta)
+    legs_eta: Optional[float] = None   # eta of a whole-body model's legs (None: the model's eta)
 
     def check(self, clip_len: int) -> None:
         for name, value, (lo, hi) in (("hop", self.hop, HOPS), ("lookahead", self.lookahead, LOOKAHEADS)):
