@@ -476,9 +476,7 @@ def plant(motion: Motion, library: LowerBodyLibrary | None = None) -> Motion:
     (`settle`) and each contact foot planted (`plant_feet`); the contact spans and the hips'
     rest height go into its meta."""
     library = _library_for(motion, library)
-    if motion.root_translation is None or not set(JOINTS) <= set(motion.joint_names):
-        raise DiffshegError("planting the feet needs a motion with the hips, legs and root translation "
-                            "of a whole-body model")
+    _check_whole_body(motion)
     sigma = MODEL_SMOOTH_S * motion.fps
     q = quaternion_sequence_continuous(axis_angle_to_quaternion(lower_rotations(motion)))
     q = smooth_frames(q, sigma)
@@ -486,6 +484,18 @@ def plant(motion: Motion, library: LowerBodyLibrary | None = None) -> Motion:
     trans = settle(lower, smooth_frames(motion.root_translation.astype(np.float64), sigma), library)
     lower, spans = plant_feet(lower, trans, motion.fps)
     return with_lower_body(upper_body(motion), lower, trans, spans)
+
+
+def _check_whole_body(motion: Motion) -> None:
+    """Planting needs what a whole-body model makes: the hips, legs and root translation."""
+    if motion.root_translation is None or not set(JOINTS) <= set(motion.joint_names):
+        raise DiffshegError("planting the feet needs a motion with the hips, legs and root translation "
+                            "of a whole-body model")
+
+
+def _no_frames() -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """What a live lower-body stream returns for a hop of no frames."""
+    return np.zeros((0, len(JOINTS), 3)), np.zeros((0, 3)), {side: np.zeros(0, bool) for side in LEGS}
 
 
 def lower_rotations(motion: Motion) -> np.ndarray:
@@ -550,7 +560,7 @@ class LowerBodyStream:
         stream's next n frames)."""
         first, n = len(self.lower), upper.n_frames
         if not n:
-            return np.zeros((0, len(JOINTS), 3)), np.zeros((0, 3)), {side: np.zeros(0, bool) for side in LEGS}
+            return _no_frames()
         self._hear_arms(upper)
         energy = float(np.mean(self._speed[-int(2 * ENERGY_S * self.fps):]))
         margin = int(np.ceil(3 * GROUND_S * self.fps))  # smooth_frames' reach at the floor's sigma
@@ -655,10 +665,8 @@ class PlantStream:
         legs and root translation)."""
         first, n = self._n, part.n_frames
         if not n:
-            return np.zeros((0, len(JOINTS), 3)), np.zeros((0, 3)), {side: np.zeros(0, bool) for side in LEGS}
-        if part.root_translation is None or not set(JOINTS) <= set(part.joint_names):
-            raise DiffshegError("planting the feet needs a motion with the hips, legs and root translation "
-                                "of a whole-body model")
+            return _no_frames()
+        _check_whole_body(part)
         lower, trans = self._smoothed(lower_rotations(part), part.root_translation.astype(np.float64))
         world = _world(lower, trans)
         for side, (ankle, sole) in _feet(world).items():
