@@ -92,7 +92,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     from diffsheg_core.settings import add_arguments
 
     p = argparse.ArgumentParser(prog="batch_render.py", description=__doc__.split("\n\n")[0])
-    p.set_defaults(stems={})  # stem -> how many inputs have it (filled in for a folder)
+    p.set_defaults(stems={}, reports=[])  # stem -> how many inputs have it (a folder); the reports written
     p.add_argument("--audio", help="an audio file or a folder of audio files")
     p.add_argument("--blend", help="scene to open (python mode; with blender, pass it before -P)")
     p.add_argument("--armature", help="armature object name (default: the scene's only armature)")
@@ -102,6 +102,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--output", help="video file (one audio) or folder (several); default out/<audio>.mp4")
     p.add_argument("--no-render", action="store_true", help="generate and key only")
     p.add_argument("--save", help=".blend to save (a folder when several audio files)")
+    p.add_argument("--report", metavar="FILE", help="write each take's report (model, style, Actions, warnings) "
+                                                    "to FILE too; the saved .blend holds it as the Text "
+                                                    "'DiffSHEG report'")
     add_arguments(p)  # every generation option, as the CLI has them
     k = p.add_argument_group("keying")
     k.add_argument("--start-frame", type=int, default=None,
@@ -155,8 +158,9 @@ def script_args() -> list[str]:
 
 def audio_files(source: str) -> list[Path]:
     from diffsheg_core.errors import AudioError
+    from diffsheg_core.files import resolve_path
 
-    path = Path(source).expanduser().resolve()
+    path = resolve_path(source, "audio", AudioError)
     if path.is_dir():
         files = sorted(p for p in path.iterdir() if p.suffix.lower() in AUDIO_SUFFIXES)
         if not files:
@@ -245,7 +249,8 @@ def check_outputs(args, scene, audio: Path, several: bool) -> None:
     if not args.no_render and scene.camera is None:
         raise DiffshegError("the scene has no camera to render with: add one, or pass --no-render")
     check([output_for(args, audio, several, ".blend", args.save) if args.save else None,
-           None if args.no_render else output_for(args, audio, several, ".mp4", args.output)],
+           None if args.no_render else output_for(args, audio, several, ".mp4", args.output),
+           Path(args.report).expanduser() if args.report and not args.reports else None],
           inputs=[audio, *files_read(args.model), bpy.data.filepath or None])
 
 
@@ -257,9 +262,11 @@ def generate_and_write(args, scene, request, label: str, several: bool) -> None:
     result = request.apply(scene, motion)
     seconds = time.perf_counter() - started
     meta = request.made_with(motion)
-    print(f"{label}: {report.report_line(result, seconds)} [model {report.model_label(meta)}]", flush=True)
-    for line in report.warning_lines(result):
-        print(f"{label}: warning: {line}", flush=True)
+    details = report.report_details(result, seconds, report.model_label(meta), meta)
+    report.write_report(details)  # the Text "DiffSHEG report", saved with the .blend
+    if args.report:
+        write_text_report(args, details, several, label)
+    print(one_line(f"{label}: {report.report_line(result, seconds)}"), flush=True)
     audio = request.path
     if args.save:
         path = output_for(args, audio, several, ".blend", args.save)
@@ -275,6 +282,20 @@ def generate_and_write(args, scene, request, label: str, several: bool) -> None:
               f"{scene.render.engine} to {path}", flush=True)
         bpy.ops.render.render(animation=True)
         print(f"{label}: wrote {path}", flush=True)
+
+
+def one_line(text: str, width: int = 120) -> str:
+    """`text` cut to `width` characters, as a console line."""
+    return text if len(text) <= width else text[: width - 3] + "..."
+
+
+def write_text_report(args, details: str, several: bool, label: str) -> None:
+    """The reports of this run so far into args.report (each file of a folder under its label)."""
+    from diffsheg_core.files import atomic_write
+
+    args.reports.append(f"== {label}\n{details}" if several else details)
+    with atomic_write(Path(args.report).expanduser(), "w", encoding="utf-8") as fh:
+        fh.write("\n".join(args.reports))
 
 
 def run_manifest(args) -> int:

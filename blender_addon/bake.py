@@ -92,6 +92,15 @@ def check_frames(start: int, n_frames: int = 1) -> None:
                             f"from {MIN_FRAME} to {MAX_FRAME - n_frames + 1}")
 
 
+def check_range_start(options: BakeOptions) -> None:
+    """Refuse keys before frame 0 when the scene's frame range is to follow them: a scene's
+    range cannot start there (Blender would silently start it at 0)."""
+    if options.set_frame_range and options.start_frame < 0:
+        raise DiffshegError(f"start frame {options.start_frame} is before frame 0, where a scene's frame range "
+                            "must start: start at 0 or later, or keep the scene's frame range as it is "
+                            "(--keep-frame-range; 'Frame range' off in the panel) to key before it")
+
+
 def check_local(objects) -> None:
     """Refuse objects whose animation would not be saved with the file: linked from a
     library, or library overrides (the override's Action lives in the linked file's data)."""
@@ -255,6 +264,7 @@ def plan_keys(scene, motion: Motion, options: BakeOptions) -> Plan:
     options, preset_notes = resolve_preset(motion.rig, options)
     motion = resample_motion(motion, scene_fps(scene))
     check_frames(options.start_frame, motion.n_frames)
+    check_range_start(options)
     matched = map_targets(motion, options, preset_notes)
 
     targets: list[tuple[object, list[Group]]] = []

@@ -7,6 +7,7 @@ from pathlib import Path
 import bpy
 
 from diffsheg_core.errors import DiffshegError
+from diffsheg_core.files import resolve_path
 
 from .keying import Undo
 
@@ -29,7 +30,7 @@ MARK = "diffsheg_audio"  # custom property on the strips this add-on adds: the a
 
 
 def _audio_key(audio_path: str) -> str:
-    return str(Path(audio_path).expanduser().resolve())
+    return str(resolve_path(audio_path, "audio file"))
 
 
 def strips_added_for(scene, audio_path: str) -> list:

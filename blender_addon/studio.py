@@ -28,15 +28,9 @@ from pathlib import Path
 
 from diffsheg_core.errors import DiffshegError
 
-OUTPUT_SUFFIXES = {"blend": ".blend", "fbx_unreal": "_unreal.fbx", "fbx_unity": "_unity.fbx", "glb": ".glb",
-                   "npz": ".npz", "arkit_json": ".json", "csv": ".csv", "mp4": ".mp4"}
-"""Each output kind a manifest asks for -> the end of its file name (out/<id><suffix>)."""
-
 RETRIES = 3  # times Ray runs a line again whose worker died
-
-
-def output_path(out_dir: Path, line_id: str, kind: str) -> Path:
-    return Path(out_dir) / f"{line_id}{OUTPUT_SUFFIXES[kind]}"
+LOOPBACK_ONLY = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+"""Ray's switch for a single-machine Ray on 127.0.0.1 (its default on Windows and macOS), "0"."""
 
 
 # ---------------------------------------------------------------- the worker's side
@@ -46,52 +40,66 @@ _models: dict = {}                # model path (None: bundled) -> loaded ModelBu
 
 
 def process_line(line, out_dir: str) -> dict:
-    """Generate, key and export one manifest line in this (bpy) process, its outputs
-    staged beside their final names in `out_dir` under a name of this attempt's own;
-    returns what the driver records and reports (the outputs' final paths, the attempt's
-    name). Raises DiffshegError for a line that cannot be done."""
-    import bpy
-
+    """Generate one manifest line in this process and write its outputs, keyed onto its
+    character first when it names one (a line without a .blend writes the motion's own
+    files: npz, arkit_json, csv), staged beside their final names in `out_dir` under a name
+    of this attempt's own; returns what the driver records and reports (the outputs' final
+    paths, the attempt's name). Raises DiffshegError for a line that cannot be done."""
     import diffsheg_core
-    from diffsheg_core.manifest import stage_name, staged_path
+    from diffsheg_core.manifest import output_name, stage_name, staged_path
+
+    started = time.perf_counter()
+    generate = lambda: diffsheg_core.generate(  # noqa: E731
+        str(line.audio), settings=replace(line.settings, model=_model(line.settings.model)))
+    staged = stage_name()
+    finals = {kind: Path(out_dir) / output_name(line.id, kind) for kind in line.outputs}
+    paths = {kind: staged_path(out_dir, staged, final.name) for kind, final in finals.items()}
+    try:
+        if line.blend is None:
+            motion = generate()
+            write_outputs(paths, None, None, [], motion)
+            frames, keys = motion.n_frames, 0
+        else:
+            motion, frames, keys = _key_and_write(line, generate, paths)
+    except BaseException:
+        for path in paths.values():
+            path.unlink(missing_ok=True)
+        raise
+    return {"outputs": [str(p) for p in finals.values()], "staged": staged,
+            "frames": frames, "keys": keys, "worker": os.getpid(),
+            "qc": _measure(line, motion, time.perf_counter() - started)}
+
+
+def _key_and_write(line, generate, paths: dict) -> tuple:
+    """Open the line's character, key the generated motion into it as a take, write the
+    outputs, and take the take back out; (motion, frames, keys)."""
+    import bpy
 
     from .bake import bake_motion, keying_options
 
-    started = time.perf_counter()
     _open_character(line.blend)
     scene = bpy.context.scene
     armature, faces = find_targets(scene, line.armature, line.face)
     options = keying_options(scene, armature, faces, line.preset, line.start_frame, every_frame=line.every_frame,
                              max_error=line.max_error, max_face_error=line.max_face_error)
-    motion = diffsheg_core.generate(str(line.audio), settings=replace(line.settings, model=_model(line.settings.model)))
+    motion = generate()
     undo: list = []
-    staged = stage_name(line.id)
-    finals = {kind: output_path(out_dir, line.id, kind) for kind in line.outputs}
-    paths = {kind: staged_path(out_dir, staged, final.name) for kind, final in finals.items()}
     try:
         result = bake_motion(scene, motion, str(line.audio), options, undo)
         write_outputs(paths, scene, armature, faces, motion)
-    except BaseException:
-        for path in paths.values():
-            path.unlink(missing_ok=True)
-        raise
     finally:
         for step in reversed(undo):  # the character as it was, for the next line
             step()
-    return {"outputs": [str(p) for p in finals.values()], "staged": staged,
-            "frames": result.n_frames, "keys": result.n_keys, "worker": os.getpid(),
-            "qc": _measure(line, motion, time.perf_counter() - started)}
+    return motion, result.n_frames, result.n_keys
 
 
-def _open_character(blend) -> None:
+def _open_character(blend: Path) -> None:
     """Open the line's character file, unless it is the one this worker has open."""
     import bpy
 
-    key = str(blend) if blend else None
-    if _opened["blend"] == key and key is not None:
+    key = str(blend)
+    if _opened["blend"] == key:
         return
-    if key is None:
-        raise DiffshegError("the line names no character file (column 'blend', or --blend)")
     bpy.ops.wm.open_mainfile(filepath=key)
     _opened["blend"] = key
 
@@ -210,7 +218,7 @@ def run_manifest(manifest: Path, out_dir: Path, defaults: dict, address: str | N
     """Run every line of `manifest` not done yet on Ray; returns the exit code (0: every
     line done or skipped as done before, 1: some failed; the report says which)."""
     from diffsheg_core import qc
-    from diffsheg_core.manifest import Ledger, read_manifest
+    from diffsheg_core.manifest import Ledger, line_keys, read_manifest
 
     from .preset import available_presets
 
@@ -224,11 +232,12 @@ def run_manifest(manifest: Path, out_dir: Path, defaults: dict, address: str | N
     ledger = Ledger(out_dir)
     for problem in ledger.recover():  # what a killed driver or worker left
         log(problem)
-    rows = [qc.QcRow(id=line.id, status="skipped") for line in lines if ledger.done(line)]
-    todo = [line for line in lines if not ledger.done(line)]
+    keys = line_keys(lines)  # each file hashed once
+    rows = [qc.QcRow(id=line.id, status="skipped") for line in lines if ledger.done(line, keys[line.id])]
+    todo = [line for line in lines if not ledger.done(line, keys[line.id])]
     log(f"{len(lines)} lines: {len(rows)} done before, {len(todo)} to do")
     if todo:
-        rows += _run_on_ray(todo, out_dir, ledger, address, workers, log)
+        rows += _run_on_ray(todo, keys, out_dir, ledger, address, workers, log)
         ledger.clean_staging()  # what workers that died left
     qc.write_report(rows, out_dir)
     failed = sum(r.status == "failed" for r in rows)
@@ -243,8 +252,10 @@ def _style_names(model) -> list[str] | None:
     return stored_style_names(model) or None
 
 
-def _run_on_ray(lines: list, out_dir: Path, ledger, address: str | None, workers: int | None, log) -> list:
-    """Run `lines` as Ray tasks; the QC rows of their results, in the order they finish."""
+def _run_on_ray(lines: list, keys: dict, out_dir: Path, ledger, address: str | None, workers: int | None,
+                log) -> list:
+    """Run `lines` as Ray tasks, recording each done with its key of `keys`; the QC rows of
+    their results, in the order they finish."""
     from diffsheg_core import qc
 
     ray = _start_ray(address, workers)
@@ -257,14 +268,15 @@ def _run_on_ray(lines: list, out_dir: Path, ledger, address: str | None, workers
             line = pending.pop(ready[0])
             try:
                 result = ray.get(ready[0])
-                ledger.commit(line, result["staged"], result["outputs"])
+                ledger.commit(line, result["staged"], result["outputs"], keys[line.id])
             except Exception as exc:  # the line's own error, its worker lost RETRIES times, or an output
                 rows.append(qc.QcRow(id=line.id, status="failed", error=_one_line(exc)))  # not put in place
                 log(f"[{len(lines) - len(pending)}/{len(lines)}] {line.id}: failed: {rows[-1].error}")
                 continue
             rows.append(result["qc"])
+            keyed = f"{result['keys']:,} keys, " if result["keys"] else ""
             log(f"[{len(lines) - len(pending)}/{len(lines)}] {line.id}: done, {result['frames']} frames, "
-                f"{result['keys']:,} keys, {rows[-1].seconds:.1f} s")
+                f"{keyed}{rows[-1].seconds:.1f} s")
         return rows
     except KeyboardInterrupt:  # the lines under way are cancelled; what is recorded stays
         for ref in pending:
@@ -286,9 +298,12 @@ def _task(line, out_dir: str) -> dict:
 
 def _start_ray(address: str | None, workers: int | None):
     """Connect to the cluster at `address` or $RAY_ADDRESS, or start Ray here with a
-    worker per core (`workers` to choose): no usage statistics, no dashboard, the
-    project importable in every worker (the same checkout path on every node)."""
+    worker per core (`workers` to choose) on the loopback address: no usage statistics, no
+    dashboard, the project importable in every worker (the same checkout path on every node)."""
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    address = address or os.environ.get("RAY_ADDRESS") or None
+    if not address:  # one machine: Ray's single-machine mode keeps it on 127.0.0.1, instead of
+        os.environ.setdefault(LOOPBACK_ONLY, "0")  # asking the route to 8.8.8.8 for an address (read at import)
     try:
         import ray
     except ImportError:
@@ -299,7 +314,6 @@ def _start_ray(address: str | None, workers: int | None):
     paths = [root, os.environ.get("PYTHONPATH", "")]
     runtime_env = {"env_vars": {"PYTHONPATH": os.pathsep.join(p for p in paths if p),
                                 "RAY_USAGE_STATS_ENABLED": "0"}}
-    address = address or os.environ.get("RAY_ADDRESS") or None
     if address:
         try:
             ray.init(address=address, runtime_env=runtime_env, log_to_driver=False)
@@ -308,9 +322,9 @@ def _start_ray(address: str | None, workers: int | None):
                                 "on the head)? A cluster with token authentication needs its token here: "
                                 "RAY_AUTH_MODE=token RAY_AUTH_TOKEN=$(ray get-auth-token) on the head's "
                                 "machine, or the token copied over") from None
-    else:
+    else:  # "local": a new Ray, not one `ray start` left
         ray.init(address="local", num_cpus=workers or os.cpu_count(), include_dashboard=False,
-                 runtime_env=runtime_env, log_to_driver=False)  # "local": a new Ray, not one `ray start` left
+                 runtime_env=runtime_env, log_to_driver=False)
     return ray
 
 

@@ -27,6 +27,7 @@ import importlib.util
 import math
 import os
 import re
+import struct
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +38,7 @@ import soundfile as sf
 import soxr
 
 from .errors import AudioError, AudioWarning, DiffshegError
+from .files import resolve_path
 
 SAMPLE_SPEECH = Path(__file__).resolve().parent / "samples" / "sample_speech.wav"
 
@@ -180,6 +182,7 @@ def open_audio_file(path: str | os.PathLike) -> AudioFile | Audio:
         audio = read_audio_file(path)
         check_audio(audio)
         return audio
+    _check_channels(path, info.channels)
     recording = AudioFile(str(path), int(info.samplerate), 0)
     recording.n_samples = _check_pieces(recording)
     note = _warn_if_truncated(path, info, recording.n_samples)
@@ -218,9 +221,10 @@ def read_audio_file(path: str | os.PathLike) -> Audio:
 def check_audio_path(path: str | os.PathLike) -> Path:
     """`path` if it names a readable, non-empty regular file; else an AudioError saying why."""
     path = Path(path)
+    resolve_path(path, "audio file", AudioError)  # a symbolic link loop, named as such
     if path.is_symlink() and not path.exists():
-        raise AudioError(f"audio file '{path}' is a symbolic link to nothing (its target is missing, "
-                         "or the links form a loop): point it at a real file")
+        raise AudioError(f"audio file '{path}' is a symbolic link to nothing (its target is missing): "
+                         "point it at a real file")
     if not path.exists():
         raise AudioError(f"audio file '{path}' does not exist: check the path")
     if path.is_dir():
@@ -235,12 +239,53 @@ def check_audio_path(path: str | os.PathLike) -> Path:
     return path
 
 
+def probe_audio(path: str | os.PathLike) -> None:
+    """Check, without decoding it, that `path` is a sound file this installation reads:
+    libsndfile reads its header, or (other formats) audioread opens it; else an AudioError
+    saying why. What a batch's check pass asks of every line's audio."""
+    path = check_audio_path(path)
+    try:
+        info = sf.info(str(path))
+    except sf.SoundFileError as sf_error:
+        _check_wav_header(path)  # a WAV with a damaged header, named as reading it would
+        try:
+            import audioread
+
+            with audioread.audio_open(str(path)) as decoder:
+                _check_channels(path, decoder.channels)
+                return
+        except AudioError:
+            raise
+        except Exception:  # not installed, or cannot open it: the decoder's own message
+            raise _not_audio(path, sf_error) from None
+    _check_channels(path, info.channels)
+    _check_rate(info.samplerate, f"the sample rate of '{path}'",
+                "its header is wrong or it is not speech; resample it to 16000-48000 Hz")
+
+
+def _not_audio(path: Path, sf_error: Exception) -> AudioError:
+    return AudioError(
+        f"'{path}' could not be decoded as audio ({sf_error}): it is not a sound file, or in a "
+        "format this installation cannot read; convert it to WAV (e.g. `ffmpeg -i IN OUT.wav`)")
+
+
 def _decode_with_soundfile(path: Path) -> tuple[np.ndarray, int]:
     """(N, C) float32 frames via libsndfile, which recognises WAV/FLAC/OGG/MP3 by content.
     A file shorter than its header says is read as far as it goes, with an AudioWarning."""
+    info = sf.info(str(path))
+    _check_channels(path, info.channels)
     frames, rate = sf.read(path, dtype="float32", always_2d=True)
-    _warn_if_truncated(path, sf.info(str(path)), len(frames))
+    _warn_if_truncated(path, info, len(frames))
     return frames, rate
+
+
+def _check_channels(path: Path, channels: int) -> None:
+    """An AudioError unless the header of `path` declares 1 to MAX_CHANNELS channels (a damaged
+    header can declare 0 or 65535: decoded as such, the samples are noise or do not fit)."""
+    if not 1 <= channels <= MAX_CHANNELS:
+        raise AudioError(f"'{path}' declares {channels} channels in its header (speech has 1 or 2, at most "
+                         f"{MAX_CHANNELS} are mixed down): the header is damaged or it is not a speech "
+                         "recording; save it as mono or stereo WAV")
 
 
 def _warn_if_truncated(path: Path, info, n_frames: int) -> Optional[str]:
@@ -260,9 +305,8 @@ def _warn_if_truncated(path: Path, info, n_frames: int) -> Optional[str]:
 
 def _decode_with_audioread(path: Path, sf_error: Exception) -> tuple[np.ndarray, int]:
     """(N, C) float32 frames via audioread (ffmpeg, GStreamer, ...) for what libsndfile cannot read."""
-    not_audio = AudioError(
-        f"'{path}' could not be decoded as audio ({sf_error}): it is not a sound file, or in a "
-        "format this installation cannot read; convert it to WAV (e.g. `ffmpeg -i IN OUT.wav`)")
+    not_audio = _not_audio(path, sf_error)
+    _check_wav_header(path)  # what libsndfile refused may be a WAV with a damaged header
     try:
         import audioread
     except ImportError:
@@ -270,11 +314,53 @@ def _decode_with_audioread(path: Path, sf_error: Exception) -> tuple[np.ndarray,
     try:
         with audioread.audio_open(str(path)) as decoder:
             rate, channels = decoder.samplerate, decoder.channels
+            _check_channels(path, channels)
             pcm = b"".join(decoder)
-    except (audioread.DecodeError, OSError, EOFError):
+    except AudioError:
+        raise
+    except Exception:  # whatever a decoder raises on a damaged file (DecodeError, audioop.error, EOFError, ...)
         raise not_audio from None
-    samples = np.frombuffer(pcm, dtype="<i2").astype(np.float32) / 32768.0
-    return samples.reshape(-1, max(channels, 1)), rate
+    frame = 2 * channels  # 16-bit samples; a partial last frame is dropped
+    samples = np.frombuffer(pcm[: len(pcm) // frame * frame], dtype="<i2").astype(np.float32) / 32768.0
+    return samples.reshape(-1, channels), rate
+
+
+def _check_wav_header(path: Path) -> None:
+    """For a file libsndfile refused: an AudioError naming a header value no recording has
+    (channels, sample rate, PCM sample width) if it is a RIFF/WAVE file, before another
+    decoder reads its data with that header."""
+    header = _wav_format(path)
+    if header is None:
+        return
+    tag, channels, rate, bits = header
+    _check_channels(path, channels)
+    _check_rate(rate, f"the sample rate of '{path}'",
+                "its header is wrong or it is not speech; resample it to 16000-48000 Hz")
+    if tag == 1 and not 1 <= bits <= 32:  # integer PCM (other codecs may declare 0)
+        raise AudioError(f"'{path}' declares {bits} bits per sample in its header (PCM has 8, 16, 24 or 32): "
+                         "the header is damaged; save it again as 16-bit WAV")
+
+
+def _wav_format(path: Path) -> Optional[tuple[int, int, int, int]]:
+    """(format tag, channels, sample rate, bits per sample) of the 'fmt ' chunk of a RIFF/WAVE
+    (or RF64) file; None for other files, or where the header is cut short before them."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(12)
+            if len(head) < 12 or head[:4] not in (b"RIFF", b"RF64") or head[8:] != b"WAVE":
+                return None
+            while len(chunk := fh.read(8)) == 8:
+                size = int.from_bytes(chunk[4:], "little")
+                if chunk[:4] == b"fmt ":
+                    fmt = fh.read(16)
+                    if len(fmt) < 16:
+                        return None
+                    tag, channels, rate, _, _, bits = struct.unpack("<HHIIHH", fmt)
+                    return tag, channels, rate, bits
+                fh.seek(size + (size & 1), os.SEEK_CUR)  # chunks are padded to an even size
+    except OSError:
+        return None
+    return None
 
 
 def _mixdown(frames: np.ndarray) -> np.ndarray:

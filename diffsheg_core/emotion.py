@@ -95,14 +95,25 @@ def check_emotion(spec) -> dict[str, float]:
         name = name.lower() if isinstance(name, str) else name
         if name not in EMOTIONS:
             raise DiffshegError(f"unknown emotion {name!r}: choose one of {', '.join(NAMES)}")
-        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0.0 <= float(value) <= 1.0:
-            raise DiffshegError(f"the intensity of emotion {name!r} must be a number from 0 to 1, got {value!r}")
+        # compared as given: float() of an int beyond the floats overflows; inf and nan fail the bounds
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0.0 <= value <= 1.0:
+            infinite = isinstance(value, numbers.Real) and not isinstance(value, bool) and _infinite(value)
+            raise DiffshegError(f"the intensity of emotion {name!r} must be a{' finite' if infinite else ''} number "
+                                f"from 0 to 1, got {value!r}")
         if name != "neutral" and float(value) > 0:
             out[name] = float(value)
     if sum(out.values()) > 1.0 + 1e-6:
         raise DiffshegError(f"the intensities of emotion {spec!r} add up to {sum(out.values()):g}: give them at "
                             "most 1 in all")
     return out
+
+
+def _infinite(number: numbers.Real) -> bool:
+    """Whether `number` is inf or nan (an int beyond the floats is finite)."""
+    try:
+        return not np.isfinite(float(number))
+    except OverflowError:
+        return False
 
 
 def parse_emotion(text: str) -> dict[str, float]:
@@ -123,11 +134,11 @@ def parse_emotion(text: str) -> dict[str, float]:
 
 def emotion_track(emotion: dict[str, float] | None, changes, n_frames: int, fps: float) -> np.ndarray | None:
     """(T, len(NAMES)) intensity of each emotion per frame: `emotion` until the first of
-    `changes` ((seconds, {name: intensity}), ...), each change's from its frame on, eased.
-    None where every frame is neutral."""
+    `changes` ((seconds, {name: intensity}), ...), each change's from its frame on, eased (a
+    change after the end: never). None where every frame is neutral."""
     track = np.zeros((n_frames, len(NAMES)))
     for (t, spec) in ((0.0, emotion or {}),) + tuple(changes or ()):
-        track[min(n_frames, int(round(t * fps))):] = _row(spec)
+        track[round(min(t * fps, n_frames)):] = _row(spec)  # min first: t * fps may be inf (1e308 s)
     if not track.any():
         return None
     return smooth_frames(track, EASE_S * fps)

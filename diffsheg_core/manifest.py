@@ -35,17 +35,21 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import io
 import json
 import math
 import os
 import secrets
 import time
+import unicodedata
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Collection, Iterable, Iterator, Mapping, Optional
 
+from .audio import probe_audio
 from .emotion import check_emotion
 from .errors import DiffshegError
+from .files import resolve_path
 from .settings import (
     _NUMBERS as settings_numbers, GenerateSettings, _check_emotion_at, _check_style, _check_style_at, check_number,
     parse_emotion_at, parse_style, parse_style_at, parse_whole,
@@ -53,6 +57,18 @@ from .settings import (
 
 OUTPUTS = ("blend", "fbx_unreal", "fbx_unity", "glb", "npz", "arkit_json", "csv", "mp4")
 """The output kinds, in the order a line's outputs are kept."""
+
+OUTPUT_SUFFIXES = {"blend": ".blend", "fbx_unreal": "_unreal.fbx", "fbx_unity": "_unity.fbx", "glb": ".glb",
+                   "npz": ".npz", "arkit_json": ".json", "csv": ".csv", "mp4": ".mp4"}
+"""Each output kind -> the end of its file name (out/<id><suffix>)."""
+
+BATCH_FILES = ("done.jsonl", "report.csv", "report.html")
+"""The files the batch itself writes into the output folder (the ledger, the QC report):
+no line's output may take one of these names."""
+
+MAX_ID_BYTES = 200
+"""The longest id (UTF-8 bytes): an output's staged and temporary names add up to 55 bytes
+to it, and a file name holds at most 255."""
 
 NEEDS_CHARACTER = frozenset({"blend", "fbx_unreal", "fbx_unity", "glb", "mp4"})
 """Outputs that key the motion onto a character, so need its .blend."""
@@ -127,7 +143,7 @@ def read_manifest(path, defaults: Optional[Mapping[str, Any]] = None, presets: C
         line_id = cells.get("id")
         if isinstance(line_id, int) and not isinstance(line_id, bool):
             line_id = str(line_id)  # JSON's "id": 17
-        line_id = line_id.strip() if isinstance(line_id, str) else line_id
+        line_id = line_id.strip() if isinstance(line_id, str) else None  # not text: _line reports it
         duplicate = not _empty(line_id) and line_id in first_row
         if duplicate:
             problems.append(f"row {row}, column id: duplicate id '{line_id}' (also on row {first_row[line_id]})")
@@ -136,11 +152,38 @@ def read_manifest(path, defaults: Optional[Mapping[str, Any]] = None, presets: C
         line = _line(row, cells, base, folder, presets, style_names, problems)
         if line is not None and not duplicate:
             lines.append(line)
+    _check_file_names(lines, problems)
     if not lines and not problems:
         problems.append("no lines: the manifest holds no rows")
     if problems:
         raise ManifestError(path, problems)
     return lines
+
+
+def _check_file_names(lines: list[Line], problems: list[str]) -> None:
+    """A problem for each output that would take a name the batch writes itself, or the name
+    of another line's output on a file system that ignores case (Windows, macOS)."""
+    reserved = {name.casefold(): name for name in BATCH_FILES}
+    taken: dict[str, Line] = {}
+    for line in lines:
+        for kind in line.outputs:
+            name = output_name(line.id, kind)
+            key = name.casefold()
+            if key in reserved:
+                problems.append(f"row {line.row}, column id: the {kind} output of '{line.id}' would be "
+                                f"'{name}', which the batch writes itself ({reserved[key]}): "
+                                "rename the line")
+            elif key in taken and taken[key] is not line:
+                other = taken[key]
+                problems.append(f"row {line.row}, column id: '{line.id}' and '{other.id}' (row {other.row}) "
+                                f"differ only in case, so their outputs '{name}' would overwrite each other on "
+                                "Windows and macOS: rename one")
+            taken.setdefault(key, line)
+
+
+def output_name(line_id: str, kind: str) -> str:
+    """The file name of a line's output of `kind` ('line1' and 'fbx_unreal': line1_unreal.fbx)."""
+    return f"{line_id}{OUTPUT_SUFFIXES[kind]}"
 
 
 def _rows(path: Path, problems: list[str]) -> Iterator[tuple[int, dict[str, Any]]]:
@@ -150,7 +193,8 @@ def _rows(path: Path, problems: list[str]) -> Iterator[tuple[int, dict[str, Any]
     except (OSError, UnicodeDecodeError) as exc:
         raise DiffshegError(f"manifest '{path}' cannot be read ({exc}): save it as UTF-8 text") from None
     if path.suffix.lower() in (".jsonl", ".ndjson"):
-        for number, raw in enumerate(text.splitlines(), start=1):
+        # split at newlines alone: JSON text may hold U+2028 and the like, which splitlines splits at
+        for number, raw in enumerate(text.split("\n"), start=1):
             if not raw.strip():
                 continue
             try:
@@ -163,7 +207,7 @@ def _rows(path: Path, problems: list[str]) -> Iterator[tuple[int, dict[str, Any]
                 continue
             yield number, _known_columns(number, cells, problems)
         return
-    reader = csv.reader(text.splitlines(keepends=True))
+    reader = csv.reader(io.StringIO(text, newline=""))  # rows end at \n, \r\n or \r, never inside a cell
     header = next(reader, None)
     if header is None:
         return
@@ -225,7 +269,11 @@ def _defaults(defaults: Mapping[str, Any], problems: list[str]) -> dict[str, Any
         except DiffshegError as exc:
             problems.append(f"defaults (command line), {name}: {exc}")
     if not _empty(base.get("model")) and isinstance(base["model"], (str, os.PathLike)):
-        model = Path(base["model"]).expanduser().resolve()
+        try:
+            model = resolve_path(base["model"], "model file")
+        except DiffshegError as exc:
+            problems.append(f"defaults (command line), model: {exc}")
+            return base
         if not model.is_file():
             problems.append(f"defaults (command line), model: '{model}' does not exist or is not a file")
         base["model"] = str(model)
@@ -250,8 +298,11 @@ def _line(row: int, cells: dict[str, Any], base: dict[str, Any], folder: Path, p
     if values.get("audio") is None:
         if _empty(cells.get("audio")):
             problems.append(f"row {row}, column audio: no audio file given")
-    else:
-        _check_file(values["audio"], "audio", row, problems)
+    elif _check_file(values["audio"], "audio", row, problems):
+        try:
+            probe_audio(values["audio"])
+        except DiffshegError as exc:
+            problems.append(f"row {row}, column audio: {exc}")
     outputs = values.get("outputs")
     if outputs is None and _empty(cells.get("outputs")):
         problems.append(f"row {row}, column outputs: none asked for: give some of {', '.join(OUTPUTS)} "
@@ -260,8 +311,8 @@ def _line(row: int, cells: dict[str, Any], base: dict[str, Any], folder: Path, p
         needs = ", ".join(o for o in outputs if o in NEEDS_CHARACTER)
         problems.append(f"row {row}, column blend: the outputs {needs} key the motion onto a character: "
                         "give its .blend")
-    if values.get("blend") is not None:
-        _check_file(values["blend"], "blend", row, problems)
+    if values.get("blend") is not None and _check_file(values["blend"], "blend", row, problems):
+        _check_blend(values["blend"], row, problems)
     preset = values.get("preset", AUTO_PRESET)
     if preset.lower().endswith(".json"):
         _check_file(Path(preset), "preset", row, problems)
@@ -288,8 +339,8 @@ def _line(row: int, cells: dict[str, Any], base: dict[str, Any], folder: Path, p
                 outputs=outputs, row=row)
 
 
-def _check_file(path: Path, column: str, row: int, problems: list[str]) -> None:
-    """A problem unless `path` is a readable, non-empty regular file."""
+def _check_file(path: Path, column: str, row: int, problems: list[str]) -> bool:
+    """Whether `path` is a readable, non-empty regular file; a problem if not."""
     if not path.exists():
         why = "does not exist"
     elif not path.is_file():
@@ -299,8 +350,26 @@ def _check_file(path: Path, column: str, row: int, problems: list[str]) -> None:
     elif path.stat().st_size == 0:
         why = "is empty (0 bytes)"
     else:
-        return
+        return True
     problems.append(f"row {row}, column {column}: '{path}' {why}")
+    return False
+
+
+BLEND_MAGIC = (b"BLENDER", b"\x1f\x8b", b"\x28\xb5\x2f\xfd")
+"""How a .blend begins: plain, gzip-compressed (before 3.0) or zstd-compressed."""
+
+
+def _check_blend(path: Path, row: int, problems: list[str]) -> None:
+    """A problem unless `path` begins as a .blend file does."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+    except OSError as exc:
+        problems.append(f"row {row}, column blend: '{path}' cannot be read ({exc.strerror or exc})")
+        return
+    if not head.startswith(BLEND_MAGIC):
+        problems.append(f"row {row}, column blend: '{path}' is not a Blender file: save the character "
+                        "from Blender (File > Save As) and name that file")
 
 
 def _check_style_names(column: str, value, names: list[str], row: int, problems: list[str]) -> None:
@@ -354,10 +423,10 @@ def _parse(name: str, value, folder: Path):
             _check_id(text)
         return text
     if name in ("audio", "blend"):
-        return _path(_text(name, value), folder)
+        return _path(_text(name, value), folder, f"{name} file")
     if name == "preset":
         text = _text(name, value)
-        return str(_path(text, folder)) if text.lower().endswith(".json") else text
+        return str(_path(text, folder, "preset file")) if text.lower().endswith(".json") else text
     if name == "face":
         names = value if isinstance(value, (list, tuple)) else _text(name, value).split(";")
         names = tuple(str(n).strip() for n in names if str(n).strip())
@@ -399,15 +468,21 @@ def _text(name: str, value) -> str:
 
 
 def _check_id(text: str) -> None:
-    """An id names the line's output files: no folders, no hidden names, no control characters."""
-    if any(c in text for c in "/\\:") or text.startswith(".") or any(ord(c) < 32 for c in text):
+    """An id names the line's output files: no folders, no hidden names, no control
+    characters or line breaks, short enough for a file name with its staged prefix."""
+    if any(c in text for c in "/\\:") or text.startswith(".") \
+            or any(unicodedata.category(c) in ("Cc", "Zl", "Zp") for c in text):
         raise DiffshegError(f"id {text!r} cannot name a file: use letters, digits, '-' and '_' "
-                            "(no '/', '\\', ':' or leading '.')")
+                            "(no '/', '\\', ':', leading '.', control characters or line breaks)")
+    size = len(text.encode("utf-8"))
+    if size > MAX_ID_BYTES:
+        raise DiffshegError(f"id '{text[:40]}...' is {size} bytes long, too long to name its files: "
+                            f"keep ids to {MAX_ID_BYTES} bytes")
 
 
-def _path(text: str, folder: Path) -> Path:
+def _path(text: str, folder: Path, what: str) -> Path:
     path = Path(text).expanduser()
-    return (path if path.is_absolute() else folder / path).resolve()
+    return resolve_path(path if path.is_absolute() else folder / path, what)
 
 
 def _argument(parse, text: str):
@@ -465,23 +540,32 @@ KEY_IGNORES = ("model", "threads")
 identity, and the thread count does not change the result."""
 
 
-def line_key(line: Line) -> str:
+def line_key(line: Line, digests: Optional[dict] = None) -> str:
     """sha256 (hex) over everything that decides a line's outputs: the audio file's bytes,
     the .blend's bytes (and a preset .json's), every generation setting but the thread count,
     the character and keying fields, the outputs, the software version and the model file's
-    identity (`model_identity`). Not the id, nor where the files lie."""
+    identity (`model_identity`). Not the id, nor where the files lie. `digests`: what
+    earlier calls hashed (see `line_keys`)."""
     from . import __version__
+
+    digests = {} if digests is None else digests
+
+    def digest(what: str, path, make) -> str:
+        if (what, str(path)) not in digests:
+            digests[what, str(path)] = make(path)
+        return digests[what, str(path)]
 
     s = line.settings
     settings = {f.name: getattr(s, f.name) for f in fields(s) if f.name not in KEY_IGNORES}
     preset = line.preset
     if preset.lower().endswith(".json"):
-        preset = "json:" + file_digest(preset)
+        preset = "json:" + digest("file", preset, file_digest)
+    by_path = s.model is None or isinstance(s.model, (str, os.PathLike))  # else a loaded bundle, by its id
     record = {
         "version": __version__,
-        "model": model_identity(s.model),
-        "audio": file_digest(line.audio),
-        "blend": None if line.blend is None else file_digest(line.blend),
+        "model": digest("model", s.model, model_identity) if by_path else model_identity(s.model),
+        "audio": digest("file", line.audio, file_digest),
+        "blend": None if line.blend is None else digest("file", line.blend, file_digest),
         "settings": settings,
         "armature": line.armature, "face": line.face, "preset": preset,
         "start_frame": line.start_frame, "max_error": line.max_error, "max_face_error": line.max_face_error,
@@ -489,6 +573,13 @@ def line_key(line: Line) -> str:
     }
     text = json.dumps(record, sort_keys=True, default=_jsonable, separators=(",", ":"))
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def line_keys(lines: Iterable[Line]) -> dict[str, str]:
+    """`line_key` of each line by id, hashing each file once however many lines name it: a
+    10,000-line rerun of one character reads its .blend once, not 10,000 times."""
+    digests: dict = {}
+    return {line.id: line_key(line, digests) for line in lines}
 
 
 def _jsonable(value):
@@ -648,10 +739,11 @@ class Ledger:
                                     "the next run puts it there") from None
 
 
-def stage_name(line_id: str) -> str:
-    """A new name for one attempt at line `line_id` to stage its outputs under (see
-    Ledger); each attempt has its own, so a retried line starts clean."""
-    return f"{line_id}.{secrets.token_hex(6)}"
+def stage_name() -> str:
+    """A new name for one attempt at a line to stage its outputs under (see Ledger); each
+    attempt has its own, so a retried line starts clean. It does not hold the line's id,
+    which the staged files' names hold once already (see MAX_ID_BYTES)."""
+    return secrets.token_hex(8)
 
 
 def staged_path(out_dir, staged: str, name: str) -> Path:

@@ -92,14 +92,16 @@ def style_vector(bundle: ModelBundle, weights: dict[int, float]) -> np.ndarray:
 
 def style_track(bundle: ModelBundle, style: Optional[StyleSpec], style_at, n_frames: int) -> Optional[np.ndarray]:
     """(n_frames, style_dim) style input of every frame: `style` until the first change of
-    `style_at` ((seconds, style), ...), then each change's style from its frame on. None
-    when nothing changes over time. A window is sampled with the mean over its frames
-    (`make_eps_fn_factory`), so a change is blended in over about one window."""
+    `style_at` ((seconds, style), ...), then each change's style from its frame on (a change
+    after the speech's end: never). None when nothing changes over time. A window is sampled
+    with the mean over its frames (`make_eps_fn_factory`), so a change is blended in over
+    about one window."""
     if not style_at:
         return None
     track = np.repeat(style_vector(bundle, style_weights(bundle, style)), n_frames, axis=0)
-    for seconds, spec in style_at:
-        track[int(round(seconds * bundle.config.fps)):] = style_vector(bundle, style_weights(bundle, spec))
+    for seconds, spec in style_at:  # min first: seconds * fps may be inf (1e308 s), which round() refuses
+        frame = round(min(seconds * bundle.config.fps, n_frames))
+        track[frame:] = style_vector(bundle, style_weights(bundle, spec))
     return track
 
 

@@ -317,13 +317,30 @@ def _cells(row: QcRow) -> list[str]:
     return [_cell(values[name]) for name in COLUMNS]
 
 
+_FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+"""What makes a spreadsheet read a cell as a formula (OWASP's CSV injection list)."""
+
+
+def _inert(cell: str) -> str:
+    """A text cell a spreadsheet shows as text: one starting like a formula gets a leading
+    apostrophe (numbers are written as they are: '-0.5' stays a number)."""
+    if cell.startswith(_FORMULA_STARTS):
+        try:
+            float(cell)
+            return cell
+        except ValueError:
+            return "'" + cell
+    return cell
+
+
 def report_csv(rows: Sequence[QcRow]) -> str:
-    """The report as CSV text, a header row and one row per line, flagged first."""
+    """The report as CSV text, a header row and one row per line, flagged first; text that
+    a spreadsheet would run as a formula (an id '=HYPERLINK(...)') is written inert."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(COLUMNS)
     for row in ordered(rows):
-        writer.writerow(_cells(row))
+        writer.writerow([_inert(cell) for cell in _cells(row)])
     return buffer.getvalue()
 
 

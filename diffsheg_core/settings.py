@@ -80,21 +80,26 @@ _NUMBERS = (("steps", "steps", STEPS, True), ("overlap", "overlap", OVERLAP, Tru
 
 
 def _check_style(style) -> StyleSpec:
-    """`style` if it has the form of a style (a numpy integer as an int); which styles a model
-    has is checked against the model (pipeline.style_weights)."""
+    """`style` if it has the form of a style (a numpy integer as an int), its weights finite
+    numbers >= 0; which styles a model has is checked against the model (pipeline.style_weights)."""
     if isinstance(style, numbers.Integral) and not isinstance(style, bool):
         return int(style)
     if isinstance(style, bool) or not isinstance(style, (int, str, dict)):
         raise DiffshegError(f"style must be a style index, a style name or weights over styles "
                             f"(e.g. {{'calm': 0.7, 'animated': 0.3}}), got {style!r}")
+    if isinstance(style, dict):
+        for name, weight in style.items():
+            if _plain_number(weight, whole=False) is None or weight < 0:
+                raise DiffshegError(f"the weight of style {name!r} must be a finite number >= 0, got {weight!r}: "
+                                    "give weights such as calm=0.7,animated=0.3 (only their ratio counts)")
     return style
 
 
 def _check_changes(changes, name: str, check, example: str) -> tuple | None:
     """Changes of `name` over time as ((seconds, check(value)), ...) sorted by time, each time
-    a number >= 0 given once; None for none."""
+    a finite number >= 0 given once (one after the speech's end never takes effect); None for none."""
     try:
-        items = [(check_number(f"{name} change time (seconds)", t, (0.0, math.inf)), check(value))
+        items = [(_check_change_time(name, t, example), check(value))
                  for t, value in (changes.items() if isinstance(changes, dict) else changes)]
     except (TypeError, ValueError):
         raise DiffshegError(f"{name}_at must be (seconds, {name}) pairs, e.g. {example}, got {changes!r}") from None
@@ -103,6 +108,22 @@ def _check_changes(changes, name: str, check, example: str) -> tuple | None:
         raise DiffshegError(f"{name}_at gives {'an' if name[0] in 'aeiou' else 'a'} {name} twice for the same "
                             f"time: {sorted(times)}")
     return tuple(sorted(items, key=lambda item: item[0])) or None
+
+
+def _check_change_time(name: str, seconds, example: str) -> float:
+    """`seconds` as a float if it is a finite number >= 0; else a DiffshegError (inf and nan named)."""
+    if isinstance(seconds, numbers.Real) and not isinstance(seconds, bool) and not _finite(seconds):
+        raise DiffshegError(f"{name}_at: the {name} change time {seconds!r} is not a finite number of seconds: "
+                            f"give the seconds from the start of the speech, e.g. {example}")
+    return check_number(f"{name} change time (seconds)", seconds, (0.0, math.inf))
+
+
+def _finite(number: numbers.Real) -> bool:
+    """Whether `number` is finite (an int beyond the floats is)."""
+    try:
+        return math.isfinite(number)
+    except OverflowError:
+        return True
 
 
 def _check_style_at(changes) -> tuple[tuple[float, StyleSpec], ...] | None:
@@ -235,6 +256,9 @@ def parse_style(text: str) -> StyleSpec:
             weights[name] = float(value)
         except ValueError:
             raise argparse.ArgumentTypeError(f"style weight {part!r} is not name=number (e.g. calm=0.7)") from None
+        if not math.isfinite(weights[name]) or weights[name] < 0:
+            raise argparse.ArgumentTypeError(f"style weight {part.strip()!r} must be a finite number >= 0 "
+                                             "(e.g. calm=0.7,animated=0.3)")
     return weights
 
 
@@ -254,6 +278,10 @@ def _parse_changes(text: str, form: str, example: str, parse) -> tuple[tuple[flo
             seconds = float(key)
         except ValueError:
             seconds = None
+        if seconds is not None and not math.isfinite(seconds):
+            raise argparse.ArgumentTypeError(f"{part.strip()!r} in {text!r}: {key.strip()} is not a finite number "
+                                             f"of seconds; give the seconds from the start of the speech (e.g. "
+                                             f"{example})")
         if seconds is not None and rest:
             entries.append([seconds, [rest]])
         elif entries and rest:

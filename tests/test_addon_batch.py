@@ -12,6 +12,7 @@ import pytest
 from addon_fixtures import (HAS_AUDIO, REPO, SPEECH, SPEECH_2, append_face, bpy, cut_speech,
                             import_beat_armature, reset_scene)
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
+from system_tools import require_program
 
 from blender_addon.keying import fcurves_of
 from blender_addon.sound import sound_strips
@@ -67,6 +68,7 @@ def test_folder_without_render_saves_keyed_scenes(clips, scene_blend, tmp_path):
 
 
 def test_folder_with_tiny_workbench_render_writes_videos_with_audio(clips, scene_blend, tmp_path):
+    ffprobe = require_program("ffprobe", "ffmpeg")
     out = tmp_path / "renders"
     proc = _batch("--blend", str(scene_blend), "--audio", str(clips), "--steps", "5",
                   "--device", "cpu", "--output", str(out), cwd=tmp_path)
@@ -74,10 +76,9 @@ def test_folder_with_tiny_workbench_render_writes_videos_with_audio(clips, scene
     for stem in ("scott", "zhao"):
         video = out / f"{stem}.mp4"
         assert video.is_file() and video.stat().st_size > 1000
-        if shutil.which("ffprobe"):
-            streams = subprocess.run(["ffprobe", "-v", "error", "-show_entries", "stream=codec_type",
-                                      "-of", "csv=p=0", str(video)], capture_output=True, text=True).stdout
-            assert sorted(streams.split()) == (["audio", "video"] if HAS_AUDIO else ["video"])
+        streams = subprocess.run([ffprobe, "-v", "error", "-show_entries", "stream=codec_type",
+                                  "-of", "csv=p=0", str(video)], capture_output=True, text=True).stdout
+        assert sorted(streams.split()) == (["audio", "video"] if HAS_AUDIO else ["video"])
 
 
 def test_failure_is_one_line_and_a_nonzero_exit(scene_blend, tmp_path):
@@ -171,3 +172,35 @@ def test_regenerate_a_range_of_a_saved_take_keeping_the_face(scene_blend, tmp_pa
         assert max(abs(values[i] - body2[path][i]) for i in outside) < 1e-5, path
         moved = max(moved, max(abs(a - b) for a, b in zip(values, body2[path])))
     assert moved > 0.05
+
+
+def test_the_saved_scene_holds_the_report_and_the_console_gets_one_short_line(scene_blend, tmp_path):
+    """Issue 41, item 6: the saved .blend has the Text 'DiffSHEG report' (model, style,
+    Actions, warnings), --report FILE holds it too, each take prints one line of at most 120
+    characters; a negative start frame with the scene's range is refused by name, and keys
+    before frame 0 with --keep-frame-range."""
+    speech = cut_speech(tmp_path, seconds=1.0)
+    proc = _batch("--blend", str(scene_blend), "--audio", str(speech), "--preset", "beat", "--steps", "2",
+                  "--no-render", "--save", str(tmp_path / "take.blend"), "--report", str(tmp_path / "take.txt"),
+                  cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    done = [l for l in proc.stdout.splitlines() if " frames, " in l and " keys, " in l]
+    assert len(done) == 1 and len(done[0]) <= 120, proc.stdout
+    assert all(len(l) <= 120 for l in proc.stdout.splitlines()), proc.stdout
+    details = (tmp_path / "take.txt").read_text(encoding="utf-8")
+    assert "model: diffsheg-default" in details and "actions: " in details
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "take.blend"))
+    assert bpy.data.texts["DiffSHEG report"].as_string() == details
+
+    refused = _batch("--blend", str(scene_blend), "--audio", str(speech), "--preset", "beat", "--steps", "2",
+                     "--no-render", "--start-frame", "-100", "--save", str(tmp_path / "neg.blend"), cwd=tmp_path)
+    assert refused.returncode == 1 and "Traceback" not in refused.stderr
+    assert "start frame -100 is before frame 0" in refused.stderr and "--keep-frame-range" in refused.stderr
+    assert not (tmp_path / "neg.blend").exists()
+    kept = _batch("--blend", str(scene_blend), "--audio", str(speech), "--preset", "beat", "--steps", "2",
+                  "--no-render", "--start-frame", "-100", "--keep-frame-range", "--save", str(tmp_path / "neg.blend"),
+                  cwd=tmp_path)
+    assert kept.returncode == 0, kept.stderr[-2000:]
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "neg.blend"))
+    curves = fcurves_of(bpy.context.scene.objects["2_scott_0_1_1"])
+    assert curves[0].keyframe_points[0].co[0] == -100

@@ -21,6 +21,7 @@ import pytest
 from addon_fixtures import (REPO, append_face, bpy, build_mixamo_armature, build_unreal_body_armature, cut_speech,
                             import_beat_armature, import_readyplayerme, reset_scene)
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
+from system_tools import require_program
 
 import diffsheg_core
 from blender_addon import exports
@@ -265,7 +266,7 @@ def _validate(path: Path) -> dict:
     node = shutil.which("node")
     if node is None:
         if sys.platform.startswith("linux"):
-            pytest.fail("node is missing: install Node.js 18+ and npm, then run tools/install_node_tools.sh")
+            node = require_program("node", "nodejs")
         pytest.skip("node is missing: the glTF validator runs on Node.js")
     if not VALIDATOR.is_file():
         subprocess.run(["bash", str(REPO / "tools" / "install_node_tools.sh")], check=True, timeout=300)

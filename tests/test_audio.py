@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import math
-import shutil
+import struct
 import subprocess
 import sys
 import warnings
@@ -15,10 +15,12 @@ import numpy as np
 import pytest
 import soundfile as sf
 
+from system_tools import require_program
+
 from diffsheg_core.audio import (
     HUBERT_REPO_ID, MEL_FILTERS, SAMPLE_SPEECH, Audio, resampled_length,
     hubert_status, load_audio, mel_features, mel_filter_key, mel_spectrogram, n_motion_frames,
-    resample,
+    open_audio_file, resample,
 )
 from diffsheg_core.errors import AudioError, DiffshegError
 from diffsheg_core.torch_layer.hubert import hubert_features
@@ -114,8 +116,8 @@ def test_arrays_of_any_layout_and_dtype_give_the_same_mono(zhao_clip):
     assert audio.samples.dtype == np.float32 and audio.path is None
 
 
-@pytest.mark.skipif(shutil.which("ffmpeg") is None, reason="ffmpeg is not installed")
 def test_formats_libsndfile_cannot_read_fall_back_to_audioread(tmp_path, zhao_clip):
+    require_program("ffmpeg", "ffmpeg")
     mono, rate = zhao_clip
     wav, m4a = tmp_path / "speech.wav", tmp_path / "speech.m4a"
     sf.write(wav, mono, rate)
@@ -301,6 +303,80 @@ def test_bad_files_raise_audio_error_naming_file_and_problem(tmp_path, case):
         load_audio(path)
     assert str(path) in str(error.value)
     assert problem in str(error.value)
+
+
+def _damaged_header(tmp: Path, offset: int, fmt: str, value: int) -> Path:
+    """Four seconds of real speech (ZHAO) as 16-bit mono WAV (a 44-byte header), whose 'fmt '
+    field at `offset` is overwritten with `value`: 22 channels, 24 sample rate, 32 block
+    align, 34 bits per sample."""
+    path = _write(tmp / f"damaged_{offset}_{value}.wav", _speech(4 * 16000))
+    data = bytearray(path.read_bytes())
+    assert data[12:16] == b"fmt " and data[36:40] == b"data"
+    struct.pack_into(fmt, data, offset, value)
+    path.write_bytes(bytes(data))
+    return path
+
+
+CHANNELS_FIX, RATE_FIX, BITS_FIX = ("save it as mono or stereo WAV", "resample it to 16000-48000 Hz",
+                                   "save it again as 16-bit WAV")
+DAMAGED_HEADERS = {  # case: (offset, struct format, value, what the message says, the fix it gives)
+    "65535_channels": (22, "<H", 65535, "declares 65535 channels", CHANNELS_FIX),
+    "0_channels": (22, "<H", 0, "declares 0 channels", CHANNELS_FIX),
+    "17_channels": (22, "<H", 17, "declares 17 channels", CHANNELS_FIX),
+    "rate_0": (24, "<I", 0, "(0 Hz) is outside 4000-384000", RATE_FIX),
+    "rate_4294967295": (24, "<I", 0xFFFFFFFF, "(4294967295 Hz) is outside 4000-384000", RATE_FIX),
+    "0_bits": (34, "<H", 0, "declares 0 bits per sample", BITS_FIX),
+    "64_bits": (34, "<H", 64, "declares 64 bits per sample", BITS_FIX),
+    "65535_bits": (34, "<H", 65535, "declares 65535 bits per sample", BITS_FIX),
+}
+
+
+@pytest.mark.parametrize("audioread", ["installed", "absent"])
+@pytest.mark.parametrize("case", list(DAMAGED_HEADERS))
+def test_a_wav_header_no_recording_has_is_named_with_the_fix(tmp_path, monkeypatch, case, audioread):
+    """Issue 43 (b): a header declaring 65535 channels reached audioread's fallback, whose
+    samples did not fit (`ValueError: cannot reshape`); 0 channels, an absurd rate or sample
+    width likewise. Each is an AudioError naming the value and the fix, for a whole file
+    (load_audio) and a recording read in pieces (open_audio_file, which live file sources
+    use), with or without audioread."""
+    offset, fmt, value, problem, fix = DAMAGED_HEADERS[case]
+    path = _damaged_header(tmp_path, offset, fmt, value)
+    if audioread == "absent":
+        monkeypatch.setitem(sys.modules, "audioread", None)  # `import audioread` raises ImportError
+    for read in (load_audio, open_audio_file):
+        with pytest.raises(AudioError) as error:
+            read(path)
+        message = str(error.value)
+        assert str(path) in message and problem in message and fix in message, message
+
+
+def test_a_wrong_block_align_or_byte_rate_is_read_as_the_samples_say(tmp_path):
+    """The block align and byte rate of a 'fmt ' chunk are redundant: a wrong one does not
+    change the samples."""
+    speech = load_audio(_write(tmp_path / "speech.wav", _speech(4 * 16000))).samples
+    for offset, fmt, value in ((32, "<H", 0), (32, "<H", 7), (32, "<H", 65535), (28, "<I", 0)):
+        np.testing.assert_array_equal(load_audio(_damaged_header(tmp_path, offset, fmt, value)).samples, speech)
+
+
+def test_a_channel_count_only_the_fallback_decoder_reads_is_named_too(tmp_path):
+    """A Sun/NeXT .au header declaring 65535 channels: libsndfile refuses it, audioread's own
+    reader opens it and reported the 65535 channels that did not fit the samples."""
+    audioread = pytest.importorskip("audioread")
+    path = tmp_path / "speech.au"
+    sf.write(path, _speech(4 * 16000), 16000, format="AU", subtype="PCM_16")
+    data = bytearray(path.read_bytes())
+    assert data[:4] == b".snd" and struct.unpack_from(">I", data, 20) == (1,)
+    struct.pack_into(">I", data, 20, 65535)  # the channel count of the .au header
+    path.write_bytes(bytes(data))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # audioread's aifc, audioop, sunau on 3.11
+        with audioread.audio_open(str(path)) as decoder:
+            assert decoder.channels == 65535
+        for read in (load_audio, open_audio_file):
+            with pytest.raises(AudioError) as error:
+                read(path)
+            message = str(error.value)
+            assert f"'{path}' declares 65535 channels in its header" in message and CHANNELS_FIX in message, message
 
 
 BAD_ARRAYS = {

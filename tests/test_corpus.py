@@ -11,13 +11,15 @@ import numpy as np
 import pytest
 import soundfile as sf
 
+from system_tools import require_library, require_program
+
 from diffsheg_core.audio import Audio, load_audio, n_motion_frames
 from diffsheg_core.bvh import bvh_to_motion, read_bvh
 from diffsheg_core.training.corpus.__main__ import main
 from diffsheg_core.training.corpus.augment import SAMPLE_RATE, AugmentSpec, augment
 from diffsheg_core.training.corpus.build import BuildConfig, build, make_utterance, read_manifest, utterance_specs
 from diffsheg_core.training.corpus.phones import SILENCE, check_phones, phones_from_textgrid
-from diffsheg_core.training.corpus.synthesis import FLITE_VOICES, VoiceSpec, engine_available, synthesize
+from diffsheg_core.training.corpus.synthesis import FLITE_VOICES, VoiceSpec, synthesize
 from diffsheg_core.training.corpus.teacher import load_utterance, teach
 from diffsheg_core.training.corpus.texts import fortune_files, load_texts, split_utterances
 from diffsheg_core.errors import DiffshegError
@@ -76,15 +78,15 @@ def test_espeak_gives_exact_phone_timings_and_stress():
     _check_timings_fit_speech(synth)
 
 
-@pytest.mark.skipif(not engine_available("festival"), reason="festival is not installed")
 def test_festival_gives_exact_phone_timings_and_stress():
+    require_program("festival", "festival")
     synth = synthesize(" ".join(SENTENCES), VoiceSpec("festival", "kal_diphone"))
     _check_timings_fit_speech(synth)
 
 
-@pytest.mark.skipif(not engine_available("flite"), reason="flite is not installed")
 @pytest.mark.parametrize("name", FLITE_VOICES)
 def test_flite_gives_exact_phone_timings_and_stress(name):
+    require_library("flite", "flite")
     synth = synthesize(" ".join(SENTENCES), VoiceSpec("flite", name, stretch=1.1, f0_shift=0.9))
     # flite's parametric voices keep voicing through the closure of b (slt about as loud
     # as a vowel), as festival's HTS voice does, and start a stop with the transition into
@@ -97,9 +99,9 @@ def test_flite_gives_exact_phone_timings_and_stress(name):
 def test_unknown_voices_and_engines_are_named():
     with pytest.raises(DiffshegError, match="unknown speech engine 'mbrola'"):
         synthesize("Hello.", VoiceSpec("mbrola", "us1"))
-    if engine_available("flite"):
-        with pytest.raises(DiffshegError, match="flite has no voice 'cmu_us_nobody'"):
-            synthesize("Hello.", VoiceSpec("flite", "cmu_us_nobody"))
+    require_library("flite", "flite")
+    with pytest.raises(DiffshegError, match="flite has no voice 'cmu_us_nobody'"):
+        synthesize("Hello.", VoiceSpec("flite", "cmu_us_nobody"))
 
 
 def test_a_requested_engine_that_is_not_installed_stops_the_build(tmp_path, monkeypatch):
@@ -139,8 +141,8 @@ def test_augmentation_retimes_phones():
     assert np.isfinite(y).all() and np.abs(y).max() < 1.0
 
 
-@pytest.mark.skipif(not engine_available("flite"), reason="flite is not installed")
 def test_band_limits_apply_to_a_16khz_voice_pitched_down():
+    require_library("flite", "flite")
     synth = synthesize(SENTENCES[0], VoiceSpec("flite", "cmu_us_rms"))
     assert synth.sample_rate == SAMPLE_RATE
     spec = AugmentSpec(pad=(0.1, 0.1), pitch_cents=-380.0, band=(150.0, 7400.0), level_db=-25.0)

@@ -7,6 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from system_tools import require_path
+
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.training.corpus.__main__ import main
 from diffsheg_core.training.corpus.build import LANGUAGE_INDEX_START, BuildConfig, build, read_manifest
@@ -15,6 +17,7 @@ from diffsheg_core.training.corpus.languages import BY_CODE, LANGUAGES, check_la
 from diffsheg_core.training.corpus.phones import SILENCE, check_phones, from_espeak
 from diffsheg_core.training.corpus.synthesis import VoiceSpec, espeak_voice, synthesize
 from diffsheg_core.training.corpus.teacher import load_utterance
+from diffsheg_core.training.corpus.texts import FORTUNES_DIR
 from diffsheg_core.phonetic import VOWELS
 
 BILABIAL_WORDS = {
@@ -69,6 +72,7 @@ def test_unknown_languages_are_named_with_the_choices(tmp_path, capsys):
 
 
 def test_a_build_adds_other_languages_beside_english_and_resumes(tmp_path):
+    require_path(FORTUNES_DIR, "fortunes")  # the build's default English texts
     config = BuildConfig(out=tmp_path / "c", hours=4 / 3600, jobs=1, seed=2, engines=("espeak",))
     english = build(config, progress=False)
     before = (config.out / "manifest.jsonl").read_text()

@@ -226,8 +226,44 @@ def test_a_machine_that_falls_behind_says_so(tmp_path, speech, model):
     result = session.run_to_end()
     assert result.dropped_seconds == 0 and session.load() > 1.0
     assert session.load() == pytest.approx(16 * result.compute / (result.motion.n_frames / result.motion.fps), rel=0.05)
+    assert result.load == session.load()  # the recording carries the figure the CLI reports
     assert "falling behind: " in session.status() and "s of compute a second" in session.status()
     assert any(w.startswith("the machine was falling behind") for w in result.motion.meta["warnings"])
+
+
+def test_a_machine_too_slow_for_the_hop_widens_it_and_never_drifts(tmp_path, speech, model):
+    """Issue 39, item 4: 8 s of real speech played at 1.5x real time, more than a 2-core
+    machine makes at hops of 3 frames (1.1-1.2 s of compute a second at 1x). The session takes the frames that wait in wider windows (up
+    to max_hop), says so once in its status line and the recording, keeps its latency
+    bounded (the last second's no worse than the first's plus a hop), drops no audio, and
+    records every frame heard. With the hop held at 3 (max_hop 3) the same session falls
+    seconds behind."""
+    clip = tmp_path / "speech.wav"
+    sf.write(clip, speech.samples, speech.sample_rate)
+    bundle, network = model
+
+    def run(live: LiveConfig):
+        session = LiveSession(FileSource(clip, speed=1.5), GenerateSettings(seed=0), live=live, bundle=bundle,
+                              network=network)
+        result = session.run_to_end()
+        return session, result, [lat for _, lat in result.latencies]
+
+    session, result, latencies = run(LiveConfig())
+    assert result.dropped_seconds == 0 and result.error is None
+    assert result.audio.duration == pytest.approx(speech.duration, abs=0.05)  # every sample heard ...
+    assert result.motion.n_frames == n_motion_frames(result.audio, result.motion.fps)  # ... and every frame
+    widest = result.motion.meta["live"]["widest_hop"]
+    assert 3 < widest <= LiveConfig().max_hop
+    assert f"hops up to {widest} frames to keep up (too slow for 3)" in session.status()
+    assert any(w.startswith("the session sampled hops up to") for w in result.motion.meta["warnings"])
+    tail = np.percentile(latencies[-15:], 95)
+    held_session, held, held_latencies = run(LiveConfig(max_hop=3))
+    print(f"at 1.5x: latency p95 {np.percentile(latencies, 95):.2f} s (last second {tail:.2f} s), widest hop "
+          f"{widest}; hop held at 3: p95 {np.percentile(held_latencies, 95):.2f} s, last second "
+          f"{np.percentile(held_latencies[-15:], 95):.2f} s")
+    assert held.motion.meta["live"]["widest_hop"] == 3 and "falling behind" in held_session.status()
+    assert tail < np.percentile(held_latencies[-15:], 95) - 0.5  # held, it drifts; widened, it does not
+    assert tail < 1.5
 
 
 def test_the_engine_refuses_what_live_cannot_do(model):
@@ -242,6 +278,9 @@ def test_the_engine_refuses_what_live_cannot_do(model):
         LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(later_start=25))
     with pytest.raises(DiffshegError, match="legs_eta"):
         LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(legs_eta=-0.5))
+    for max_hop in (2, 17, 3.5):
+        with pytest.raises(DiffshegError, match="max_hop must be a whole number of frames from the hop"):
+            LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(max_hop=max_hop))
     with pytest.raises(DiffshegError, match="4000 Hz or more"):
         LiveEngine(bundle, network, GenerateSettings(), 100)
 
@@ -408,7 +447,36 @@ def test_a_session_that_hears_nothing_ends_cleanly(tmp_path, model):
     thread.join(60)
     result = out["result"]
     assert result.error is None and result.motion.n_frames == 0
+    assert result.load is None and session.load() is None  # nothing heard: no compute per second to report
     assert result.motion.joint_names[-len(LEG_JOINTS):] == list(LEG_JOINTS)
     proc = subprocess.run([sys.executable, "-m", "diffsheg_core", "live", "--source", "tcp://127.0.0.1:5093",
                            "--speed", "2"], capture_output=True, text=True, timeout=60)
     assert proc.returncode != 0 and "--speed plays a speech file faster" in proc.stderr, proc.stderr
+
+
+def test_the_live_cli_on_port_0_says_its_port_and_no_compute_figure_for_a_short_take(tmp_path, speech, model):
+    """`--source tcp://127.0.0.1:0` listens on a free port and says which, so a producer can
+    connect; a take too short to judge (1 s) reports no compute per second of speech (not
+    the compute over almost no audio)."""
+    import re
+
+    clip = Audio(speech.samples[: speech.sample_rate], speech.sample_rate)
+    with open(tmp_path / "stderr.txt", "w") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "diffsheg_core", "live", "--source", "tcp://127.0.0.1:0"],
+                                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=err, text=True,
+                                env={**os.environ, "DIFFSHEG_THREADS": "1"})
+    try:
+        deadline, found = time.monotonic() + 60, None
+        while found is None and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+            found = re.search(r"listening on tcp://127\.0\.0\.1:(\d+) \(16000 Hz int16\)",
+                              (tmp_path / "stderr.txt").read_text())
+        assert found is not None and int(found.group(1)) > 0, (tmp_path / "stderr.txt").read_text()
+        with socket.create_connection(("127.0.0.1", int(found.group(1))), timeout=10) as sock:
+            sock.sendall(_pcm(clip))
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, (tmp_path / "stderr.txt").read_text()
+    frames = n_motion_frames(clip, model[0].config.fps)
+    assert out.startswith(f"{frames} frames (1.0 s of audio); latency p50") and "compute" not in out, out

@@ -18,6 +18,8 @@ import numpy as np
 import pytest
 import soundfile as sf
 
+from system_tools import require_library
+
 from diffsheg_core.audio import load_audio
 from diffsheg_core.errors import AudioError, DiffshegError
 from diffsheg_core.live.feed import AudioFeed, FeedClosed
@@ -343,8 +345,9 @@ print(json.dumps({"status": status, "description": mic.description, "running": r
 def test_a_real_portaudio_stream_from_an_alsa_device_playing_speech(tmp_path, mandarin_pcm):
     """MicSource on a real PortAudio input stream: an ALSA `file` device whose capture side
     reads real speech (float32) stands in for a microphone. ALSA reads ~/.asoundrc, so the
-    script runs with HOME in a temporary folder. Needs PortAudio (libportaudio2): skipped
+    script runs with HOME in a temporary folder. Needs PortAudio (libportaudio2): fails
     without it. The null device has no clock: it records far faster than real time."""
+    require_library("portaudio", "libportaudio2")
     speech = mandarin_pcm.astype(np.float32) / 32768
     (tmp_path / "speech.f32").write_bytes(speech.astype("<f4").tobytes())
     (tmp_path / ".asoundrc").write_text(
@@ -375,3 +378,59 @@ def test_a_tcp_address_may_allow_remote_producers_when_asked():
         open_source("tcp://0.0.0.0:0")
     source = open_source("tcp://0.0.0.0:0?allow_remote=1")
     assert source.allow_remote and not source.keep_listening
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.mark.parametrize("query, words", [
+    ("?allow_remote=", "allow_remote needs a value: allow_remote=1 to listen beyond loopback, or leave it out"),
+    ("?allow_remote", "allow_remote needs a value: allow_remote=1 to listen beyond loopback, or leave it out"),
+    ("?rate=16000&allow_remote=", "allow_remote needs a value"),
+    ("?allow_remote=maybe", "allow_remote must be 1 or 0, got 'maybe': allow_remote=1 to listen beyond loopback"),
+    ("?allow_remote=%20", "allow_remote must be 1 or 0, got ' '"),
+    ("?allow_remote=1&allow_remote=", "allow_remote is given twice ('1' and ''): give it once"),
+    ("?allow_remote=&allow_remote=1", "allow_remote is given twice"),
+    ("?allow_remote=0", "reachable from other computers"),
+    ("?allow_remote=false", "reachable from other computers"),
+    ("?allow_remote=no", "reachable from other computers"),
+    ("?keep_listening=&allow_remote=1", "keep_listening needs a value: keep_listening=1 to wait"),
+    ("?keep_listening&allow_remote=1", "keep_listening needs a value"),
+    ("?keep_listening=2&allow_remote=1", "keep_listening must be 1 or 0, got '2'"),
+    ("?rate=16000&rate=&allow_remote=1", "rate is given twice"),
+    ("?rate=&allow_remote=1", "rate must be a whole number of Hz, got '': e.g. rate=16000"),
+    ("?=1&allow_remote=1", "unknown option"),
+])
+@pytest.mark.parametrize("host", ["0.0.0.0", "[::]"])
+def test_an_empty_or_malformed_tcp_option_is_refused_and_nothing_listens(host, query, words):
+    """A template with an unset variable (`?allow_remote=$ALLOW`) must not open the avatar
+    to the network: no value, a bad one or a repeated one is an error naming the fix."""
+    port = _free_port()
+    spec = f"tcp://{host}:{port}{query}"
+    with pytest.raises(DiffshegError, match=words.replace("?", r"\?").replace("(", r"\(").replace(")", r"\)")):
+        open_source(spec)
+    with pytest.raises(ConnectionRefusedError):  # nothing was bound on the port
+        socket.create_connection(("127.0.0.1", port), timeout=1).close()
+
+
+@pytest.mark.parametrize("spec", ["tcp://0:5005", "tcp://[::]:5005", "tcp://[::ffff:0.0.0.0]:5005",
+                                  "tcp://user@0.0.0.0:5005", "tcp://:5005?allow_remote=1"])
+def test_no_other_form_of_address_listens_beyond_loopback_unasked(spec):
+    with pytest.raises(DiffshegError, match="allow_remote=1|tcp://HOST:PORT"):
+        open_source(spec)
+
+
+def test_tcp_flags_are_explicit_yes_or_no():
+    for value, yes in (("1", True), ("true", True), ("YES", True), ("0", False), ("False", False), ("no", False)):
+        source = open_source(f"tcp://127.0.0.1:0?keep_listening={value}&allow_remote={value}")
+        assert source.keep_listening is yes and source.allow_remote is yes
+    for value in ("", "0", "false", 1, None):  # bool("0") would be a yes: only True or False
+        with pytest.raises(DiffshegError, match="allow_remote must be True or False"):
+            TcpSource("0.0.0.0", 0, allow_remote=value)
+    with pytest.raises(DiffshegError, match="keep_listening must be True or False"):
+        TcpSource("127.0.0.1", 0, keep_listening="")
+    with pytest.raises(DiffshegError, match="host is text"):
+        TcpSource(None, 0, allow_remote=True)

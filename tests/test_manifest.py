@@ -207,7 +207,7 @@ def test_an_output_that_cannot_be_put_in_place_is_put_there_next_run_or_the_line
     out.mkdir()
     line = line_of(project, SPEECH)
     finals = [out / "l1.blend", out / "l1.npz"]
-    attempt, dead = stage_name("l1"), stage_name("l1")
+    attempt, dead = stage_name(), stage_name()
     assert attempt != dead
     for name, staged in ((f.name, s) for f in finals for s in (attempt, dead)):
         staged_path(out, staged, name).write_bytes(f"{staged} {name}".encode())
@@ -266,3 +266,87 @@ def test_upper_body_only_is_a_flag_column(project):
     bad = write(project / "bad.csv", f"id,audio,upper_body_only,outputs\na,{SPEECH},seated,npz\n")
     with pytest.raises(ManifestError, match="row 2, column upper_body_only: upper_body_only must be 1 or 0"):
         read_manifest(bad, {}, PRESETS, STYLES)
+
+
+def test_no_output_takes_a_name_the_batch_writes_itself_or_another_lines_in_another_case(project):
+    """id 'report' with a csv output would be overwritten by the QC report (issue 43, defect
+    2); ids differing only in case overwrite each other on Windows and macOS."""
+    manifest = write(project / "lines.csv", "id,audio,outputs\n"
+                     f"report,{SPEECH},npz;csv\nREPORT,{SPEECH2},csv\nreport2,{SPEECH},csv\n"
+                     f"Take,{SPEECH},npz\ntake,{SPEECH2},npz;csv\n")
+    with pytest.raises(ManifestError) as caught:
+        read_manifest(manifest, {}, PRESETS, STYLES)
+    problems = caught.value.problems
+    assert problems[:2] == [
+        "row 2, column id: the csv output of 'report' would be 'report.csv', which the batch writes itself "
+        "(report.csv): rename the line",
+        "row 3, column id: the csv output of 'REPORT' would be 'REPORT.csv', which the batch writes itself "
+        "(report.csv): rename the line"]
+    assert problems[2].startswith("row 6, column id: 'take' and 'Take' (row 5) differ only in case")
+    assert len(problems) == 3
+    ok = write(project / "ok.csv", f"id,audio,outputs\nreport,{SPEECH},npz;arkit_json\ndone,{SPEECH2},npz\n")
+    assert [l.id for l in read_manifest(ok, {}, PRESETS, STYLES)] == ["report", "done"]
+
+
+def test_ids_too_long_for_a_file_name_are_refused_by_the_check(project):
+    longest, too_long = "a" * 190 + "é" * 5, "b" * 199 + "é"  # 200 and 201 bytes (defect 5)
+    manifest = write(project / "lines.csv", f"id,audio,outputs\n{longest},{SPEECH},npz\n{too_long},{SPEECH},npz\n")
+    with pytest.raises(ManifestError) as caught:
+        read_manifest(manifest, {}, PRESETS, STYLES)
+    assert caught.value.problems == [f"row 3, column id: id '{too_long[:40]}...' is 201 bytes long, too long to "
+                                     "name its files: keep ids to 200 bytes"]
+
+
+def test_the_check_reports_every_row_where_one_would_have_stopped_it(project):
+    """A symlink loop as audio and a JSON row whose id is a list are rows with problems like
+    any other, each with its row number (defect 7), beside a corrupt audio file, a text file
+    named .blend and an infinite style weight (defect 9)."""
+    (project / "loop.wav").symlink_to(project / "loop.wav")
+    corrupt = project / "corrupt.wav"
+    corrupt.write_bytes(b"RIFF\x00\x00\x00\x00WAVEfmt " + bytes(range(64)))
+    (project / "notes.blend").write_text("a text file")
+    rows = [{"id": ["a", "b"], "audio": str(SPEECH), "outputs": "npz"},
+            {"id": "loop", "audio": "loop.wav", "outputs": "npz"},
+            {"id": "corrupt", "audio": str(corrupt), "outputs": "npz"},
+            {"id": "text", "audio": str(SPEECH), "blend": "notes.blend", "outputs": "blend"},
+            {"id": "inf", "audio": str(SPEECH), "style": "calm=1e309", "outputs": "npz"},
+            {"id": "fine", "audio": str(SPEECH), "outputs": "npz"}]
+    manifest = write(project / "lines.jsonl", "\n".join(json.dumps(r) for r in rows) + "\n")
+    with pytest.raises(ManifestError) as caught:
+        read_manifest(manifest, {}, PRESETS, STYLES)
+    problems = caught.value.problems
+    assert [p.split(",")[0] for p in problems] == ["row 1", "row 2", "row 3", "row 4", "row 5"], problems
+    assert problems[0] == "row 1, column id: id must be text, got ['a', 'b']"
+    assert "loop.wav' is a symbolic link that leads back to itself" in problems[1]
+    assert problems[2].startswith("row 3, column audio:") and "the header is damaged" in problems[2]
+    assert problems[3].startswith("row 4, column blend:") and "is not a Blender file" in problems[3]
+    assert problems[4].startswith("row 5, column style:") and "calm" in problems[4]
+
+
+@pytest.mark.parametrize("separator", ["\x85", "\u2028", "\u2029", "\x0b", "\x0c", "\x1c", "\x1d", "\x1e"])
+def test_a_line_break_inside_a_cell_keeps_the_rows_and_their_numbers(project, separator):
+    """Unicode's other line breaks inside a CSV cell split no row (defect 8): the id holding one
+    is refused on its own row, and the rows after keep their numbers."""
+    manifest = write(project / "lines.csv", f"id,audio,outputs\na{separator}b,{SPEECH},npz\nc,{SPEECH},npz\n"
+                                            f"d,{SPEECH},tiff\n")
+    with pytest.raises(ManifestError) as caught:
+        read_manifest(manifest, {}, PRESETS, STYLES)
+    problems = caught.value.problems
+    assert len(problems) == 2, problems
+    assert problems[0].startswith("row 2, column id:") and "line breaks" in problems[0]
+    assert problems[1].startswith("row 4, column outputs: unknown output 'tiff'")
+
+
+def test_a_run_hashes_each_file_once(project, monkeypatch):
+    """10,000 lines of one character hash its .blend once, not once per line (defect 10)."""
+    from diffsheg_core import manifest as manifest_module
+
+    rows = "".join(f"l{i},{SPEECH if i % 2 else SPEECH2},chars/hero.blend,blend\n" for i in range(50))
+    lines = read_manifest(write(project / "lines.csv", "id,audio,blend,outputs\n" + rows), {}, PRESETS, STYLES)
+    hashed = []
+    real = manifest_module.file_digest
+    monkeypatch.setattr(manifest_module, "file_digest", lambda path, *a: hashed.append(str(path)) or real(path))
+    keys = manifest_module.line_keys(lines)
+    assert sorted(hashed) == sorted({str(SPEECH), str(SPEECH2), str(project / "chars" / "hero.blend")})
+    monkeypatch.undo()
+    assert keys == {line.id: line_key(line) for line in lines}

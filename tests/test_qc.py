@@ -2,6 +2,7 @@
 bundled model, the flags, and the report files."""
 
 import csv
+import io
 from pathlib import Path
 
 import numpy as np
@@ -127,3 +128,19 @@ def test_the_report_lists_flagged_lines_first_escaped(tmp_path):
     write_report(rows[:1], tmp_path / "out")
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["report.csv", "report.html"]
     assert csv_path.read_text(encoding="utf-8") == report_csv(rows[:1])
+
+
+def test_the_csv_report_writes_formula_like_text_inert():
+    """An id or error a spreadsheet would run as a formula is written with a leading
+    apostrophe; numbers, negative ones too, stay numbers (issue 43, defect 3)."""
+    rows = [QcRow('=HYPERLINK("http://x.example","click")', "failed", error="+1 bad"),
+            QcRow("@SUM(A1)", "skipped"), QcRow("-2+3", "skipped"), QcRow("\tx", "skipped"),
+            QcRow("plain", "done", audio_seconds=2.0, frames=30, seconds=0.6, realtime_factor=0.3,
+                  mouth_voice=-0.25, gesture_energy=0.9, audio_peak=0.5)]
+    table = list(csv.DictReader(io.StringIO(report_csv(rows))))
+    ids = {r["id"] for r in table}
+    assert ids == {"'=HYPERLINK(\"http://x.example\",\"click\")", "'@SUM(A1)", "'-2+3", "'\tx", "plain"}
+    failed = next(r for r in table if r["status"] == "failed")
+    assert failed["error"] == "'+1 bad" and failed["flags"] == "failed: +1 bad"
+    assert next(r for r in table if r["id"] == "plain")["mouth_voice"] == "-0.25"
+    assert not any(cell.startswith(("=", "+", "@", "\t")) for r in table for cell in r.values())

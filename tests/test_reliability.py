@@ -219,9 +219,70 @@ def test_odd_audio_files_are_named_for_what_they_are(tmp_path, speech):
     (tmp_path / "loop2.wav").symlink_to(loop)
     folder = tmp_path / "folder.wav"
     folder.mkdir()
-    for path, match in ((fifo, "not a regular file"), (loop, "symbolic link to nothing"), (folder, "is a folder")):
+    dangling = tmp_path / "gone.wav"
+    dangling.symlink_to(tmp_path / "deleted.wav")
+    for path, match in ((fifo, "not a regular file"), (loop, "symbolic link that leads back to itself"),
+                        (dangling, "symbolic link to nothing"), (folder, "is a folder")):
         with pytest.raises(AudioError, match=match):
             load_audio(path)
+
+
+def test_a_symbolic_link_loop_as_audio_is_named_in_one_line(speech, tmp_path):
+    """Issue 43 (a): `generate loop.wav` where loop.wav -> loop.wav ended in `RuntimeError:
+    Symlink loop` from the output check (Python 3.11's Path.resolve)."""
+    loop = tmp_path / "loop.wav"
+    loop.symlink_to(loop)
+    result = cli(str(loop), "-o", str(tmp_path / "out.npz"))
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert result.stderr.strip().splitlines() == [
+        f"error: audio file '{loop}' is a symbolic link that leads back to itself (directly or through other "
+        "links, a loop): point it at a real file, or give another path"]
+    assert not (tmp_path / "out.npz").exists()
+
+
+def test_a_symbolic_link_loop_as_output_is_refused_before_generating(speech, tmp_path):
+    """An output that is a loop, or lies in a folder that is one, for each output option."""
+    (tmp_path / "self.npz").symlink_to(tmp_path / "self.npz")
+    (tmp_path / "a.bvh").symlink_to(tmp_path / "b.bvh")
+    (tmp_path / "b.bvh").symlink_to(tmp_path / "a.bvh")
+    (tmp_path / "loopdir").symlink_to(tmp_path / "loopdir")
+    for option, output, problem in (("-o", tmp_path / "self.npz", "is a symbolic link that leads back to itself"),
+                                    ("--bvh", tmp_path / "a.bvh", "is a symbolic link that leads back to itself"),
+                                    ("-o", tmp_path / "loopdir" / "m.npz", "goes through a symbolic link that "
+                                                                           "leads back to itself"),
+                                    ("--csv", tmp_path / "loopdir" / "face.csv", "goes through a symbolic link")):
+        rest = [] if option == "-o" else ["-o", str(tmp_path / "m.npz")]
+        result = cli(str(speech), *rest, option, str(output))
+        assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"error: output '{output}' {problem}"), lines
+        assert "frames at" not in result.stdout  # refused up front: nothing was generated
+    assert not (tmp_path / "m.npz").exists() and (tmp_path / "self.npz").is_symlink()
+
+
+def test_resolve_path_follows_links_and_names_a_loop(speech, tmp_path):
+    """files.resolve_path, the one place a user's path is followed (the manifest reader uses it too)."""
+    from diffsheg_core.files import atomic_write, check_output, resolve_path
+
+    link = tmp_path / "link.wav"
+    link.symlink_to(speech)
+    assert resolve_path(link, "audio file") == speech.resolve()
+    assert resolve_path(tmp_path / "new" / "m.npz") == tmp_path.resolve() / "new" / "m.npz"  # need not exist
+    loop = tmp_path / "loop.wav"
+    loop.symlink_to(tmp_path / "loop2.wav")
+    (tmp_path / "loop2.wav").symlink_to(loop)
+    with pytest.raises(DiffshegError, match=f"^line 3 audio '{loop}' is a symbolic link that leads back to itself"):
+        resolve_path(loop, "line 3 audio")
+    with pytest.raises(AudioError, match="audio file .* leads back to itself"):
+        resolve_path(str(loop), "audio file", AudioError)
+    with pytest.raises(DiffshegError, match="goes through a symbolic link that leads back to itself"):
+        resolve_path(loop / "inside.wav")
+    with pytest.raises(DiffshegError, match="output .* leads back to itself"):
+        check_output(loop)
+    with pytest.raises(DiffshegError, match="output .* leads back to itself"):
+        with atomic_write(loop) as fh:
+            fh.write(b"never")
+    assert loop.is_symlink() and not list(tmp_path.glob(".*partial"))
 
 
 def test_a_wav_cut_short_of_its_header_is_generated_with_a_warning(speech, tmp_path):

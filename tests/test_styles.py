@@ -231,3 +231,78 @@ def test_style_over_time_with_the_bundled_model_on_real_speech(data_dir, tmp_pat
 def test_bad_style_changes_are_refused(changes, match):
     with pytest.raises(DiffshegError, match=match):
         GenerateSettings(style_at=changes)
+
+
+def test_a_change_after_the_speech_never_takes_effect(speech, styled, tmp_path):
+    """Issue 43 (c): `--style-at 0=calm,1e308=animated` and `--emotion-at 0=happy,1e308=sad`
+    overflowed (1e308 s x 15 fps is inf, which round() refuses). A change after the end of
+    the speech never takes effect: the motion is that of the style or emotion before it."""
+    from diffsheg_core.emotion import emotion_track
+    from diffsheg_core.motion import Motion
+    from diffsheg_core.pipeline import style_track
+
+    for seconds in (1e308, 1.7976931348623157e308, 60.0):
+        assert (style_track(styled, "animated", ((0, "calm"), (seconds, "animated")), 30) == [[1, 0, 0]]).all()
+        np.testing.assert_array_equal(emotion_track({"happy": 1.0}, ((seconds, {"sad": 1.0}),), 30, 15.0),
+                                      emotion_track({"happy": 1.0}, None, 30, 15.0))
+    settings = GenerateSettings(steps=2, style_at=((0, "calm"), (1e308, "animated")),
+                                emotion_at=((0, "happy"), (1e308, "sad")))
+    assert settings.style_at[1][0] == settings.emotion_at[1][0] == 1e308
+    motion = generate(speech, settings=settings)
+    before = generate(speech, steps=2, style="calm", emotion="happy")
+    np.testing.assert_array_equal(motion.rotations, before.rotations)
+    np.testing.assert_array_equal(motion.face, before.face)
+    assert motion.meta["style_at"][1] == [1e308, {"animated": 1.0}] and motion.meta["emotion_at"][1][0] == 1e308
+    for option, value, kept in (("--style-at", "0=calm,1e308=animated", dict(style="calm")),
+                                ("--emotion-at", "0=happy,1e308=sad", dict(emotion="happy"))):
+        out = tmp_path / f"{option[2:]}.npz"
+        proc = subprocess.run([sys.executable, "-m", "diffsheg_core", "generate", str(speech), "-o", str(out),
+                               "--steps", "2", option, value], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+        expected = generate(speech, steps=2, **kept)
+        np.testing.assert_allclose(Motion.load_npz(out).rotations, expected.rotations, atol=1e-5)
+
+
+NOT_FINITE = "is not a finite number of seconds; give the seconds from the start of the speech"
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--style-at", "0=calm,inf=animated"], f"'inf=animated' in '0=calm,inf=animated': inf {NOT_FINITE}"),
+    (["--style-at", "nan=calm"], f"nan {NOT_FINITE}"),
+    (["--style-at", "0=calm,1e309=animated"], f"1e309 {NOT_FINITE}"),
+    (["--emotion-at", "0=happy,-inf=sad"], f"-inf {NOT_FINITE}"),
+    (["--style", "calm=1e309"], "style weight 'calm=1e309' must be a finite number >= 0"),
+    (["--style", "calm=0.5,animated=inf"], "style weight 'animated=inf' must be a finite number >= 0"),
+    (["--style-at", "0=calm,5=calm=nan,animated=1"], "style weight 'calm=nan' must be a finite number >= 0"),
+    (["--emotion", "happy=1e309"], "the intensity of emotion 'happy' must be a finite number from 0 to 1, got inf"),
+    (["--emotion-at", "0=sad=nan"], "the intensity of emotion 'sad' must be a finite number from 0 to 1, got nan"),
+])
+def test_the_cli_refuses_non_finite_times_and_weights_in_one_line(speech, tmp_path, args, message):
+    """Issue 43 (c, d): an infinite or NaN change time, style weight or emotion intensity is
+    refused with the option, the value and what to give, before anything is generated."""
+    proc = subprocess.run([sys.executable, "-m", "diffsheg_core", "generate", str(speech), "-o",
+                           str(tmp_path / "m.npz"), "--steps", "2", *args], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    error = [line for line in proc.stderr.splitlines() if "error:" in line]
+    assert len(error) == 1 and f"argument {args[0]}: " in error[0] and message in error[0], proc.stderr
+    assert not (tmp_path / "m.npz").exists()
+
+
+@pytest.mark.parametrize("settings,match", [
+    (dict(style_at=((0, "calm"), (float("inf"), "animated"))),
+     r"style_at: the style change time inf is not a finite number of seconds: give the seconds"),
+    (dict(style_at={float("nan"): "calm"}), "the style change time nan is not a finite number of seconds"),
+    (dict(emotion_at=((np.float64("inf"), "sad"),)), "the emotion change time inf is not a finite number"),
+    (dict(style={"calm": float("inf")}), r"the weight of style 'calm' must be a finite number >= 0, got inf"),
+    (dict(style={"calm": 1, "animated": np.float32("nan")}), "the weight of style 'animated' must be a finite"),
+    (dict(style={"calm": -1}), "the weight of style 'calm' must be a finite number >= 0, got -1"),
+    (dict(style_at=((0, {"calm": float("inf")}),)), "the weight of style 'calm' must be a finite number"),
+    (dict(emotion={"happy": float("inf")}), "the intensity of emotion 'happy' must be a finite number from 0 to 1"),
+    (dict(emotion={"happy": 10 ** 400}), "the intensity of emotion 'happy' must be a number from 0 to 1"),
+    (dict(emotion_at=((0, {"sad": float("nan")}),)), "the intensity of emotion 'sad' must be a finite number"),
+])
+def test_settings_refuse_non_finite_times_and_weights(settings, match):
+    """The same checks where the add-on and batch_render.py make their settings."""
+    with pytest.raises(DiffshegError, match=match):
+        GenerateSettings(**settings)

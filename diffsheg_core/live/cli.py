@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     from ..settings import from_arguments
     from .engine import LiveConfig
     from .session import LiveSession, latency_summary
-    from .sources import FileSource, open_source
+    from .sources import FileSource, TcpSource, open_source
 
     record = Path(args.record) if args.record else None
     audio_out = record.with_suffix(".wav") if record else None
@@ -66,10 +66,15 @@ def run(args: argparse.Namespace) -> int:
     session = LiveSession(source, settings, live)
     sender = _vmc_sender(args.osc, session) if args.osc else None
     mood = ", ".join(f"{k} {v:g}" for k, v in (settings.emotion or {}).items()) or "neutral"
-    print(f"live from {source.description}, model {session.bundle.model_id}, hop {live.hop} frames, "
-          f"{'upper body only' if session.legs is None else 'whole body'}, emotion {mood}"
-          f"{f', VMC to {args.osc}' if sender else ''}; Ctrl-C ends, a line (sad, happy=0.5, neutral) "
-          "changes the emotion", file=sys.stderr)
+
+    def started() -> None:
+        """Say what runs once the source has started: a socket's port is then known (port 0)."""
+        where = (f"listening on {source.description} for raw 16-bit mono PCM" if isinstance(source, TcpSource)
+                 else f"live from {source.description}")
+        print(f"{where}, model {session.bundle.model_id}, hop {live.hop} frames, "
+              f"{'upper body only' if session.legs is None else 'whole body'}, emotion {mood}"
+              f"{f', VMC to {args.osc}' if sender else ''}; Ctrl-C ends, a line (sad, happy=0.5, neutral) "
+              "changes the emotion", file=sys.stderr, flush=True)
 
     threading.Thread(target=_emotions_from, args=(sys.stdin, session), name="diffsheg-live-emotion",
                      daemon=True).start()
@@ -79,7 +84,8 @@ def run(args: argparse.Namespace) -> int:
             sender.send(frame.rotations, frame.face, frame.time, frame.root_translation)
 
     try:
-        result = session.run_to_end(show, on_status=lambda line: print(f"\r{line:<90}", end="", file=sys.stderr))
+        result = session.run_to_end(show, on_status=lambda line: print(f"\r{line:<90}", end="", file=sys.stderr),
+                                    on_start=started)
     finally:
         if sender is not None:
             sender.close()
@@ -87,9 +93,10 @@ def run(args: argparse.Namespace) -> int:
     summary = latency_summary(result.latencies)
     shown = (f"latency p50 {summary['p50']:.3f} s, p95 {summary['p95']:.3f} s, max {summary['max']:.3f} s"
              if result.latencies else "no frame was shown")
-    print(f"{result.motion.n_frames} frames ({result.audio.duration:.1f} s of audio); {shown}; compute {result.compute / max(result.audio.duration, 1e-9):.2f} s "
-          f"per s of speech" + (f"; {result.underrun_seconds:.1f} s without audio filled with silence"
-                                if result.underrun_seconds else "")
+    pace = f" at {args.speed:g}x" if args.speed != 1.0 else ""
+    compute = "" if result.load is None else f"; compute {result.load:.2f} s per s of speech{pace}"  # None: too little
+    print(f"{result.motion.n_frames} frames ({result.audio.duration:.1f} s of audio); {shown}{compute}"
+          + (f"; {result.underrun_seconds:.1f} s without audio filled with silence" if result.underrun_seconds else "")
           + (f"; {result.dropped_seconds:.1f} s of audio dropped (it came faster than real time)"
              if result.dropped_seconds else ""))
     if record is not None and result.motion.n_frames:

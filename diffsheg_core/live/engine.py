@@ -57,9 +57,14 @@ class LiveConfig:
       step). `legs_eta` 0 makes the hips sway at 0.66-0.74x offline's speed instead of
       0.49-0.59x, with the upper body and face the same to the bit, but then neither foot
       settled in the first 3 s of a session on real speech, so it is not the default
-      (README, Live; bench_live --legs-eta)."""
+      (README, Live; bench_live --legs-eta).
+    - A machine too slow for the hop does not fall behind: when two hops or more of audio
+      wait, the next window takes them all, up to `max_hop` frames (a window costs about the
+      same for any hop), so the latency stays bounded and no audio is dropped; the status
+      line and the recording say so. `max_hop` = `hop` turns that off."""
 
     hop: int = 3                       # new frames per window
+    max_hop: int = 12                  # frames a window may take when more are waiting: a slow machine keeps up
     lookahead: int = 1                 # frames of audio a window waits for past its new frames
     context: float = 3.0               # seconds of audio the speech features of a window are computed over
     later_start: Optional[int] = 14    # schedule index later windows start from, at 25 steps (None: the model's)
@@ -73,6 +78,10 @@ class LiveConfig:
         if self.hop >= clip_len:
             raise DiffshegError(f"live hop must be shorter than the model's {clip_len}-frame window, "
                                 f"got {self.hop}")
+        if isinstance(self.max_hop, bool) or not isinstance(self.max_hop, int) \
+                or not self.hop <= self.max_hop <= min(HOPS[1], clip_len - 1):
+            raise DiffshegError(f"live max_hop must be a whole number of frames from the hop ({self.hop}) to "
+                                f"{min(HOPS[1], clip_len - 1)} (the hop: never wider), got {self.max_hop!r}")
         if self.later_start is not None and (isinstance(self.later_start, bool)
                                              or not isinstance(self.later_start, int)
                                              or not 0 <= self.later_start < LIVE_STEPS):
@@ -132,6 +141,7 @@ class LiveEngine:
         self._n = 0
         self._frames: list[np.ndarray] = []  # emitted (k, D) normalised frames, in order
         self.emitted = 0
+        self.widest_hop = 0  # the most frames one window took
 
     # --- audio in --------------------------------------------------------------------
     def push(self, samples: np.ndarray) -> None:
@@ -158,14 +168,28 @@ class LiveEngine:
 
     def ready(self) -> bool:
         """Whether the audio of the next hop and its lookahead has arrived."""
-        return self.heard_frames >= self.emitted + self.live.hop + self.live.lookahead
+        return self.waiting >= self.live.hop
+
+    @property
+    def waiting(self) -> int:
+        """Frames not emitted yet whose audio and lookahead have arrived."""
+        return self.heard_frames - self.live.lookahead - self.emitted
 
     # --- frames out ------------------------------------------------------------------
-    def step(self) -> np.ndarray:
-        """Sample the next hop; (hop, D) normalised frames, final."""
-        if not self.ready():
-            raise DiffshegError("live: the next hop's audio has not arrived yet")
-        return self._window(self.emitted + self.live.hop)
+    def step(self, hop: Optional[int] = None) -> np.ndarray:
+        """Sample the next `hop` frames (default the live hop; at most `waiting`); (hop, D)
+        normalised frames, final."""
+        hop = self.live.hop if hop is None else hop
+        if not self.ready() or not 1 <= hop <= min(self.waiting, self.bundle.config.clip_len - 1):
+            raise DiffshegError(f"live: the audio of the next {hop} frames has not arrived yet")
+        return self._window(self.emitted + hop)
+
+    def next_hop(self) -> int:
+        """How many frames the next window takes: the live hop, or, when two hops or more are
+        waiting (the machine fell behind), as many as wait, up to `max_hop`: a window costs
+        about the same whatever its hop, so wider ones catch up."""
+        waiting = self.waiting
+        return self.live.hop if waiting < 2 * self.live.hop else min(waiting, self.live.max_hop)
 
     def finish(self) -> np.ndarray:
         """Sample the frames of the audio left after the last full hop (possibly none, or
@@ -186,6 +210,7 @@ class LiveEngine:
         check_finite(self.bundle, new)
         self._frames.append(new)
         self.emitted = end
+        self.widest_hop = max(self.widest_hop, len(new))
         return new
 
     def _known(self, first: int) -> np.ndarray:
@@ -224,7 +249,8 @@ class LiveEngine:
     def meta(self) -> dict:
         """What a recording records of how it was made (as `generate`, plus the live settings)."""
         meta = generation_meta(self.bundle, self.settings, self.plan, self.network, self.audio())
-        meta["live"] = {"hop": self.live.hop, "lookahead": self.live.lookahead, "context": self.live.context,
+        meta["live"] = {"hop": self.live.hop, "max_hop": self.live.max_hop, "widest_hop": self.widest_hop,
+                        "lookahead": self.live.lookahead, "context": self.live.context,
                         "legs_eta": self.sampler.branch_eta if self.sampler.branch else None}
         return meta
 

@@ -123,6 +123,7 @@ class LiveResult:
     underrun_seconds: float   # silence filled in while the source gave no audio
     dropped_seconds: float    # audio the full feed dropped
     error: Optional[str] = None  # why the source or the engine stopped, when it was not the end of the audio
+    load: Optional[float] = None  # LiveSession.load() at the end: None when too little speech was heard to judge
 
 
 def latency_summary(latencies: list[tuple[float, float]]) -> dict[str, float]:
@@ -238,7 +239,7 @@ class LiveSession:
             motion = with_lower_body(motion, self.legs.lower, self.legs.trans, self.legs.contacts())
             motion = replace(motion, meta={**motion.meta, "lower_body": self.legs_source})
         return LiveResult(motion, engine.audio(), list(self.latencies), self.compute,
-                          self.underrun_seconds, self.feed.dropped_seconds, self.error)
+                          self.underrun_seconds, self.feed.dropped_seconds, self.error, self.load())
 
     def load(self) -> Optional[float]:
         """Seconds of compute per second of speech made so far, for the source's pace (a file
@@ -255,10 +256,19 @@ class LiveSession:
             return None
         return f"falling behind: {load:.1f} s of compute a second (a larger hop or fewer steps helps)"
 
+    def _widened(self) -> Optional[str]:
+        """What the session did to keep up, once it had to."""
+        engine = self.engine
+        if engine.widest_hop <= engine.live.hop:
+            return None
+        return f"hops up to {engine.widest_hop} frames to keep up (too slow for {engine.live.hop})"
+
     def _warnings(self) -> list[str]:
         """What the recording should say about how it was heard."""
-        behind = self._behind()
+        behind, widened = self._behind(), self._widened()
         out = [] if behind is None else [f"the machine was {behind}"]
+        if widened is not None:
+            out.append(f"the session sampled {widened}")
         if self.underrun_seconds:
             out.append(f"{self.underrun_seconds:.1f} s without audio from the source were filled with silence")
         if self.feed.dropped:
@@ -266,14 +276,17 @@ class LiveSession:
         return out
 
     def run_to_end(self, on_frame: Callable[[LiveFrame], None] = lambda frame: None,
-                   on_status: Optional[Callable[[str], None]] = None, status_every: float = 0.5) -> LiveResult:
+                   on_status: Optional[Callable[[str], None]] = None, status_every: float = 0.5,
+                   on_start: Callable[[], None] = lambda: None) -> LiveResult:
         """Start, show every frame at its time (`on_frame`) until the source ends, and return
         the recording. Ctrl-C (KeyboardInterrupt) ends the session as the source's end would:
         the audio heard so far is finished and recorded. `on_status` gets `status()` every
-        `status_every` seconds."""
+        `status_every` seconds; `on_start` is called once the source has started (a TCP
+        source's `port` is then the one it listens on)."""
         self.start()
         next_status = time.monotonic()
         try:
+            on_start()
             while not self.done:
                 for frame in self.frames_due():
                     on_frame(frame)
@@ -298,9 +311,8 @@ class LiveSession:
             parts.append(f"{self.underrun_seconds:.1f} s without audio")
         if self.feed.dropped:
             parts.append(f"{self.feed.dropped_seconds:.1f} s dropped (audio came faster than real time)")
-        behind = self._behind()
-        if behind is not None:
-            parts.append(behind)
+        widened, behind = self._widened(), self._behind()
+        parts += [text for text in (widened, behind) if text is not None]
         return ", ".join(parts)
 
     # --- the generation thread ---------------------------------------------------------
@@ -309,21 +321,22 @@ class LiveSession:
         played = None  # when the audio heard so far has played out at real time (None: nothing heard yet)
         try:
             while True:
-                try:
-                    chunk = self.feed.get(timeout=0.05)
+                try:  # everything queued is taken before sampling, so a window sees all that waits
+                    chunk = self.feed.get(timeout=0.0 if engine.ready() else 0.05)
                 except FeedClosed:
                     break
                 now = time.monotonic()
                 if chunk is not None:
                     self._hear(chunk.samples, chunk.arrived)
                     played = max(played + len(chunk.samples) / rate if played is not None else 0.0, chunk.arrived)
-                elif played is not None and not self._stopping.is_set() and now - played > self.underrun_after:
+                    continue
+                if played is not None and not self._stopping.is_set() and now - played > self.underrun_after:
                     gap = int((now - played) * rate)
                     self._hear(np.zeros(gap, np.float32), now)
                     self.underrun_seconds += gap / rate
                     played = now
                 while engine.ready():
-                    self._emit(engine.step)
+                    self._emit(lambda: engine.step(engine.next_hop()))
             self._emit(engine.finish)
         except DiffshegError as exc:
             self.error = str(exc)

@@ -65,6 +65,10 @@ POLL_S = 0.1  # how often a waiting thread looks whether it was stopped
 JOIN_S = 5.0  # how long stop() waits for a source's thread
 DEFAULT_TCP_RATE = 16000
 
+TCP_FLAGS = {"keep_listening": "wait for the next producer when one hangs up",
+             "allow_remote": "listen beyond loopback"}  # a tcp:// address's yes/no options: what yes does
+FLAG_WORDS = {"1": True, "true": True, "yes": True, "0": False, "false": False, "no": False}
+
 SPEC_FORMS = ("'mic' (the default microphone), 'mic:NAME' or 'mic:INDEX' (a microphone by "
               "name or number), 'tcp://HOST:PORT' (optionally '?rate=22050', '&keep_listening=1', "
               "'&allow_remote=1'), "
@@ -369,6 +373,11 @@ class TcpSource(Source):
                 or not MIN_SAMPLE_RATE <= sample_rate <= MAX_SAMPLE_RATE:
             raise DiffshegError(f"the TCP source's sample rate must be a whole number of Hz between "
                                 f"{MIN_SAMPLE_RATE} and {MAX_SAMPLE_RATE}, got {sample_rate!r}")
+        if not isinstance(host, str):
+            raise DiffshegError(f"a TCP host is text, e.g. '127.0.0.1', got {host!r}")
+        for name, value in (("keep_listening", keep_listening), ("allow_remote", allow_remote)):
+            if not isinstance(value, (bool, np.bool_)):  # bool("0") or bool("false") would be a yes
+                raise DiffshegError(f"the TCP source's {name} must be True or False, got {value!r}")
         self.host = host
         self.port = port
         self.sample_rate = int(sample_rate)
@@ -500,8 +509,8 @@ class TcpSource(Source):
 def open_source(spec: str, speed: float = 1.0) -> Source:
     """A source from a user's text: 'mic' or 'mic:NAME_OR_INDEX' (a microphone),
     'tcp://HOST:PORT' with optional '?rate=HZ', '&keep_listening=1' and '&allow_remote=1'
-    (a TCP producer),
-    anything else the path of a speech file played at `speed` times real time."""
+    (a TCP producer; each option given at most once, a flag as 1/true/yes or 0/false/no:
+    an empty one is an error, never a yes), anything else the path of a speech file played at `speed` times real time."""
     if not isinstance(spec, str) or not spec.strip():
         raise DiffshegError(f"no live audio source given: use {SPEC_FORMS}")
     text = spec.strip()
@@ -526,21 +535,40 @@ def _tcp_source(spec: str, text: str) -> TcpSource:
         port = url.port
     except ValueError as error:
         raise DiffshegError(f"'{spec}' is not a valid tcp://HOST:PORT address ({error})") from None
-    if not url.hostname or port is None or url.path not in ("", "/") or url.fragment:
+    if not url.hostname or port is None or url.path not in ("", "/") or url.fragment \
+            or url.username is not None:
         raise DiffshegError(f"'{spec}' is not of the form tcp://HOST:PORT (e.g. tcp://127.0.0.1:5005, "
                             "optionally ?rate=22050)")
-    options = urllib.parse.parse_qs(url.query, keep_blank_values=True)
-    unknown = sorted(set(options) - {"rate", "keep_listening", "allow_remote"})
-    if unknown:
-        raise DiffshegError(f"'{spec}': unknown option {', '.join(unknown)}; tcp:// takes rate=HZ, "
-                            "keep_listening=1 and allow_remote=1")
-    rate_text = options.get("rate", [str(DEFAULT_TCP_RATE)])[-1]
-    if not rate_text.isdigit():
-        raise DiffshegError(f"'{spec}': rate must be a whole number of Hz, got {rate_text!r}")
-    flags = {}
-    for name in ("keep_listening", "allow_remote"):
-        value = options.get(name, ["0"])[-1].lower()
-        if value not in ("0", "1", "true", "false", "yes", "no", ""):
-            raise DiffshegError(f"'{spec}': {name} must be 1 or 0, got {value!r}")
-        flags[name] = value in ("1", "true", "yes", "")
+    options = _tcp_options(spec, url.query)
+    rate_text = options.get("rate", str(DEFAULT_TCP_RATE))
+    if not rate_text.isdecimal():  # not isdigit: int('²') fails
+        raise DiffshegError(f"'{spec}': rate must be a whole number of Hz, got {rate_text!r}: e.g. rate=16000, "
+                            "or leave it out for 16000")
+    flags = {name: _tcp_flag(spec, name, options[name]) for name in TCP_FLAGS if name in options}
     return TcpSource(url.hostname, port, int(rate_text), **flags)
+
+
+def _tcp_options(spec: str, query: str) -> dict[str, str]:
+    """A tcp:// address's options by name; an unknown or repeated one is an error."""
+    options: dict[str, str] = {}
+    for name, value in urllib.parse.parse_qsl(query, keep_blank_values=True):
+        if name not in ("rate", *TCP_FLAGS):
+            raise DiffshegError(f"'{spec}': unknown option {name or '(one with no name)'}; tcp:// takes rate=HZ, "
+                                "keep_listening=1 and allow_remote=1")
+        if name in options:
+            raise DiffshegError(f"'{spec}': {name} is given twice ({options[name]!r} and {value!r}): "
+                                "give it once")
+        options[name] = value
+    return options
+
+
+def _tcp_flag(spec: str, name: str, value: str) -> bool:
+    """An option's yes (1, true, yes) or no (0, false, no); anything else, empty included
+    (a bare `?allow_remote`, a template's unset variable), is an error: never a yes."""
+    meaning = TCP_FLAGS[name]
+    if not value:
+        raise DiffshegError(f"'{spec}': {name} needs a value: {name}=1 to {meaning}, or leave it out")
+    if value.lower() not in FLAG_WORDS:
+        raise DiffshegError(f"'{spec}': {name} must be 1 or 0, got {value!r}: {name}=1 to {meaning}, "
+                            "or leave it out")
+    return FLAG_WORDS[value.lower()]
