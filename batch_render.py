@@ -44,44 +44,37 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
-def _find_packages() -> tuple[str, Path]:
-    """Make diffsheg_core and the add-on importable, from a checkout (blender_addon/ beside
-    this file) or from inside the installed add-on (this file beside its __init__.py, the
-    core under lib/). Returns the add-on's package name and the default output folder."""
-    if (HERE / "blender_addon" / "__init__.py").is_file():  # a checkout
-        if str(HERE) not in sys.path:
-            sys.path.insert(0, str(HERE))
-        return "blender_addon", HERE / "out"
-    if (HERE / "__init__.py").is_file() and (HERE / "lib" / "diffsheg_core").is_dir():
-        if str(HERE / "lib") not in sys.path:
-            sys.path.insert(0, str(HERE / "lib"))
-        # the extension's wheels (Blender adds them at start-up; a bare `python` may not)
-        wheels = HERE.parents[1] / ".local" / "lib" / f"python{sys.version_info[0]}.{sys.version_info[1]}" \
-            / "site-packages"
-        if wheels.is_dir() and str(wheels) not in sys.path:
-            sys.path.append(str(wheels))
-        init = HERE / "__init__.py"
-        for name, module in list(sys.modules.items()):  # the enabled add-on (bl_ext.user_default.diffsheg)
-            file = getattr(module, "__file__", None)
-            if file and Path(file).resolve() == init:
-                return name, Path.cwd() / "out"
-        name = "diffsheg_batch_addon"  # not enabled: import the add-on's package without registering it
-        spec = importlib.util.spec_from_file_location(name, init, submodule_search_locations=[str(HERE)])
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
+def _find_studio():
+    """studio.py, beside this file in a checkout and in the installed add-on (build_addon.py
+    ships it there), imported as `studio` (the name Ray's workers import it by); importing it
+    makes diffsheg_core and the add-on importable (studio.ADDON: the add-on's package name)."""
+    path = HERE / "studio.py"
+    loaded = sys.modules.get("studio")
+    if loaded is not None and Path(getattr(loaded, "__file__", "") or "").resolve() == path:
+        return loaded
+    if not path.is_file():
+        raise SystemExit(f"batch_render: error: {HERE} is neither a checkout of the project nor the installed "
+                         "add-on (no studio.py beside this script)")
+    spec = importlib.util.spec_from_file_location("studio", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["studio"] = module
+    try:
         spec.loader.exec_module(module)
-        return name, Path.cwd() / "out"
-    raise SystemExit(f"batch_render: error: {HERE} is neither a checkout of the project nor the installed "
-                     "add-on (no blender_addon/ beside this script, nor lib/diffsheg_core)")
+    except ImportError as exc:
+        del sys.modules["studio"]
+        raise SystemExit(f"batch_render: error: {exc}") from None
+    return module
 
 
 import bpy  # noqa: E402
 
-ADDON, OUT = _find_packages()
+studio = _find_studio()
+ADDON = studio.ADDON
+OUT = HERE / "out" if studio.CHECKOUT else Path.cwd() / "out"
 
 
 def addon(module: str):
-    """A module of the add-on: addon("bake") is blender_addon.bake in a checkout."""
+    """A module of the add-on: addon("scene.bake") is blender_addon.scene.bake in a checkout."""
     return importlib.import_module(f"{ADDON}.{module}")
 
 
@@ -172,7 +165,7 @@ def audio_files(source: str) -> list[Path]:
 
 
 def find_targets(args):
-    return addon("studio").find_targets(bpy.context.scene, args.armature, args.face)
+    return studio.find_targets(bpy.context.scene, args.armature, args.face)
 
 
 def printer(label: str):
@@ -202,7 +195,7 @@ def output_stem(audio: Path, stems: dict[str, int]) -> str:
 
 def bake_options(args, scene, armature, faces):
     """The keying options of the command line (those of the panel's lower half)."""
-    return addon("bake").keying_options(
+    return addon("scene.bake").keying_options(
         scene, armature, faces, args.preset, args.start_frame, every_frame=args.every_frame,
         max_error=args.max_error, max_face_error=args.max_face_error, smoothing=args.smoothing,
         add_sound=not args.no_sound, set_frame_range=not args.keep_frame_range)
@@ -216,7 +209,7 @@ def run_one(args, audio: Path, label: str, several: bool) -> None:
     scene = bpy.context.scene
     armature, faces = find_targets(args)
     check_outputs(args, scene, audio, several)
-    request = addon("job").Request(audio, bake_options(args, scene, armature, faces), settings)
+    request = addon("features.generate").Request(audio, bake_options(args, scene, armature, faces), settings)
     generate_and_write(args, scene, request, label, several)
 
 
@@ -231,12 +224,12 @@ def run_regenerate(args) -> None:
     armature, faces = find_targets(args)
     options = bake_options(args, scene, armature, faces)
     first, last = args.regenerate
-    span = addon("regenerate").prepare_range(scene, options, first, last)
+    span = addon("features.regenerate").prepare_range(scene, options, first, last)
     if not span.source.audio_path:
         raise DiffshegError(f"take '{span.take}' was made without an audio file: it cannot be regenerated")
     audio = check_audio_path(span.source.audio_path)
     check_outputs(args, scene, audio, several=False)
-    request = addon("job").Request(audio, options, settings, keep_face=args.keep_face, range=span)
+    request = addon("features.generate").Request(audio, options, settings, keep_face=args.keep_face, range=span)
     generate_and_write(args, scene, request, f"{span.take} frames {first}-{last}", several=False)
 
 
@@ -256,7 +249,7 @@ def check_outputs(args, scene, audio: Path, several: bool) -> None:
 
 def generate_and_write(args, scene, request, label: str, several: bool) -> None:
     """Run `request`, key it, report, then save and render as the arguments ask."""
-    report = addon("report")
+    report = addon("scene.report")
     started = time.perf_counter()
     motion = request.run(printer(label), None)
     result = request.apply(scene, motion)
@@ -276,7 +269,7 @@ def generate_and_write(args, scene, request, label: str, several: bool) -> None:
     if not args.no_render:
         path = output_for(args, audio, several, ".mp4", args.output)
         path.parent.mkdir(parents=True, exist_ok=True)
-        addon("demo").set_video_output(scene)
+        addon("scene.demo").set_video_output(scene)
         scene.render.filepath = str(path)
         print(f"{label}: rendering frames {scene.frame_start}-{scene.frame_end} with "
               f"{scene.render.engine} to {path}", flush=True)
@@ -299,7 +292,7 @@ def write_text_report(args, details: str, several: bool, label: str) -> None:
 
 
 def run_manifest(args) -> int:
-    """The lines of args.manifest on Ray (blender_addon.studio); the exit code."""
+    """The lines of args.manifest on Ray (studio.py); the exit code."""
     from diffsheg_core.errors import DiffshegError
 
     if args.audio or args.save or args.regenerate or args.keep_face:
@@ -307,14 +300,14 @@ def run_manifest(args) -> int:
                             "--regenerate and --keep-face (--output is the output folder)")
     defaults = vars(args)  # the options are the defaults of every row (manifest.read_manifest)
     out = Path(args.output).expanduser().resolve() if args.output else OUT / Path(args.manifest).stem
-    return addon("studio").run_manifest(Path(args.manifest).expanduser().resolve(), out, defaults,
+    return studio.run_manifest(Path(args.manifest).expanduser().resolve(), out, defaults,
                                         address=args.ray_address, workers=args.workers, check_only=args.check)
 
 
 def run_demo(args) -> None:
     from diffsheg_core.audio import SAMPLE_SPEECH
 
-    demo = addon("demo")
+    demo = addon("scene.demo")
     build_beat_armature, build_face, setup_preview = demo.build_beat_armature, demo.build_face, demo.setup_preview
 
     bpy.ops.wm.read_factory_settings(use_empty=True)

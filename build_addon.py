@@ -2,8 +2,9 @@
 
     python build_addon.py [--out dist] [--platform linux-x64 ...] [--no-legacy] [--wheel-cache DIR]
 
-Writes the add-on (package `diffsheg`: blender_addon/ with the presets, batch_render.py,
-and the runtime of diffsheg_core with the bundled model under lib/):
+Writes the add-on (package `diffsheg`: blender_addon/ with its ui/, features/ and scene/,
+the presets, batch_render.py and studio.py beside it, and the runtime of diffsheg_core with
+the bundled model under lib/):
 - diffsheg-<version>-<platform>.zip for each Blender platform (windows-x64, macos-arm64,
   macos-x64, linux-x64; --platform picks some): a Blender 4.2+ extension that bundles the
   runtime's Python packages as wheels (wheels/, listed with `platforms` and `wheels` in
@@ -206,7 +207,7 @@ def _core_files():
 def addon_entries() -> list[tuple[Path, str]]:
     """(source file, path inside the add-on folder) for everything the add-on needs."""
     entries = [(p, p.relative_to(REPO / "blender_addon").as_posix()) for p in _files(REPO / "blender_addon")]
-    entries.append((REPO / "batch_render.py", "batch_render.py"))
+    entries += [(REPO / name, name) for name in ("batch_render.py", "studio.py")]  # the headless drivers
     entries += [(p, f"presets/{p.name}") for p in sorted((REPO / "presets").glob("*.json"))]
     entries += [(p, f"lib/{p.relative_to(REPO).as_posix()}") for p in _core_files()]
     for license_name in ("LICENSE", "LICENSE.txt"):

@@ -38,9 +38,9 @@ import bpy  # noqa: E402
 
 import diffsheg_core  # noqa: E402
 from addon_fixtures import SPEECH, append_face, import_beat_armature, reset_scene  # noqa: E402
-from blender_addon.bake import BakeOptions, bake_motion  # noqa: E402
-from blender_addon.keying import fcurves_of  # noqa: E402
-from blender_addon.preset import load_preset  # noqa: E402
+from blender_addon.scene.bake import BakeOptions, bake_motion  # noqa: E402
+from blender_addon.scene.keying import fcurves_of  # noqa: E402
+from blender_addon.scene.preset import load_preset  # noqa: E402
 from diffsheg_core.keyframes import rotation_angle, to_quaternions  # noqa: E402
 
 FPS = 24

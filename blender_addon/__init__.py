@@ -2,7 +2,10 @@
 
 A client of `diffsheg_core` (bundled beside this package in the installable zip,
 under lib/): generation runs through `diffsheg_core.generate`; this package matches
-rigs, keys the result and adds the sound. `bl_info` describes the legacy add-on (the zip
+rigs, keys the result and adds the sound. Its layers, each using only those below it:
+ui/ (panel, properties, preferences, operators), features/ (generate, regenerate, live,
+strips, exports), scene/ (bake, keying, takes, retarget, ...), environment.py (is the
+runtime there), then diffsheg_core. `bl_info` describes the legacy add-on (the zip
 for Blender 3.4 to 4.1); 4.2+ read blender_manifest.toml instead.
 """
 
@@ -23,7 +26,7 @@ _LIB = Path(__file__).resolve().parent / "lib"
 if _LIB.is_dir() and str(_LIB) not in sys.path:
     sys.path.insert(0, str(_LIB))
 
-from . import operators, panel, preferences, properties  # noqa: E402  (needs lib/ on sys.path)
+from .ui import operators, panel, preferences, properties  # noqa: E402  (needs lib/ on sys.path)
 
 _MODULES = (preferences, properties, operators, panel)
 

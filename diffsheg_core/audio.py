@@ -590,9 +590,22 @@ def mel_frames(audio: Audio, fps: float = 15.0) -> np.ndarray:
 def n_motion_frames(audio, fps: float = 15.0) -> int:
     """Number of motion frames for `audio` (an Audio or AudioFile) at `fps`; equals
     len(mel_features(audio, fps))."""
-    hop = mel_hop(fps)
-    n_load = resampled_length(audio.n_samples, audio.sample_rate, LOAD_RATE)
-    return resampled_length(n_load, LOAD_RATE, MEL_RATE) // hop
+    return _frames_of(audio.n_samples, audio.sample_rate, fps)
+
+
+def _frames_of(n_samples: int, sample_rate: int, fps: float) -> int:
+    n_load = resampled_length(n_samples, sample_rate, LOAD_RATE)
+    return resampled_length(n_load, LOAD_RATE, MEL_RATE) // mel_hop(fps)
+
+
+def samples_for_frames(n_frames: int, sample_rate: int, fps: float = 15.0) -> int:
+    """The fewest samples at `sample_rate` that make `n_frames` motion frames (n_motion_frames)."""
+    n = int(n_frames * sample_rate // fps)
+    while n > 0 and _frames_of(n - 1, sample_rate, fps) >= n_frames:
+        n -= 1
+    while _frames_of(n, sample_rate, fps) < n_frames:
+        n += 1
+    return n
 
 
 # --- the second speech input ---------------------------------------------------

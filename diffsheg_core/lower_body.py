@@ -47,7 +47,8 @@ from .kinematics import rest_offsets, wrist_positions
 from .leg_ik import pin_goals, two_bone
 from .motion import Motion, smooth_frames
 from .rigs import BEAT_LOWER_JOINTS
-from .rotations import (axis_angle_to_quaternion, convert, matrix_to_axis_angle, quaternion_conjugate,
+from .rotations import (axis_angle_to_matrix, axis_angle_to_quaternion, convert, matrix_to_axis_angle,
+                        quaternion_conjugate,
                         quaternion_product, quaternion_sequence_continuous, quaternion_to_axis_angle,
                         resample_positions, resample_weights, slerp_resample)
 
@@ -73,6 +74,12 @@ MIN_CONTACT = 4         # frames: a shorter low, slow stretch is a step, not a c
 REACH_SLACK = 0.004     # m a pinned ankle may lie beyond the straight leg (IK stops 4 mm short)
 LIVE_LEASH = 0.5        # live: the share of the hips' distance from the capture's centre each segment takes back
 MODEL_SMOOTH_S = 0.2    # Gaussian sigma (s) a whole-body model's hips and legs are low-passed by before planting
+STEP_AWAY = 0.2         # m the hip may sway away from over a standing foot before the foot steps
+STEP_S = 0.33           # s a step takes, lift-off to landing
+STEP_LIFT = 0.09        # m the ankle rises at a step's middle (the capture's moves lift it 8.2 cm, feet_figures)
+STEP_REST_S = 0.8       # s a foot stands at least between two of its steps (unless the leg cannot reach)
+MAX_DROP = 0.06         # m the hips may come down for a standing foot to be reached; further, it steps
+DROP_SPEED = 0.15       # m/s the hips come down or rise again at most
 
 
 @lru_cache(maxsize=None)
@@ -278,6 +285,32 @@ def figures(lower: np.ndarray, trans: np.ndarray, fps: float) -> dict[str, float
             "skating": foot_skating(lower, trans, fps)}
 
 
+FEET_LOW = 0.02        # m above its lowest height an ankle counts as low (SpeechAct's skating measure)
+FEET_STILL = 0.05      # m/s under which a low ankle counts as in contact
+FEET_MOVE = 0.15       # m/s over which an ankle counts as moving (a step or a glide)
+
+
+def feet_figures(lower: np.ndarray, trans: np.ndarray, fps: float) -> dict[str, float]:
+    """What a viewer sees of the feet, per foot and averaged over both: `skating` the mean
+    horizontal speed (m/s) of an ankle over the frames it is within FEET_LOW of its lowest
+    height (SpeechAct's measure), `contact` the share of frames it is that low and slower
+    than FEET_STILL, `moves per minute` the stretches it moves faster than FEET_MOVE, and
+    `lift` the median of those moves' highest ankle point above its lowest (m)."""
+    skating, contact, moves, lifts = [], [], 0, []
+    for ankle, _ in foot_positions(lower, trans).values():
+        height = ankle[:, 1] - ankle[:, 1].min()
+        step = np.diff(ankle, axis=0, prepend=ankle[:1]) * fps
+        across, speed = np.linalg.norm(step[:, [0, 2]], axis=-1), np.linalg.norm(step, axis=-1)
+        low = height < FEET_LOW
+        skating.append(float(across[low].mean()) if low.any() else 0.0)
+        contact.append(float(np.mean(low & (speed < FEET_STILL))))
+        runs = _runs(across > FEET_MOVE)
+        moves += len(runs)
+        lifts += [float(height[max(a - 1, 0):b + 2].max()) for a, b in runs]
+    return {"skating": float(np.mean(skating)), "contact": float(np.mean(contact)),
+            "moves per minute": moves / (len(lower) / fps / 60.0), "lift": float(np.median(lifts)) if lifts else 0.0}
+
+
 def plant_feet(lower: np.ndarray, trans: np.ndarray, fps: float,
                down: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, dict]:
     """`lower` with each contact foot's ankle and orientation pinned over its span (eased in
@@ -291,7 +324,7 @@ def plant_feet(lower: np.ndarray, trans: np.ndarray, fps: float,
     spans = _contacts(world, fps) if down is None else \
         {side: [(a, b) for a, b in _runs(down[side]) if b - a + 1 >= MIN_CONTACT] for side in LEGS}
     pins = {side: _pins(world, side, spans[side]) for side in LEGS}
-    return _solve(lower, world, pins), {side: [(a, b) for a, b, _, _ in p] for side, p in pins.items()}
+    return _solve(lower, world, _pin_goals(world, pins)), {side: [(a, b) for a, b, _, _ in p] for side, p in pins.items()}
 
 
 def _pins(world: dict, side: str, spans: list[tuple[int, int]]) -> list:
@@ -322,8 +355,19 @@ def _pinned(pins: dict[str, list], n: int) -> dict[str, np.ndarray]:
     return down
 
 
-def _solve(lower: np.ndarray, world: dict, pins: dict[str, list]) -> np.ndarray:
-    """`lower` with each leg solved again by two-bone IK so its ankle and foot follow the pins."""
+def _pin_goals(world: dict, pins: dict[str, list]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per foot the ankle goals and foot rotations its `pins` ask for (leg_ik.pin_goals)."""
+    goals = {}
+    for side, (_, _, foot) in LEGS.items():
+        rotation, ankle = world[foot]
+        goal, goal_rot, _ = pin_goals(ankle, convert(rotation, "quaternion", "matrix"), pins[side], EASE)
+        goals[side] = (goal, goal_rot)
+    return goals
+
+
+def _solve(lower: np.ndarray, world: dict, goals: dict[str, tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """`lower` with each leg solved again by two-bone IK so its ankle and foot follow the
+    goals ((T, 3) ankle positions, (T, 3, 3) foot world rotations per foot)."""
     matrices = {name: (convert(q, "quaternion", "matrix"), pos) for name, (q, pos) in world.items()}
     off = _offsets()
     hips = matrices["Hips"][0]
@@ -331,7 +375,7 @@ def _solve(lower: np.ndarray, world: dict, pins: dict[str, list]) -> np.ndarray:
     for side, (up, knee, foot) in LEGS.items():
         thigh, shin = np.linalg.norm(off[knee]), np.linalg.norm(off[foot])
         (thigh_rot, hip), (shin_rot, knee_pos), (foot_rot, ankle) = matrices[up], matrices[knee], matrices[foot]
-        goal, goal_rot, _ = pin_goals(ankle, foot_rot, pins[side], EASE)
+        goal, goal_rot = goals[side]
         turn, bend = two_bone(hip, knee_pos, ankle, goal, thigh, shin, hips[:, :, 0])
         thigh_rot, shin_rot = turn @ thigh_rot, turn @ bend @ shin_rot
         for joint, parent, rotation in ((up, hips, thigh_rot), (knee, thigh_rot, shin_rot), (foot, shin_rot, goal_rot)):
@@ -357,6 +401,157 @@ def _reachable(ankle: np.ndarray, hip: np.ndarray, span: tuple[int, int], reach:
             later += [(a + x, a + y) for x, y in _runs(near) if y - x + 1 >= MIN_CONTACT]
         todo = later
     return sorted(done, key=lambda pin: pin[0])
+
+
+# ---------------------------------------------------------------- standing and stepping
+
+@dataclass
+class _Stance:
+    """One foot: where its ankle stands (or lands) and the foot's rotation there; while it
+    steps, the frame the step began and where from."""
+
+    spot: np.ndarray
+    rotation: np.ndarray
+    step: tuple[int, np.ndarray, np.ndarray] | None = None
+    landed: int = -(10 ** 9)
+
+
+class FootSteps:
+    """Where a whole-body model's feet go, frame by frame: a foot stands where it landed,
+    flat on the floor, until the model's own ankle has wandered STEP_AWAY from that spot
+    (and the foot has stood STEP_REST_S), or the leg could reach it only with the hips
+    lowered more than MAX_DROP; then it steps there: lifted STEP_LIFT at the step's middle,
+    moved over the floor while up, set down over STEP_S. One foot steps at a time. Never a
+    glide: a foot is still or in the air. The hips come down as far as a standing foot
+    needs to be reached (the knees bend), at most DROP_SPEED, and rise again as slowly.
+    Causal (a frame depends on the frames before it only), so offline `plant` and live
+    `PlantStream` place the feet by the same rule, and a hop's frames are final."""
+
+    def __init__(self, fps: float):
+        self.fps = fps
+        self.step_frames = max(2, int(round(STEP_S * fps)))
+        self.rest_frames = int(round(STEP_REST_S * fps))
+        self.feet: dict[str, _Stance] = {}
+        self.down: dict[str, list[np.ndarray]] = {side: [] for side in LEGS}  # each hop's standing flags
+        self.drop = 0.0  # how far the hips are lowered now (m)
+        self.n = 0
+
+    def add(self, world: dict) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], np.ndarray]:
+        """Per foot (n, 3) ankle goals and (n, 3, 3) foot rotations, and (n,) how far the
+        hips come down, for the next n frames of `world` (the legs as made, `_world`)."""
+        n = len(world["Hips"][1])
+        goals = {side: (np.zeros((n, 3)), np.zeros((n, 3, 3))) for side in LEGS}
+        down = {side: np.zeros(n, bool) for side in LEGS}
+        drops = np.zeros(n)
+        for k in range(n):
+            t = self.n + k
+            for side, (up, _, foot) in LEGS.items():
+                ankle, hip = world[foot][1][k], world[up][1][k]
+                rotation = _flat(side, convert(world[foot][0][k], "quaternion", "matrix"))
+                here = self.feet.setdefault(side, _Stance(_on_floor_at(ankle), rotation))
+                if here.step is None and self._should_step(side, here, ankle, hip, t):
+                    here.step = (t, here.spot, here.rotation)
+                    here.spot, here.rotation = _on_floor_at(ankle), rotation
+                goals[side][0][k], goals[side][1][k], down[side][k] = self._place(here, t)
+            # a stepping foot's landing spot counts already: the hips are down by the time it lands
+            need = max([_drop_to_reach(side, spot, world[up][1][k]) for side, (up, _, _) in LEGS.items()
+                        for spot in (goals[side][0][k], self.feet[side].spot)] + [0.0])
+            limit = DROP_SPEED / self.fps
+            self.drop = float(np.clip(min(need, MAX_DROP), self.drop - limit, self.drop + limit))
+            drops[k] = self.drop
+        for side in LEGS:
+            self.down[side].append(down[side])
+        self.n += n
+        return goals, drops
+
+    def contacts(self) -> dict[str, list[tuple[int, int]]]:
+        """Per foot the [first, last] frame spans it stood, of the frames placed so far (those
+        of MIN_CONTACT frames or more, as `contacts` counts them)."""
+        return {side: [(a, b) for a, b in _runs(np.concatenate(parts)) if b - a + 1 >= MIN_CONTACT] if parts else []
+                for side, parts in self.down.items()}
+
+    def _should_step(self, side: str, here: _Stance, ankle: np.ndarray, hip: np.ndarray, t: int) -> bool:
+        if any(other.step is not None for name, other in self.feet.items() if name != side):
+            return False
+        if _drop_to_reach(side, here.spot, hip) > MAX_DROP:
+            return True
+        # the foot stays while the hip sways over it; it steps once the hip has left it far behind
+        away = np.linalg.norm((hip - here.spot)[[0, 2]])
+        return away > STEP_AWAY and t - here.landed >= self.rest_frames
+
+    def _place(self, here: _Stance, t: int) -> tuple[np.ndarray, np.ndarray, bool]:
+        """The foot's ankle goal, rotation and whether it stands, at frame `t`."""
+        if here.step is None:
+            return here.spot, here.rotation, True
+        first, start, start_rotation = here.step
+        u = (t - first + 1) / self.step_frames
+        along = _smoothstep((u - 0.15) / 0.7)  # over the floor mostly while the foot is up
+        ankle = start + along * (here.spot - start)
+        ankle[1] += STEP_LIFT * np.sin(np.pi * min(u, 1.0))
+        turn = matrix_to_axis_angle(start_rotation.T @ here.rotation)
+        rotation = start_rotation @ axis_angle_to_matrix(along * turn)
+        if u >= 1.0:
+            here.step, here.landed = None, t
+        return ankle, rotation, u >= 1.0
+
+
+def _drop_to_reach(side: str, ankle: np.ndarray, hip: np.ndarray) -> float:
+    """How far the hip must come down for the leg to reach `ankle` (0: it does)."""
+    reach = _reach(side) - REACH_SLACK
+    across = np.linalg.norm((hip - ankle)[[0, 2]])
+    if across >= reach:
+        return np.inf
+    return max(0.0, float(hip[1] - ankle[1] - np.sqrt(reach ** 2 - across ** 2)))
+
+
+def _lowered(world: dict, drops: np.ndarray) -> dict:
+    """`world` with every joint `drops` (T,) metres lower."""
+    shift = np.zeros((len(drops), 3))
+    shift[:, 1] = drops
+    return {name: (rotation, position - shift) for name, (rotation, position) in world.items()}
+
+
+def _smoothstep(x: float) -> float:
+    x = min(max(x, 0.0), 1.0)
+    return x * x * (3 - 2 * x)
+
+
+@lru_cache(maxsize=1)
+def _ankle_height() -> float:
+    """The ankle's height above the floor on the canonical body standing flat."""
+    world = _world(np.zeros((1, len(JOINTS), 3)), np.zeros((1, 3)))
+    return float(world["RightFoot"][1][0, 1])
+
+
+def _on_floor_at(ankle: np.ndarray) -> np.ndarray:
+    """Where an ankle stands over the floor below `ankle`."""
+    return np.array([ankle[0], _ankle_height(), ankle[2]])
+
+
+def _flat(side: str, rotation: np.ndarray) -> np.ndarray:
+    """The foot's world rotation flat on the floor: its turn about the vertical alone."""
+    forward = _offsets()[f"{'Right' if side == 'right' else 'Left'}ForeFoot"]
+    now = rotation @ forward
+    angle = np.arctan2(now[0], now[2]) - np.arctan2(forward[0], forward[2])
+    return axis_angle_to_matrix(np.array([0.0, angle, 0.0]))
+
+
+def step_feet(lower: np.ndarray, trans: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray, dict]:
+    """`lower` and `trans` with the feet standing and stepping (`FootSteps`), by two-bone IK
+    on each leg and the hips lowered as far as a standing foot needs; and the spans each
+    foot stands."""
+    steps = FootSteps(fps)
+    lower, trans = _step(steps, lower, trans)
+    return lower, trans, steps.contacts()
+
+
+def _step(steps: FootSteps, lower: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The next frames of `steps`: the legs solved onto its goals, the hips lowered."""
+    world = _world(lower, trans)
+    goals, drops = steps.add(world)
+    lowered = trans.copy()
+    lowered[:, 1] -= drops
+    return _solve(lower, _lowered(world, drops), goals), lowered
 
 
 # ---------------------------------------------------------------- generating
@@ -473,8 +668,8 @@ def plant(motion: Motion, library: LowerBodyLibrary | None = None) -> Motion:
     """`motion` (a `beat` Motion whose hips, legs and root translation a whole-body model
     made) with the hips and legs low-passed (MODEL_SMOOTH_S: the network's frame-to-frame
     wobble would read as feet that never stand still), the hips settled as the capture's are
-    (`settle`) and each contact foot planted (`plant_feet`); the contact spans and the hips'
-    rest height go into its meta."""
+    (`settle`) and the feet standing or stepping (`FootSteps`); the spans each foot stands
+    and the hips' rest height go into its meta."""
     library = _library_for(motion, library)
     _check_whole_body(motion)
     sigma = MODEL_SMOOTH_S * motion.fps
@@ -482,7 +677,7 @@ def plant(motion: Motion, library: LowerBodyLibrary | None = None) -> Motion:
     q = smooth_frames(q, sigma)
     lower = quaternion_to_axis_angle(q / np.linalg.norm(q, axis=-1, keepdims=True))
     trans = settle(lower, smooth_frames(motion.root_translation.astype(np.float64), sigma), library)
-    lower, spans = plant_feet(lower, trans, motion.fps)
+    lower, trans, spans = step_feet(lower, trans, motion.fps)
     return with_lower_body(upper_body(motion), lower, trans, spans)
 
 
@@ -572,7 +767,7 @@ class LowerBodyStream:
         lower = quaternion_to_axis_angle(self._planner.rotations[hop])
         world = _world(lower, self._floored[hop])
         pins = {side: self._pins(side, first) for side in LEGS}
-        lower = _solve(lower, world, pins)
+        lower = _solve(lower, world, _pin_goals(world, pins))
         self.lower = np.concatenate([self.lower, lower])
         self.trans = np.concatenate([self.trans, self._floored[hop]])
         return lower, self._floored[hop].copy(), _pinned(pins, n)
@@ -621,13 +816,11 @@ class PlantStream:
     frame final as it comes (no frame waits for later ones).
 
     As offline: low-passed, the hips' drift taken out about the capture's centre and kept
-    within its range, the body on the floor, each contact foot pinned with two-bone IK. What
-    differs, because the future is unknown: the filters look back only (the legs' Gaussian,
-    offline's MODEL_SMOOTH_S, is centred two sigma back, so the legs follow the arms 0.4 s
-    late; DRIFT_S and GROUND_S are one-pole time constants); a contact is pinned where the foot is
-    when it is first low and slow, eased in over the EASE frames after (offline: the EASE
-    frames before), and let go, easing out, on the first frame the foot lifts or the leg
-    could no longer reach the spot."""
+    within its range, the body on the floor, the feet standing or stepping by offline's rule
+    (`FootSteps`, which looks back only) with two-bone IK. What differs, because the future
+    is unknown: the filters look back only (the legs' Gaussian, offline's MODEL_SMOOTH_S, is
+    centred two sigma back, so the legs follow the arms 0.4 s late; DRIFT_S and GROUND_S are
+    one-pole time constants)."""
 
     def __init__(self, fps: float, library: LowerBodyLibrary | None = None):
         self.library = _library_at(fps, library)
@@ -643,11 +836,8 @@ class PlantStream:
         self._t: list[np.ndarray] = []       # ... and (3,) translations
         self._drift: np.ndarray | None = None  # the hips' slow wander over the floor (x, z)
         self._floor: float | None = None       # the lowest foot point's smoothed height
-        self._ankle = {side: None for side in LEGS}  # each ankle's last free position
-        # per foot its pins: [first, last or None while held, ankle spot, foot rotation matrix]
-        self._pins: dict[str, list[list]] = {side: [] for side in LEGS}
+        self._steps = FootSteps(fps)
         self._emitted: list[tuple[np.ndarray, np.ndarray]] = []  # each hop's legs and translation
-        self._n = 0
 
     @property
     def lower(self) -> np.ndarray:
@@ -660,39 +850,20 @@ class PlantStream:
         return np.concatenate([trans for _, trans in self._emitted]) if self._emitted else np.zeros((0, 3))
 
     def add(self, part: Motion) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-        """(n, 9, 3) planted hips and legs, (n, 3) hips translation and per foot (n,) whether
-        it is pinned, for the next n frames `part` holds as the model made them (its hips,
-        legs and root translation)."""
-        first, n = self._n, part.n_frames
-        if not n:
+        """(n, 9, 3) hips and legs, (n, 3) hips translation and per foot (n,) whether it
+        stands, for the next n frames `part` holds as the model made them (its hips, legs and
+        root translation)."""
+        if not part.n_frames:
             return _no_frames()
         _check_whole_body(part)
-        lower, trans = self._smoothed(lower_rotations(part), part.root_translation.astype(np.float64))
-        world = _world(lower, trans)
-        for side, (ankle, sole) in _feet(world).items():
-            self._track(side, first, world, ankle, sole)
-        pins = {side: [(a - first, n if b is None else b - first, spot, rotation)
-                       for a, b, spot, rotation in self._reaching(side, first)] for side in LEGS}
-        lower = _solve(lower, world, pins)
+        lower, trans = _step(self._steps, *self._smoothed(lower_rotations(part),
+                                                          part.root_translation.astype(np.float64)))
         self._emitted.append((lower, trans))
-        self._n += n
-        return lower, trans, _pinned(pins, n)
+        return lower, trans, {side: flags[-1] for side, flags in self._steps.down.items()}
 
     def contacts(self) -> dict[str, list[tuple[int, int]]]:
-        """Per foot the [first, last] spans pinned so far (frames emitted)."""
-        n = self._n
-        return {side: [(a, n - 1 if b is None else b) for a, b, _, _ in pins if a <= (n - 1 if b is None else b)]
-                for side, pins in self._pins.items()}
-
-    def _reaching(self, side: str, first: int) -> list[list]:
-        """The foot's pins that hold or ease frame `first` or later: the last few (pins come in
-        order, so the walk back stops at the first that has eased out before it)."""
-        recent = []
-        for pin in reversed(self._pins[side]):
-            if pin[1] is not None and pin[1] + EASE < first:
-                break
-            recent.append(pin)
-        return recent[::-1]
+        """Per foot the [first, last] spans it stood, of the frames emitted."""
+        return self._steps.contacts()
 
     def _smoothed(self, lower: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The hop's hips and legs low-passed, drift taken out, within range and on the floor."""
@@ -716,20 +887,6 @@ class PlantStream:
             self._floor = height if self._floor is None else self._floor + g["floor"] * (height - self._floor)
             out_t[i, 1] -= self._floor
         return smoothed, out_t
-
-    def _track(self, side: str, first: int, world: dict, ankle: np.ndarray, sole: np.ndarray) -> None:
-        """Start, hold or end the foot's pin at each of the hop's frames (its frames `first` on)."""
-        up, _, foot = LEGS[side]
-        down = _down(ankle, sole, self.fps, None if self._ankle[side] is None else self._ankle[side][None])
-        reach, pins = _reach(side), self._pins[side]
-        for k in range(len(ankle)):
-            held = pins and pins[-1][1] is None
-            if held and (not down[k] or np.linalg.norm(pins[-1][2] - world[up][1][k]) >= reach):
-                pins[-1][1] = first + k - 1  # let go: the foot lifts, or the leg cannot reach
-            elif not held and down[k]:
-                pins.append([first + k + EASE, None, ankle[k].copy(),
-                             convert(world[foot][0][k], "quaternion", "matrix")])
-        self._ankle[side] = ankle[-1]
 
 
 @lru_cache(maxsize=1)

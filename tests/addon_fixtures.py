@@ -301,7 +301,7 @@ def world_direction(ob, bone: str) -> np.ndarray:
 
 def scene_state(scene) -> dict:
     """What generation may change: Actions, assignments, NLA tracks, strips, frame range."""
-    from blender_addon.sound import sound_strips
+    from blender_addon.scene.sound import sound_strips
 
     def anim(id_data):
         ad = id_data.animation_data if id_data is not None else None
@@ -480,7 +480,7 @@ def preset_joints(preset_name: str) -> dict:
     """{bone: (parent, head in metres, Y up, facing +Z, feet on y = 0)} for the beat-layout
     bones of a preset, on the BEAT rest skeleton; a chain (spine_01-05) spread evenly
     from its joint to the next joint the preset maps."""
-    from blender_addon.preset import load_preset
+    from blender_addon.scene.preset import load_preset
     from diffsheg_core.bvh import beat_skeleton
 
     skel = beat_skeleton()

@@ -14,8 +14,8 @@ from addon_fixtures import (HAS_AUDIO, REPO, SPEECH, SPEECH_2, append_face, bpy,
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 from system_tools import require_program
 
-from blender_addon.keying import fcurves_of
-from blender_addon.sound import sound_strips
+from blender_addon.scene.keying import fcurves_of
+from blender_addon.scene.sound import sound_strips
 
 
 @pytest.fixture(scope="module")

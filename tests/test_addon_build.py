@@ -39,7 +39,7 @@ print("RESULT", json.dumps({
     "operator": bpy.ops.diffsheg.generate.get_rna_type().identifier,
     "settings": hasattr(bpy.context.scene, "diffsheg"),
     "core": diffsheg_core.__file__,
-    "presets": sys.modules[module + ".preset"].available_presets(),
+    "presets": sys.modules[module + ".scene.preset"].available_presets(),
     "wheels_dir": next((p for p in sys.path if os.path.isdir(os.path.join(p, "onnxruntime"))
                         and "extensions" in p), ""),
 }), flush=True)
@@ -71,7 +71,8 @@ def test_extension_zip_holds_the_addon_the_runtime_and_its_wheels(built, platfor
         manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
         record = json.loads(zf.read("wheels/wheels.json"))
         digests = {n: hashlib.sha256(zf.read(n)).hexdigest() for n in names if n.endswith(".whl")}
-    assert {"__init__.py", "operators.py", "batch_render.py", "presets/rigify.json",
+    assert {"__init__.py", "ui/operators.py", "scene/bake.py", "features/generate.py", "environment.py",
+            "batch_render.py", "studio.py", "presets/rigify.json",
             "lib/diffsheg_core/__init__.py", "lib/diffsheg_core/beat_skeleton.json",
             "lib/diffsheg_core/weights/default.safetensors", "lib/diffsheg_core/runtime/backends.py"} <= names
     assert not [n for n in names if _tooling_or_cache(n)]
@@ -110,7 +111,8 @@ def test_extension_manifest_passes_blenders_strict_validation(built, platform):
 
 def test_legacy_zip_has_the_addon_in_a_folder_and_no_wheels(built):
     names = set(zipfile.ZipFile(built["legacy"]).namelist())
-    assert {"diffsheg/__init__.py", "diffsheg/batch_render.py", "diffsheg/lib/diffsheg_core/__init__.py"} <= names
+    assert {"diffsheg/__init__.py", "diffsheg/ui/panel.py", "diffsheg/batch_render.py", "diffsheg/studio.py",
+            "diffsheg/lib/diffsheg_core/__init__.py"} <= names
     assert "diffsheg/blender_manifest.toml" not in names
     assert not [n for n in names if n.endswith(".whl") or _tooling_or_cache(n)]
 
@@ -181,7 +183,8 @@ def test_built_zip_installs_and_enables(built, mode, tmp_path):
 def test_gpu_support_pip_installs_torch_alone_with_blenders_numpy_pinned(tmp_path):
     import numpy
 
-    from blender_addon.preferences import RUNTIME, runtime_pip_commands, torch_pip_commands
+    from blender_addon.environment import RUNTIME
+    from blender_addon.ui.preferences import runtime_pip_commands, torch_pip_commands
 
     (command,) = torch_pip_commands("CUDA", tmp_path)
     assert command[command.index("--target") + 1] == str(tmp_path)

@@ -18,9 +18,10 @@ from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 from test_addon_panel import Layout
 
 import diffsheg_core
-from blender_addon import live, panel
-from blender_addon.keying import fcurves_of
-from blender_addon.properties import DIFFSHEG_PG_settings
+from blender_addon.features import live
+from blender_addon.scene.keying import fcurves_of
+from blender_addon.ui import panel
+from blender_addon.ui.properties import DIFFSHEG_PG_settings
 from diffsheg_core import emotion
 
 SMILE = 'key_blocks["mouthSmileLeft"].value'

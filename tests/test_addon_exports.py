@@ -24,9 +24,9 @@ from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 from system_tools import require_program
 
 import diffsheg_core
-from blender_addon import exports
-from blender_addon.bake import BakeOptions, bake_motion
-from blender_addon.preset import load_preset
+from blender_addon.features import exports
+from blender_addon.scene.bake import BakeOptions, bake_motion
+from blender_addon.scene.preset import load_preset
 from diffsheg_core.errors import DiffshegError
 
 VALIDATOR = REPO / "tools" / "node" / "node_modules" / "gltf-validator" / "package.json"
@@ -167,7 +167,7 @@ def test_fbx_reimported_matches_the_take(speech, motion, tmp_path, engine):
 
     action = mesh.data.shape_keys.animation_data.action
     assert action is not None
-    from blender_addon.keying import fcurves_of
+    from blender_addon.scene.keying import fcurves_of
 
     curves = {fc.data_path for fc in fcurves_of(mesh.data.shape_keys)}
     assert {f'key_blocks["{k}"].value' for k in keys} <= curves

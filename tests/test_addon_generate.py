@@ -17,11 +17,11 @@ from addon_fixtures import (HAS_AUDIO, MISNAMED_MP3, append_face, build_smplx_ar
 from addon_fixtures import exit_before_blender_teardown, rigify_blend  # noqa: F401 (fixtures)
 
 import diffsheg_core
-from blender_addon.bake import BakeOptions, bake_motion
-from blender_addon.keying import action_fcurves, fcurves_of
-from blender_addon.job import GenerationJob, Request
-from blender_addon.preset import load_preset
-from blender_addon.sound import sound_strips
+from blender_addon.scene.bake import BakeOptions, bake_motion
+from blender_addon.scene.keying import action_fcurves, fcurves_of
+from blender_addon.features.generate import GenerationJob, Request
+from blender_addon.scene.preset import load_preset
+from blender_addon.scene.sound import sound_strips
 from diffsheg_core.checkpoints import load_model
 from diffsheg_core.errors import Cancelled
 from diffsheg_core.settings import GenerateSettings
@@ -272,7 +272,7 @@ def test_panel_options_are_the_models_defaults_until_set(speech):
     """Overlap, guidance and gesture energy: a switched-off "Set ..." toggle is the model's
     default (None), switched on the value means what it means everywhere (guidance 1 and
     gesture energy 0 are off)."""
-    from blender_addon.panel_settings import generate_settings
+    from blender_addon.features.generate import generate_settings
 
     settings = reset_scene().diffsheg
     plain = generate_settings(settings)
@@ -379,7 +379,7 @@ def test_ready_player_me_avatar_through_the_panel(speech):
     with the same motion, and jawOpen opens the mouth at its peak."""
     from addon_fixtures import angle_between, head_direction, import_readyplayerme
 
-    from blender_addon.panel_settings import generate_settings
+    from blender_addon.features.generate import generate_settings
 
     scene = reset_scene(fps=29.97)
     scene.frame_start = 1001
@@ -427,8 +427,8 @@ def test_ready_player_me_face_without_arkit_keys_talks_through_its_visemes(speec
 def test_the_demo_character_shows_its_face(speech_motion, tmp_path):
     """The main job's character: every ARKit key of its face moves vertices, the preview is
     640x360 and cuts to a close-up in which the face fills much of the picture."""
-    from blender_addon import demo
-    from blender_addon.retarget import moves_vertices
+    from blender_addon.scene import demo
+    from blender_addon.scene.retarget import moves_vertices
     from diffsheg_core.rigs import ARKIT51
 
     scene = reset_scene(fps=24)
@@ -461,8 +461,8 @@ def test_the_demo_character_shows_its_face(speech_motion, tmp_path):
 def test_panel_styles_come_from_the_model_and_mix(tmp_path):
     """The style menu lists the model's style names (indices for a model without any);
     a second style with the mix slider gives weights, the strength the style guidance."""
-    from blender_addon.panel_settings import generate_settings
-    from blender_addon.properties import style_names
+    from blender_addon.features.generate import generate_settings
+    from blender_addon.ui.properties import style_names
     from diffsheg_core.checkpoints import load_model, save_checkpoint
 
     settings = reset_scene().diffsheg
@@ -489,7 +489,7 @@ def test_the_style_menu_offers_exactly_the_models_styles(golden_dir, tmp_path, m
     from safetensors.torch import load_file
 
     import diffsheg_core.checkpoints as checkpoints
-    from blender_addon.properties import _style_items
+    from blender_addon.ui.properties import _style_items
 
     settings = reset_scene().diffsheg
     bundle = load_model()

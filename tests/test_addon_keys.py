@@ -13,9 +13,9 @@ from addon_fixtures import append_face, bpy, cut_speech, import_beat_armature, i
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 
 import diffsheg_core
-from blender_addon.bake import BakeOptions, bake_motion
-from blender_addon.keying import fcurves_of
-from blender_addon.preset import load_preset
+from blender_addon.scene.bake import BakeOptions, bake_motion
+from blender_addon.scene.keying import fcurves_of
+from blender_addon.scene.preset import load_preset
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.keyframes import rotation_angle, to_quaternions
 
@@ -109,7 +109,7 @@ def test_keys_fall_on_the_motions_turning_points(motion):
     """A bone's keys between its first and last are poses: most sit within a frame of a
     local minimum of the bone's speed (where its motion turns or holds). The upper body's:
     the hips and legs are keyed within a tighter bound that keeps the feet planted."""
-    from blender_addon.retarget import LOWER_BODY as LOWER
+    from blender_addon.scene.retarget import LOWER_BODY as LOWER
     from diffsheg_core.keyframes import turning_points
 
     scene = reset_scene(fps=24)

@@ -28,10 +28,12 @@ from addon_fixtures import (HAS_AUDIO, REPO, append_face, bpy, cut_speech, impor
                             import_readyplayerme, mocap_motion, reset_scene, scene_state)
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 
-from blender_addon import live, takes
-from blender_addon.bake import BakeOptions, bake_motion
-from blender_addon.keying import action_fcurves, fcurves_of
-from blender_addon.retarget import bone_quaternions
+from blender_addon.environment import microphone_problem
+from blender_addon.features import live
+from blender_addon.scene import takes
+from blender_addon.scene.bake import BakeOptions, bake_motion
+from blender_addon.scene.keying import action_fcurves, fcurves_of
+from blender_addon.scene.retarget import bone_quaternions
 from diffsheg_core.audio import n_motion_frames, read_audio_file
 from diffsheg_core.errors import DiffshegError
 
@@ -294,7 +296,7 @@ def test_a_source_that_fails_is_a_report_and_changes_nothing(speech, tmp_path):
     assert live.current() is None
 
     s.live_source = "MIC"
-    problem = live.microphone_problem()
+    problem = microphone_problem()
     if problem is not None:  # this machine has no usable microphone: Start says why
         with pytest.raises(DiffshegError, match=re.escape(problem.split(":")[0])):
             live.LiveRun(bpy.context)
@@ -360,7 +362,7 @@ def test_quitting_right_after_a_session_is_discarded_does_not_abort(speech, tmp_
 import sys, time
 sys.path.insert(0, {str(REPO / "tests")!r})
 from addon_fixtures import bpy, import_readyplayerme, reset_scene
-from blender_addon import live
+from blender_addon.features import live
 s = reset_scene().diffsheg
 s.armature, s.device = import_readyplayerme()[0], "CPU"
 s.live_source, s.live_file, s.live_speed, s.live_record = "FILE", {str(speech)!r}, 2.0, False
@@ -395,9 +397,9 @@ def test_one_session_at_a_time_and_undo_ends_it(speech):
 def test_the_live_panel_and_the_preferences():
     from test_addon_panel import CHECKBOX, LABEL_COLUMN, Layout, draw
 
-    from blender_addon import preferences
-    from blender_addon.panel import DIFFSHEG_PT_live
-    from blender_addon.properties import DIFFSHEG_PG_settings, LIVE_HOP, LIVE_HOPS
+    from blender_addon.ui import preferences
+    from blender_addon.ui.panel import DIFFSHEG_PT_live
+    from blender_addon.ui.properties import DIFFSHEG_PG_settings, LIVE_HOP, LIVE_HOPS
     from diffsheg_core.live.engine import HOPS, LiveConfig
 
     s = reset_scene().diffsheg
@@ -426,7 +428,7 @@ def test_the_live_panel_and_the_preferences():
     s.live_vmc = True  # the address, on a row of its own, the whole width: it is read whole
     assert [e[1:4] for e in draw(DIFFSHEG_PT_live) if e[1] == "live_vmc_address"] == [("live_vmc_address", "To", False)]
 
-    problem = live.microphone_problem()
+    problem = microphone_problem()
     s.live_source = "MIC"
     labels = " ".join(e[1] for e in draw(DIFFSHEG_PT_live) if e[0] == "label")
     log = []

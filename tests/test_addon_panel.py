@@ -11,9 +11,10 @@ from types import SimpleNamespace
 from addon_fixtures import bpy, reset_scene
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 
-from blender_addon import panel
-from blender_addon.panel import (DIFFSHEG_PT_generate, DIFFSHEG_PT_keys, DIFFSHEG_PT_sampling, wrapped_label)
-from blender_addon.properties import DIFFSHEG_PG_settings
+from blender_addon.ui import widgets
+from blender_addon.ui.panel import DIFFSHEG_PT_generate, DIFFSHEG_PT_keys, DIFFSHEG_PT_sampling
+from blender_addon.ui.properties import DIFFSHEG_PG_settings
+from blender_addon.ui.widgets import wrapped_label
 
 # Measured at Blender 3.4's default sidebar width (229 px at UI scale 1.04): a label in the
 # label column of `use_property_split` shows about 11 characters, a checkbox's about 13.
@@ -133,7 +134,7 @@ def test_long_texts_wrap_to_the_sidebar():
     wrapped_label(Layout(log), context, report, icon="INFO", beside_px=28)
     lines = [e[1] for e in log]
     assert len(lines) > 3 and " ".join(lines) == report
-    assert max(map(len, lines)) <= panel._chars_per_line(context, indent_px=48) < 30
+    assert max(map(len, lines)) <= widgets._chars_per_line(context, indent_px=48) < 30
     log = []
     wrapped_label(Layout(log), SimpleNamespace(region=None), report)  # headless: one label, as it is
     assert log == [("label", report)]

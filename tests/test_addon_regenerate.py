@@ -14,10 +14,11 @@ from addon_fixtures import append_face, bpy, cut_speech, import_beat_armature, r
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 
 import diffsheg_core
-from blender_addon import regenerate, takes
-from blender_addon.bake import BakeOptions, bake_motion, group_values, plan_keys
-from blender_addon.keying import fcurves_of
-from blender_addon.preset import load_preset
+from blender_addon.features import regenerate
+from blender_addon.scene import takes
+from blender_addon.scene.bake import BakeOptions, bake_motion, group_values, plan_keys
+from blender_addon.scene.keying import fcurves_of
+from blender_addon.scene.preset import load_preset
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.keyframes import rotation_angle, to_quaternions
 from diffsheg_core.lower_body import JOINTS as LOWER_JOINTS

@@ -15,9 +15,9 @@ from addon_fixtures import (HAS_AUDIO, REPO, append_face, bpy, cut_speech, impor
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 
 import diffsheg_core
-from blender_addon.bake import MAX_FRAME, MIN_FRAME, BakeOptions, bake_motion, check_frames
-from blender_addon.preset import load_preset
-from blender_addon.properties import CUSTOM_PRESET
+from blender_addon.features.generate import CUSTOM_PRESET
+from blender_addon.scene.bake import MAX_FRAME, MIN_FRAME, BakeOptions, bake_motion, check_frames
+from blender_addon.scene.preset import load_preset
 from diffsheg_core.errors import DiffshegError
 
 
@@ -86,7 +86,7 @@ def test_a_failed_generate_replaces_the_report_of_the_last_run(tmp_path, monkeyp
 def test_style_names_that_are_not_text_get_a_menu_and_generate_says_why(speech, tmp_path):
     """The style menu (asked on every redraw) never raises: it offers the style indices;
     Generate names the problem, in the status bar and in the panel."""
-    from blender_addon.properties import _style_items
+    from blender_addon.ui.properties import _style_items
     from diffsheg_core.checkpoints import DEFAULT_WEIGHTS, read_safetensors, write_safetensors
 
     meta, tensors = read_safetensors(DEFAULT_WEIGHTS, "")
@@ -108,7 +108,7 @@ def test_style_names_that_are_not_text_get_a_menu_and_generate_says_why(speech, 
 def test_with_every_sequencer_channel_taken_the_sound_strip_says_how_to_free_one(speech):
     if not HAS_AUDIO:
         pytest.skip("this Blender build has no audio support: no sound strips")
-    from blender_addon.sound import CHANNELS, _strips
+    from blender_addon.scene.sound import CHANNELS, _strips
 
     scene = reset_scene()
     strips = _strips(scene.sequence_editor_create())

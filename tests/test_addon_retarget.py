@@ -13,10 +13,10 @@ from addon_fixtures import (angle_between, append_face, armature_pose_matrices, 
                             world_direction)
 from addon_fixtures import exit_before_blender_teardown, rigify_blend  # noqa: F401 (fixtures)
 
-from blender_addon.bake import BakeOptions, bake_motion
-from blender_addon.keying import fcurves_of
-from blender_addon.preset import available_presets, find_name, load_preset, normalise_name
-from blender_addon.retarget import layout_parents, map_armature, map_shape_keys
+from blender_addon.scene.bake import BakeOptions, bake_motion
+from blender_addon.scene.keying import fcurves_of
+from blender_addon.scene.preset import available_presets, find_name, load_preset, normalise_name
+from blender_addon.scene.retarget import layout_parents, map_armature, map_shape_keys
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.rigs import BEAT_JOINTS
 
@@ -216,7 +216,7 @@ def test_a_vroid_style_face_talks_and_blinks_through_its_own_keys(speech_motion)
     assert values.max() > 0.2 and 'key_blocks["Fcl_EYE_Close_L"].value' in curves
     # the vowels are VMC's: the same A and O a VRM avatar gets live, never more than one vowel
     from diffsheg_core.live.vmc import preset_weights
-    from blender_addon.retarget import map_shape_keys
+    from blender_addon.scene.retarget import map_shape_keys
 
     derived = dict(map_shape_keys(face, load_preset("beat"), speech_motion).curves(speech_motion.face))
     presets = np.array([preset_weights(f) for f in speech_motion.face])
@@ -283,7 +283,7 @@ def test_unreal_rig_whose_bone_axes_miss_their_children_keys_like_the_beat_skele
 def test_the_old_bone_axis_alignment_would_have_crossed_the_arms():
     """The same rig keyed with the bone's own axis as its rest direction (what the rest
     alignment did before): the arms are far off, so the test above measures the fix."""
-    from blender_addon import retarget
+    from blender_addon.scene import retarget
 
     scene = reset_scene(fps=15)
     beat = import_beat_armature()
@@ -327,7 +327,7 @@ def test_a_joint_missing_from_a_chain_passes_its_rotation_on():
 
 
 def test_auto_picks_the_preset_whose_names_the_rig_has(rigify_blend):
-    from blender_addon.preset import choose_preset
+    from blender_addon.scene.preset import choose_preset
 
     def rig_names(names):
         return choose_preset("beat", names, [])[0].name

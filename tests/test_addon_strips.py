@@ -18,11 +18,11 @@ from addon_fixtures import (HAS_AUDIO, SPEECH, SPEECH_2, append_face, bpy, cut_s
                             report_text, reset_scene)
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 
-from blender_addon import takes
-from blender_addon.keying import action_fcurves
-from blender_addon.strips import StripsRun
-from blender_addon.panel import DIFFSHEG_PT_generate
-from blender_addon.sound import sound_strips
+from blender_addon.scene import takes
+from blender_addon.scene.keying import action_fcurves
+from blender_addon.features.strips import StripsRun
+from blender_addon.ui.panel import DIFFSHEG_PT_generate
+from blender_addon.scene.sound import sound_strips
 
 pytestmark = pytest.mark.skipif(not HAS_AUDIO, reason="this Blender has no audio support: no sound strips")
 

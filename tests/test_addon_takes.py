@@ -10,10 +10,10 @@ from addon_fixtures import append_face, bpy, cut_speech, import_beat_armature, r
 from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 
 import diffsheg_core
-from blender_addon import takes
-from blender_addon.bake import BakeOptions, bake_motion
-from blender_addon.keying import action_fcurves, fcurves_of
-from blender_addon.preset import load_preset
+from blender_addon.scene import takes
+from blender_addon.scene.bake import BakeOptions, bake_motion
+from blender_addon.scene.keying import action_fcurves, fcurves_of
+from blender_addon.scene.preset import load_preset
 
 
 @pytest.fixture(scope="module")

@@ -25,7 +25,7 @@ def whole_body_motion(frames: int = 300):
 
 
 def keyed_paths(ob) -> set[tuple[str, int]]:
-    from blender_addon.keying import fcurves_of
+    from blender_addon.scene.keying import fcurves_of
 
     return {(fc.data_path, fc.array_index) for fc in fcurves_of(ob)}
 
@@ -41,9 +41,9 @@ def foot_heads(scene, rig) -> dict[str, np.ndarray]:
 
 
 def test_whole_body_on_readyplayerme_keys_hips_and_legs_with_planted_feet():
-    from blender_addon.bake import BakeOptions, bake_motion
-    from blender_addon.feet import scene_spans
-    from blender_addon.keying import GENERATED_KEY, fcurves_of
+    from blender_addon.scene.bake import BakeOptions, bake_motion
+    from blender_addon.scene.feet import scene_spans
+    from blender_addon.scene.keying import GENERATED_KEY, fcurves_of
 
     scene = reset_scene(24.0)
     rig, _ = import_readyplayerme()
@@ -102,7 +102,7 @@ def canonical_ankles(motion, n: int, fps: float) -> dict[str, np.ndarray]:
 
 
 def test_upper_body_only_keys_no_leg_and_no_hips_location():
-    from blender_addon.bake import BakeOptions, bake_motion
+    from blender_addon.scene.bake import BakeOptions, bake_motion
 
     scene = reset_scene(24.0)
     rig, _ = import_readyplayerme()
@@ -113,7 +113,7 @@ def test_upper_body_only_keys_no_leg_and_no_hips_location():
 
 
 def test_upper_body_only_checkbox_reaches_the_generate_settings():
-    from blender_addon.panel_settings import generate_settings
+    from blender_addon.features.generate import generate_settings
 
     scene = reset_scene(24.0)
     assert generate_settings(scene.diffsheg).upper_body_only is False
@@ -124,7 +124,7 @@ def test_upper_body_only_checkbox_reaches_the_generate_settings():
 def test_root_translation_without_hips_height_is_refused():
     from dataclasses import replace
 
-    from blender_addon.bake import BakeOptions, bake_motion
+    from blender_addon.scene.bake import BakeOptions, bake_motion
     from diffsheg_core.errors import DiffshegError
 
     scene = reset_scene(24.0)
@@ -140,7 +140,7 @@ def test_root_translation_without_hips_height_is_refused():
 # ------------------------------------------------------------ every rig the presets support
 
 def _demo_speaker():
-    from blender_addon.demo import build_beat_armature
+    from blender_addon.scene.demo import build_beat_armature
 
     return build_beat_armature()
 
@@ -184,10 +184,10 @@ def test_whole_body_take_plants_the_feet_on_every_rig(rig_name, speech_take, req
     """On each rig: hips and legs keyed, each contact foot (ankle and toe) kept within 1.25 cm
     over its span, and at the motion's height at the rig's scale (whatever the rig's units,
     axes, bone orientations or Rigify's leg switches)."""
-    from blender_addon.bake import BakeOptions, bake_motion, metres_per_unit
-    from blender_addon.feet import scene_spans
-    from blender_addon.preset import load_preset
-    from blender_addon.retarget import leg_length, map_armature
+    from blender_addon.scene.bake import BakeOptions, bake_motion, metres_per_unit
+    from blender_addon.scene.feet import scene_spans
+    from blender_addon.scene.preset import load_preset
+    from blender_addon.scene.retarget import leg_length, map_armature
     from diffsheg_core.lower_body import canonical_leg_length
 
     preset_name, build = RIGS[rig_name]

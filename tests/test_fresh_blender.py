@@ -47,7 +47,7 @@ import bpy
 
 import blender_addon
 blender_addon.register()
-from blender_addon.panel import DIFFSHEG_PT_generate, DIFFSHEG_PT_keys, DIFFSHEG_PT_sampling
+from blender_addon.ui.panel import DIFFSHEG_PT_generate, DIFFSHEG_PT_keys, DIFFSHEG_PT_sampling
 
 
 class Layout:
@@ -143,14 +143,15 @@ def test_addon_registers_without_the_heavy_packages_and_says_what_is_missing(tmp
 WITHOUT_NUMPY = REGISTER_WITHOUT + r"""
 from pathlib import Path
 
-from blender_addon import preferences
-from blender_addon.properties import _style_items
+from blender_addon import environment
+from blender_addon.ui import preferences
+from blender_addon.ui.properties import _style_items
 
 out = {"preferences": drawn(preferences.DIFFSHEG_AP_preferences, install_status="", torch_build="CPU"),
        "panel": panel_texts(), "error": generate_error(),
        "menu": _style_items(bpy.context.scene.diffsheg, bpy.context),
        "pip": preferences.runtime_pip_commands(Path("modules"))[0][-1]}
-preferences.ADDON_PACKAGE = "bl_ext.user_default.diffsheg"  # installed as an extension
+environment.ADDON_PACKAGE = "bl_ext.user_default.diffsheg"  # installed as an extension
 out["extension"] = drawn(preferences.DIFFSHEG_AP_preferences, install_status="", torch_build="CPU")
 print("RESULT", json.dumps(out), flush=True)
 os._exit(0)

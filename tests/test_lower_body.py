@@ -270,3 +270,62 @@ def test_a_live_frame_is_final_when_emitted(take):
     np.testing.assert_array_equal(stream.trans, stream._floored[:n])
     again = _stream(lb.upper_body(motions[0]), 0, hop=4)
     np.testing.assert_array_equal(again.lower, stream.lower)  # same seed, same hops: same legs
+
+
+@pytest.fixture(scope="module")
+def unseen(bundle):
+    """Real speech the model never heard (2_scott_0_4_4, its first 30 s), two seeds."""
+    audio = load_audio(DATA / "audio" / "2_scott_0_4_4.wav")
+    part = Audio(samples=audio.samples[:30 * audio.sample_rate], sample_rate=audio.sample_rate, path=audio.path)
+    return [generate(part, model=bundle, seed=seed, device="cpu") for seed in (0, 1)]
+
+
+def _feet_against_the_capture(motion, capture_figures: dict, capture_sway: float) -> dict:
+    """Issue 40, item 1, by lower_body.feet_figures on the canonical body, against the
+    capture's own by the same function: a foot stands (no horizontal motion) or steps
+    (lifted at least as high as the capture's moves), never glides: skating at most twice
+    the capture's, a foot down in 90 % of frames, no more moves than the capture makes, the
+    hips swaying 0.5-2x the capture's speed."""
+    lower, trans = lb.lower_rotations(motion), motion.root_translation.astype(np.float64)
+    ours = lb.feet_figures(lower, trans, FPS)
+    assert ours["skating"] <= 2 * capture_figures["skating"], (ours, capture_figures)
+    assert ours["contact"] >= 0.9, ours
+    assert ours["moves per minute"] <= capture_figures["moves per minute"], (ours, capture_figures)
+    assert ours["lift"] >= capture_figures["lift"], (ours, capture_figures)
+    sway = _figures(lower, trans)["sway speed"]
+    assert 0.5 * capture_sway <= sway <= 2 * capture_sway, (sway, capture_sway)
+    return ours
+
+
+def test_the_feet_stand_or_step_and_never_glide(take, unseen, capture):
+    """The bundled model's legs on the real take's last 30 s (its held-out 20 s and the 10 s
+    before) and on speech it never heard, two seeds each, and live (PlantStream fed the
+    model's legs three frames at a time, as the live session does)."""
+    lower, trans, _ = capture
+    figures = lb.feet_figures(lower, trans, FPS)
+    sway = _figures(lower, trans)["sway speed"]
+    _, motions = take
+    for motion in [*motions, *unseen]:
+        ours = _feet_against_the_capture(motion, figures, sway)
+        print(f"skating {100 * ours['skating']:.2f} cm/s (capture {100 * figures['skating']:.2f}), contact "
+              f"{ours['contact']:.2f} ({figures['contact']:.2f}), {ours['moves per minute']:.0f} moves/min "
+              f"({figures['moves per minute']:.0f}), lift {100 * ours['lift']:.1f} cm ({100 * figures['lift']:.1f})")
+    for motion in (motions[0], unseen[0]):  # live: as the model made them, fed a hop at a time
+        stream = _feed(lb.PlantStream(FPS), motion, 3)
+        live = lb.with_lower_body(lb.upper_body(motion), stream.lower, stream.trans, stream.contacts())
+        _feet_against_the_capture(live, figures, sway)
+
+
+def test_a_standing_foot_does_not_move_and_a_step_lifts_it(unseen):
+    """Inside each span a foot stands, its ankle stays where it landed (under a millimetre);
+    between two spans it is in the air, at least 3 cm up at the step's middle."""
+    for motion in unseen:
+        lower, trans = lb.lower_rotations(motion), motion.root_translation.astype(np.float64)
+        ankles = lb.foot_positions(lower, trans)
+        for side, spans in motion.meta["contacts"].items():
+            ankle = ankles[side][0]
+            floor = ankle[:, 1].min()
+            for (a, b), (c, _) in zip(spans, spans[1:] + [(None, None)]):
+                assert np.abs(ankle[a:b + 1] - ankle[a]).max() < 1e-3, (side, a, b)
+                if c is not None:
+                    assert ankle[b + 1:c, 1].max() - floor > 0.03, (side, b, c)

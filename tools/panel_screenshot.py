@@ -28,7 +28,7 @@ bpy.ops.preferences.addon_install(filepath=ZIP, overwrite=True)
 bpy.ops.preferences.addon_enable(module="diffsheg")
 addon = sys.modules["diffsheg"]
 
-SUB_PANELS = (addon.panel.DIFFSHEG_PT_sampling, addon.panel.DIFFSHEG_PT_keys, addon.panel.DIFFSHEG_PT_live)
+SUB_PANELS = (addon.ui.panel.DIFFSHEG_PT_sampling, addon.ui.panel.DIFFSHEG_PT_keys, addon.ui.panel.DIFFSHEG_PT_live)
 
 if OPEN:
     for cls in SUB_PANELS:
@@ -89,7 +89,7 @@ def show_tab():
         region.active_panel_category = "DiffSHEG"
     else:
         bpy.context.view_layer.objects.active = None  # no "Item" tab
-        ours = [addon.panel.DIFFSHEG_PT_generate, *SUB_PANELS]
+        ours = [addon.ui.panel.DIFFSHEG_PT_generate, *SUB_PANELS]
         tool = [cls for cls in bpy.types.Panel.__subclasses__()
                 if getattr(cls, "bl_space_type", "") == "VIEW_3D" and getattr(cls, "bl_region_type", "") == "UI"
                 and getattr(cls, "bl_category", "") in ("Tool", "View") and cls.is_registered and cls not in ours]

@@ -244,7 +244,7 @@ if mode == "install":
     module = "bl_ext.user_default.diffsheg"
     bpy.ops.wm.save_userpref()  # as Blender's auto-save does: the next start has it enabled
     addon = sys.modules[module]
-    prefs = drawn(sys.modules[module + ".preferences"].DIFFSHEG_AP_preferences, bpy.context)
+    prefs = drawn(sys.modules[module + ".ui.preferences"].DIFFSHEG_AP_preferences, bpy.context)
     ext_dir = Path(addon.__file__).parent
 
     s = scene.diffsheg
@@ -256,7 +256,7 @@ if mode == "install":
     status = bpy.ops.diffsheg.generate()
     report = face_and_rig_report(rig, face)
     ort = sys.modules.get("onnxruntime")
-    panel = sys.modules[module + ".panel"].DIFFSHEG_PT_generate
+    panel = sys.modules[module + ".ui.panel"].DIFFSHEG_PT_generate
     saved_soxr, sys.modules["soxr"] = sys.modules.get("soxr"), None  # as if a wheel had gone missing
     missing = drawn(panel, bpy.context)[:2]
     sys.modules["soxr"] = saved_soxr

@@ -27,7 +27,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..audio import MIN_SAMPLE_RATE, Audio, mel_frames, n_motion_frames
+from ..audio import MIN_SAMPLE_RATE, Audio, mel_frames, n_motion_frames, samples_for_frames
 from ..checkpoints import ModelBundle
 from ..errors import DiffshegError
 from ..foppas import Foppas, FoppasConfig
@@ -58,8 +58,8 @@ class LiveConfig:
       0.49-0.59x, with the upper body and face the same to the bit, but then neither foot
       settled in the first 3 s of a session on real speech, so it is not the default
       (README, Live; bench_live --legs-eta).
-    - A machine too slow for the hop does not fall behind: when two hops or more of audio
-      wait, the next window takes them all, up to `max_hop` frames (a window costs about the
+    - A machine too slow for the hop does not fall behind: when more than a hop of audio
+      waits, the next window takes it all, up to `max_hop` frames (a window costs about the
       same for any hop), so the latency stays bounded and no audio is dropped; the status
       line and the recording say so. `max_hop` = `hop` turns that off."""
 
@@ -185,11 +185,10 @@ class LiveEngine:
         return self._window(self.emitted + hop)
 
     def next_hop(self) -> int:
-        """How many frames the next window takes: the live hop, or, when two hops or more are
-        waiting (the machine fell behind), as many as wait, up to `max_hop`: a window costs
-        about the same whatever its hop, so wider ones catch up."""
-        waiting = self.waiting
-        return self.live.hop if waiting < 2 * self.live.hop else min(waiting, self.live.max_hop)
+        """How many frames the next window takes: all that wait, at least the live hop and at
+        most `max_hop`. A machine that keeps up finds a hop waiting; one that fell behind finds
+        more, and a window costs about the same whatever its hop, so wider ones catch up."""
+        return max(self.live.hop, min(self.waiting, self.live.max_hop))
 
     def finish(self) -> np.ndarray:
         """Sample the frames of the audio left after the last full hop (possibly none, or
@@ -225,10 +224,13 @@ class LiveEngine:
 
     def _features(self, first: int, end: int) -> np.ndarray:
         """(end - first, F) speech features of frames [first, end), computed over the audio
-        from `_context` frames before `end` (aligned to a whole sample) to what has arrived."""
+        from `_context` frames before `end` (aligned to a whole sample) to `lookahead` frames
+        after it, never more: so they do not depend on how much audio has arrived when
+        the window is sampled, and the same speech gives the same frames on any machine."""
         cfg = self.bundle.config
         start = max(0, end - self._context) // self._align * self._align
-        audio = Audio(self._buffer[start * self.sample_rate // self.fps: self._n], self.sample_rate)
+        stop = samples_for_frames(end + self.live.lookahead, self.sample_rate, self.fps)  # arrived: ready()
+        audio = Audio(self._buffer[start * self.sample_rate // self.fps: min(self._n, stop)], self.sample_rate)
         rows = slice(first - start, end - start)
         parts = [mel_frames(audio, self.fps)[rows]]
         if cfg.phonetic_input:

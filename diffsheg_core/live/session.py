@@ -321,7 +321,7 @@ class LiveSession:
         played = None  # when the audio heard so far has played out at real time (None: nothing heard yet)
         try:
             while True:
-                try:  # everything queued is taken before sampling, so a window sees all that waits
+                try:
                     chunk = self.feed.get(timeout=0.0 if engine.ready() else 0.05)
                 except FeedClosed:
                     break
@@ -329,7 +329,9 @@ class LiveSession:
                 if chunk is not None:
                     self._hear(chunk.samples, chunk.arrived)
                     played = max(played + len(chunk.samples) / rate if played is not None else 0.0, chunk.arrived)
-                    continue
+                    if engine.waiting < engine.live.max_hop:
+                        continue  # what is queued, up to the widest window, is taken before sampling (the rest
+                        # stays in the bounded feed)
                 if played is not None and not self._stopping.is_set() and now - played > self.underrun_after:
                     gap = int((now - played) * rate)
                     self._hear(np.zeros(gap, np.float32), now)

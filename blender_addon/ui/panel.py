@@ -12,12 +12,12 @@ can be long (the report, the model, where it runs) wrap to the sidebar's width.
 from __future__ import annotations
 
 import sys
-import textwrap
 
 import bpy
 
-from .preferences import runtime_problems, torch_installed
-from .properties import CUSTOM_PRESET, NEUTRAL, NO_MIX
+from ..environment import microphone_problem, runtime_problems, torch_installed
+from ..features.generate import CUSTOM_PRESET, NEUTRAL, NO_MIX
+from .widgets import wrapped_label
 
 
 def device_label(choice: str) -> str:
@@ -34,31 +34,6 @@ def device_label(choice: str) -> str:
     if choice == "GPU":
         return "GPU (CUDA)" if has_cuda else "no CUDA GPU found: choose Auto or CPU"
     return "GPU (CUDA)" if has_cuda else "CPU (no CUDA GPU found)"
-
-
-def _chars_per_line(context, indent_px: float = 0.0) -> int | None:
-    """About how many characters of the UI font fit on one line of the sidebar; None when
-    no region is drawn (a headless draw)."""
-    region = getattr(context, "region", None)
-    if region is None or region.width <= 1:
-        return None
-    scale = context.preferences.system.ui_scale
-    # panel margins and a label's icon, then Blender's UI font: about 7 px a character (wide letters included)
-    usable = region.width - (44 + indent_px) * scale
-    return max(12, int(usable / (7.0 * scale)))
-
-
-def wrapped_label(layout, context, text: str, icon: str = "NONE", beside_px: float = 0.0) -> None:
-    """`text` as one label per line of the sidebar's width (less `beside_px` taken by buttons
-    beside it), the icon on the first."""
-    width = _chars_per_line(context, indent_px=beside_px + (0 if icon == "NONE" else 20))
-    lines = [text] if width is None else (textwrap.wrap(text, width) or [""])
-    col = layout.column(align=True)
-    for i, line in enumerate(lines):
-        row = col.row()
-        row.scale_y = 0.8 if i else 1.0
-        # later lines indented by the icon's width, so they line up under the first
-        row.label(text=line, icon=icon if i == 0 else ("BLANK1" if icon != "NONE" else "NONE"))
 
 
 def _labelled(layout, text: str):
@@ -83,7 +58,7 @@ def _toggled(layout, settings, toggle: str, value: str, label: str) -> None:
 
 def draw_takes(layout, settings, frame: int) -> None:
     """One button per take of the panel's character; the one playing at `frame` is pressed."""
-    from . import takes
+    from ..scene import takes
 
     targets = [settings.armature] + [ob.data.shape_keys for ob in settings.face_objects()]
     names = takes.takes_of(targets)
@@ -279,7 +254,7 @@ class DIFFSHEG_PT_live(_Panel, bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
-        from . import live
+        from ..features import live
 
         layout = _split(self.layout)
         s = context.scene.diffsheg
@@ -289,7 +264,7 @@ class DIFFSHEG_PT_live(_Panel, bpy.types.Panel):
         col.prop(s, "live_source")
         if s.live_source == live.MIC:
             _prop(col, s, "live_mic", placeholder="System default")
-            problem = live.microphone_problem()
+            problem = microphone_problem()
             if problem:
                 wrapped_label(col, context, problem[0].upper() + problem[1:], icon="ERROR")
         elif s.live_source == live.FILE:

@@ -323,7 +323,7 @@ def _bake(scene, copies: dict, up, down, size: float) -> list:
     import numpy as np
     from mathutils import Matrix
 
-    from .keying import new_action, write_channels
+    from ..scene.keying import new_action, write_channels
 
     frames = range(scene.frame_start, scene.frame_end + 1)
     armature = next(iter(copies))
@@ -364,7 +364,7 @@ def _bake(scene, copies: dict, up, down, size: float) -> list:
 
 def _transform_channels(base: str, samples, group: str) -> list:
     """Location, quaternion and scale channels at `base` of (frames, 10) `samples`."""
-    from .keying import Channel
+    from ..scene.keying import Channel
 
     return [Channel(f"{base}{path}", i, samples[:, first + i], group)
             for path, first, width in (("location", 0, 3), ("rotation_quaternion", 3, 4), ("scale", 7, 3))

@@ -17,16 +17,69 @@ from there); the driver records the line as done and then renames them into plac
 the outputs' names only outputs of lines recorded done, and the next run finishes or
 removes what it left. An output that cannot be put in place fails its line alone. The
 driver writes the QC report (diffsheg_core.qc) at the end.
+
+It sits beside batch_render.py, outside the add-on: at the root of a checkout, and in the
+installed add-on beside its __init__.py (build_addon.py ships both there). On import it
+makes diffsheg_core and the add-on importable from either place (`_find_packages`); Ray's
+workers import it by its name, `studio`, with WORKER_PATH on their PYTHONPATH.
 """
 
 from __future__ import annotations
 
+import importlib
+import importlib.util
 import os
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
-from diffsheg_core.errors import DiffshegError
+HERE = Path(__file__).resolve().parent
+
+
+def _find_packages() -> tuple[str, list[str]]:
+    """Make diffsheg_core and the add-on importable, from a checkout (blender_addon/ beside
+    this file) or from inside the installed add-on (this file beside its __init__.py, the
+    core under lib/: build_addon.py ships it there). Returns the add-on's package name and
+    the folders a Ray worker needs on its path to import this module (by its name, studio)."""
+    if (HERE / "blender_addon" / "__init__.py").is_file():  # a checkout
+        if str(HERE) not in sys.path:
+            sys.path.insert(0, str(HERE))
+        return "blender_addon", [str(HERE)]
+    if (HERE / "__init__.py").is_file() and (HERE / "lib" / "diffsheg_core").is_dir():
+        if str(HERE / "lib") not in sys.path:
+            sys.path.insert(0, str(HERE / "lib"))
+        # the extension's wheels (Blender adds them at start-up; a bare `python` may not)
+        wheels = HERE.parents[1] / ".local" / "lib" / f"python{sys.version_info[0]}.{sys.version_info[1]}" \
+            / "site-packages"
+        if wheels.is_dir() and str(wheels) not in sys.path:
+            sys.path.append(str(wheels))
+        paths = [str(HERE), str(HERE / "lib")]
+        init = HERE / "__init__.py"
+        for name, module in list(sys.modules.items()):  # the enabled add-on (bl_ext.user_default.diffsheg)
+            file = getattr(module, "__file__", None)
+            if file and Path(file).resolve() == init:
+                return name, paths
+        name = "diffsheg_batch_addon"  # not enabled: import the add-on's package without registering it
+        spec = importlib.util.spec_from_file_location(name, init, submodule_search_locations=[str(HERE)])
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+        return name, paths
+    raise ImportError(f"{HERE} is neither a checkout of the project nor the installed add-on (no "
+                      "blender_addon/ beside studio.py, nor lib/diffsheg_core)")
+
+
+ADDON, WORKER_PATH = _find_packages()
+CHECKOUT = ADDON == "blender_addon"
+
+
+def addon(module: str):
+    """A module of the add-on: addon("scene.bake") is blender_addon.scene.bake in a checkout."""
+    return importlib.import_module(f"{ADDON}.{module}")
+
+
+from diffsheg_core.errors import DiffshegError  # noqa: E402  (needs lib/ on sys.path)
 
 RETRIES = 3  # times Ray runs a line again whose worker died
 LOOPBACK_ONLY = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
@@ -75,17 +128,17 @@ def _key_and_write(line, generate, paths: dict) -> tuple:
     outputs, and take the take back out; (motion, frames, keys)."""
     import bpy
 
-    from .bake import bake_motion, keying_options
+    bake = addon("scene.bake")
 
     _open_character(line.blend)
     scene = bpy.context.scene
     armature, faces = find_targets(scene, line.armature, line.face)
-    options = keying_options(scene, armature, faces, line.preset, line.start_frame, every_frame=line.every_frame,
+    options = bake.keying_options(scene, armature, faces, line.preset, line.start_frame, every_frame=line.every_frame,
                              max_error=line.max_error, max_face_error=line.max_face_error)
     motion = generate()
     undo: list = []
     try:
-        result = bake_motion(scene, motion, str(line.audio), options, undo)
+        result = bake.bake_motion(scene, motion, str(line.audio), options, undo)
         write_outputs(paths, scene, armature, faces, motion)
     finally:
         for step in reversed(undo):  # the character as it was, for the next line
@@ -145,15 +198,15 @@ def write_outputs(paths: dict[str, Path], scene, armature, faces, motion) -> Non
     """Each output of `paths` (kind -> where), written whole or not at all."""
     from diffsheg_core.motion import write_arkit_json, write_livelink_csv
 
-    from .exports import export_fbx, export_glb
+    exports = addon("features.exports")
 
     writers = {
         "npz": lambda p: motion.save_npz(p),
         "arkit_json": lambda p: write_arkit_json(motion, p),
         "csv": lambda p: write_livelink_csv(motion, p),
-        "fbx_unreal": lambda p: export_fbx(p, armature, faces, "unreal"),
-        "fbx_unity": lambda p: export_fbx(p, armature, faces, "unity"),
-        "glb": lambda p: export_glb(p, armature, faces),
+        "fbx_unreal": lambda p: exports.export_fbx(p, armature, faces, "unreal"),
+        "fbx_unity": lambda p: exports.export_fbx(p, armature, faces, "unity"),
+        "glb": lambda p: exports.export_glb(p, armature, faces),
         "blend": lambda p: _save_blend(p),
         "mp4": lambda p: _render_video(scene, p),
     }
@@ -171,15 +224,13 @@ def _save_blend(path: Path) -> None:
 def _render_video(scene, path: Path) -> None:
     import bpy
 
-    from .demo import set_video_output
-
     if scene.camera is None:
         raise DiffshegError("the character's scene has no camera to render the video (mp4) with: add one, "
                             "or leave mp4 out of the line's outputs")
     old = scene.render.filepath
 
     def render(tmp: Path) -> None:
-        set_video_output(scene)
+        addon("scene.demo").set_video_output(scene)
         scene.render.filepath = str(tmp)
         bpy.ops.render.render(animation=True)
 
@@ -220,9 +271,7 @@ def run_manifest(manifest: Path, out_dir: Path, defaults: dict, address: str | N
     from diffsheg_core import qc
     from diffsheg_core.manifest import Ledger, line_keys, read_manifest
 
-    from .preset import available_presets
-
-    lines = read_manifest(Path(manifest), defaults, presets=["auto", *available_presets()],
+    lines = read_manifest(Path(manifest), defaults, presets=["auto", *addon("scene.preset").available_presets()],
                           style_names=_style_names(defaults.get("model")))
     if check_only:
         log(f"{manifest}: {len(lines)} lines, all good")
@@ -310,8 +359,7 @@ def _start_ray(address: str | None, workers: int | None):
         raise DiffshegError("manifests run on Ray, which is not installed: pip install ray==2.60.0 (in the "
                             "Python that has the bpy module; see the README's studio section)") from None
 
-    root = str(Path(__file__).resolve().parents[1])
-    paths = [root, os.environ.get("PYTHONPATH", "")]
+    paths = [*WORKER_PATH, os.environ.get("PYTHONPATH", "")]
     runtime_env = {"env_vars": {"PYTHONPATH": os.pathsep.join(p for p in paths if p),
                                 "RAY_USAGE_STATS_ENABLED": "0"}}
     if address:

@@ -22,8 +22,8 @@ from pathlib import Path
 from diffsheg_core.errors import DiffshegError
 
 PRESET_DIRS: tuple[Path, ...] = (
-    Path(__file__).resolve().parent / "presets",          # inside the installed add-on
-    Path(__file__).resolve().parent.parent / "presets",   # repository checkout
+    Path(__file__).resolve().parents[1] / "presets",   # inside the installed add-on
+    Path(__file__).resolve().parents[2] / "presets",   # repository checkout
 )
 
 

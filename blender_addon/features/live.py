@@ -33,15 +33,13 @@ from bpy.app.handlers import persistent
 
 from diffsheg_core.errors import DiffshegError
 
-from .job import BackgroundJob
-from .properties import LIVE_HOST
+from .generate import BackgroundJob
 
 MIC, FILE, SOCKET = "MIC", "FILE", "SOCKET"
-SOCKET_HOST = LIVE_HOST    # the socket listens on this computer only: whoever reaches it speaks
+SOCKET_HOST = "127.0.0.1"  # the socket listens on this computer only: whoever reaches it speaks
 SOCKET_RATE = 16000        # the socket's PCM: 16-bit mono at this rate (TcpSource's default)
 RECORDINGS = "live"        # the folder beside the .blend that holds the recordings' audio
 DISCARD_WAIT_S = 5.0       # the most a discarded session's threads are waited for
-MIC_STATUS_EVERY_S = 5.0   # the microphone's state is looked up at most this often (panel redraws)
 
 _current: "LiveRun | None" = None
 
@@ -66,8 +64,8 @@ class Poser:
         from diffsheg_core.lower_body import JOINTS, with_lower_body
         from diffsheg_core.motion import Motion
 
-        from .bake import map_targets, resolve_preset
-        from .feet import LiveFeet
+        from ..scene.bake import map_targets, resolve_preset
+        from ..scene.feet import LiveFeet
 
         layout = bundle.rig_layout
         self.template = Motion(fps=bundle.config.fps, rig=layout.name, joint_names=list(layout.joint_names),
@@ -86,7 +84,7 @@ class Poser:
     def _values(self, motion, frame=None) -> list[tuple[object, str, tuple]]:
         """(datablock, data path, values by array index) of the first frame of `motion`, the
         stream's `frame` (a LiveFrame) when it is one, with its feet pinned."""
-        from .bake import body_pose, face_channels, location_channels, rotation_channels
+        from ..scene.bake import body_pose, face_channels, location_channels, rotation_channels
 
         out = []
         mapping = self.targets.armature
@@ -162,29 +160,6 @@ def make_source(settings):
     return MicSource(int(device) if device.isdigit() else (device or None))
 
 
-_mic_status: dict = {"at": None, "status": None}
-
-
-def microphone_problem() -> str | None:
-    """Why the microphone cannot be used (sounddevice or the system's PortAudio library
-    missing, no input device), or None; looked up at most every MIC_STATUS_EVERY_S seconds
-    (the panel asks on every redraw). None also where the runtime packages are missing: the
-    panel says that already."""
-    now = time.monotonic()
-    if _mic_status["at"] is None or now - _mic_status["at"] > MIC_STATUS_EVERY_S:
-        try:
-            from diffsheg_core.live.sources import microphone_status
-        except ImportError:
-            status = None
-        else:
-            try:
-                status = microphone_status()
-            except Exception as exc:  # a draw must never raise
-                status = f"the microphone cannot be used ({type(exc).__name__}: {exc})"
-        _mic_status.update(at=now, status=status)
-    return _mic_status["status"]
-
-
 def _vmc_sender(settings, bundle, legs: bool):
     try:
         from diffsheg_core.live.vmc import VmcSender, parse_address
@@ -207,7 +182,7 @@ def recording_folder() -> Path:
 
 def recording_path(folder: Path) -> Path:
     """live_001.wav, live_002.wav, ...: the first name neither on disk nor a take's audio."""
-    from . import takes
+    from ..scene import takes
 
     used = {a.get(takes.AUDIO) for a in bpy.data.actions if takes.is_take(a)}
     n = 1
@@ -267,7 +242,8 @@ class LiveRun:
         from diffsheg_core.live.engine import LiveConfig
         from diffsheg_core.live.session import LiveSession
 
-        from .panel_settings import check_runtime, check_targets, generate_settings
+        from ..environment import check_runtime
+        from .generate import check_targets, generate_settings
 
         if _current is not None:
             raise DiffshegError("a live session is running already: press Stop (or Esc) first")
@@ -333,7 +309,7 @@ class LiveRun:
     def _follow_the_panels_emotion(self) -> None:
         """The performer changed the panel's Emotion or Intensity while live: it eases in from
         the next frames made (the recording notes when)."""
-        from .panel_settings import panel_emotion
+        from .generate import panel_emotion
 
         wanted = panel_emotion(self.scene.diffsheg)
         if wanted != self.emotion:
@@ -403,7 +379,7 @@ class LiveRun:
         except (ReferenceError, RuntimeError) as exc:
             problems.append(f"the pose could not be put back ({exc})")
         if job is None or job.error is not None or job.result is None:
-            from .panel_settings import error_message
+            from .generate import error_message
 
             why = error_message(job.error) if job is not None and job.error is not None else "it did not finish"
             return LiveOutcome(f"live session failed: {why}", "ERROR")
@@ -421,15 +397,15 @@ class LiveRun:
         try:
             take = self._record(context, result, summary, problems)
         except Exception as exc:
-            from .panel_settings import error_message
+            from .generate import error_message
 
             line = f"live: {heard:.1f} s, {summary}; the recording could not be keyed: {error_message(exc)}"
             return LiveOutcome(line, "ERROR")
         return take
 
     def _record(self, context, result, summary: str, problems: list[str]) -> LiveOutcome:
-        from .bake import bake_motion
-        from .report import model_label, report_details, warning_lines, write_report
+        from ..scene.bake import bake_motion
+        from ..scene.report import model_label, report_details, warning_lines, write_report
 
         scene, settings = context.scene, context.scene.diffsheg
         motion, audio = result.motion, result.audio  # as long as each other (LiveEngine.heard_frames)

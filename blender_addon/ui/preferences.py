@@ -16,14 +16,13 @@ optional GPU support.
   from the PyTorch index of the chosen build (CPU or CUDA) and numpy is pinned to the
   version Blender ships so it is not replaced.
 
-Nothing here imports those packages: their presence is looked up with `find_spec`, so the
-add-on registers with nothing but the standard library and bpy.
+Whether each is there is environment.py's to say; nothing here imports those packages, so
+the add-on registers with nothing but the standard library and bpy.
 """
 
 from __future__ import annotations
 
 import importlib.util
-import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -31,90 +30,19 @@ from pathlib import Path
 import bpy
 from bpy.props import EnumProperty, StringProperty
 
-from .job import BackgroundJob
+from ..environment import (ADDON_PACKAGE, LIVE, RUNTIME, microphone_problem, missing_runtime, pip_installs_runtime,
+                           runtime_problems, torch_installed)
+from ..features.generate import BackgroundJob
+from .widgets import draw_problems, wrapped_label
 
-ADDON_PACKAGE = __package__
-
-# import name -> pip requirement: what `diffsheg_core.generate` runs on (the onnx backend)
-RUNTIME: dict[str, str] = {
-    "onnxruntime": "onnxruntime>=1.17",
-    "soundfile": "soundfile>=0.12",
-    "soxr": "soxr>=0.3",
-    "safetensors": "safetensors>=0.4",
-}
-# import name -> pip requirement: what Live uses besides those (the microphone, VMC out); the
-# extension zips bring them, the legacy add-on's "Install dependencies" installs them too
-LIVE: dict[str, str] = {
-    "sounddevice": "sounddevice>=0.4",
-    "pythonosc": "python-osc>=1.8",
-}
 TORCH_REQUIREMENT = "torch>=2.1"
 NUMPY_REQUIREMENT = "numpy>=1.26"  # where Blender's Python lacks it (else Blender's own is kept)
-NUMPY_MISSING = "This Blender's Python lacks numpy (a Linux distribution's build; Blender's own has it)"
 
 TORCH_INDEXES: dict[str, str | None] = {
     "CPU": "https://download.pytorch.org/whl/cpu",
     "CUDA": "https://download.pytorch.org/whl/cu126",
     "PYPI": None,
 }
-INSTALL_GPU_HINT = "Edit > Preferences > Add-ons > DiffSHEG > Install GPU support"
-
-
-def is_extension() -> bool:
-    """Installed as a Blender 4.2+ extension (its wheels bring the runtime packages)."""
-    return (ADDON_PACKAGE or "").startswith("bl_ext.")
-
-
-def blender_platform() -> str:
-    """This machine in the extension platforms' names: linux-x64, macos-arm64, ..."""
-    machine = platform.machine().lower()
-    arch = "arm64" if machine in ("arm64", "aarch64") else "x64"
-    system = {"win32": "windows", "darwin": "macos"}.get(sys.platform, sys.platform.rstrip("0123456789"))
-    return f"{system}-{arch}"
-
-
-def addon_version() -> str:
-    info = getattr(sys.modules.get(ADDON_PACKAGE or ""), "bl_info", {})
-    return ".".join(str(v) for v in info.get("version", (0, 1, 0)))
-
-
-def missing_runtime() -> list[str]:
-    """Import names of the runtime packages Blender's Python cannot find, numpy first."""
-    return [name for name in ("numpy", *RUNTIME) if importlib.util.find_spec(name) is None]
-
-
-def pip_installs_runtime() -> bool:
-    """The runtime comes from the "Install dependencies" button: in the legacy add-on, and
-    wherever numpy is missing (no extension zip brings it)."""
-    return not is_extension() or importlib.util.find_spec("numpy") is None
-
-
-def torch_installed() -> bool:
-    return importlib.util.find_spec("torch") is not None
-
-
-def runtime_fix() -> str:
-    """What brings the runtime packages back, for this kind of install."""
-    if not pip_installs_runtime():
-        return (f"they come with the extension: install diffsheg-{addon_version()}-{blender_platform()}.zip "
-                "again (Edit > Preferences > Get Extensions > Install from Disk)")
-    return "install them with Edit > Preferences > Add-ons > DiffSHEG > Install dependencies"
-
-
-def runtime_problems() -> list[str]:
-    """What the panel and the preferences say while runtime packages are missing ([]: none)."""
-    missing = missing_runtime()
-    if not missing:
-        return []
-    fix = runtime_fix()
-    return [f"Missing Python packages: {', '.join(missing)}", *([NUMPY_MISSING] if "numpy" in missing else []),
-            fix[0].upper() + fix[1:]]
-
-
-def draw_problems(layout, lines: list[str]) -> None:
-    """`lines` as labels, the first marked as an error."""
-    for i, line in enumerate(lines):
-        layout.label(text=line, icon="ERROR" if i == 0 else "NONE")
 
 
 def modules_dir(create: bool = True) -> Path:
@@ -159,9 +87,6 @@ def draw_microphone(layout, context) -> None:
     library, libportaudio2) and how to fix it, wrapped to the preferences' width."""
     if importlib.util.find_spec("numpy") is None:
         return  # the runtime box says what is missing first
-    from .live import microphone_problem
-    from .panel import wrapped_label  # (panel imports this module)
-
     problem = microphone_problem()
     if problem is None:
         layout.label(text="Live: a microphone can be used", icon="CHECKMARK")

@@ -1,11 +1,11 @@
 """Operators: Generate (modal, generation in a worker thread), Generate for Sound Strips
 (the same, one take per sound strip of the Video Sequencer), Live (Start and Stop), new
 seed, face mesh list, takes and the report. What they run is resolved from the panel in
-panel_settings.py (Live: live.py).
+features/ (generate.py; strips.py; Live: live.py).
 
 Generation never touches Blender data: it runs off the main thread in a cancellable job
-(job.py), and only when it has finished does the main thread key the result (one undo
-step). Cancel and errors therefore leave the scene as it was.
+(features/generate.py), and only when it has finished does the main thread key the result
+(one undo step). Cancel and errors therefore leave the scene as it was.
 """
 
 from __future__ import annotations
@@ -17,11 +17,10 @@ import bpy
 
 from diffsheg_core.errors import DiffshegError
 
-from . import live
-from .job import GenerationJob
-from .panel_settings import apply_result, error_message, prepare
-from .report import REPORT_TEXT
-from .strips import StripsRun
+from ..features import live
+from ..features.generate import GenerationJob, apply_result, error_message, prepare
+from ..features.strips import StripsRun
+from ..scene.report import REPORT_TEXT
 
 
 class DIFFSHEG_OT_generate(bpy.types.Operator):
@@ -395,7 +394,7 @@ class DIFFSHEG_OT_use_take(bpy.types.Operator):
     take: bpy.props.StringProperty(name="Take")
 
     def execute(self, context):
-        from . import takes
+        from ..scene import takes
 
         try:
             names = takes.use_take(self.take, context.scene)

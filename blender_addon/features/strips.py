@@ -1,6 +1,6 @@
 """Generate for Sound Strips: one Request per sound strip of the Video Sequencer (its sound
 file, keyed from its own frame onto the panel's character, a take of its own), run one
-after another as one background job (job.RequestQueue), and the report of the run.
+after another as one background job (generate.RequestQueue), and the report of the run.
 """
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import bpy
 
 from diffsheg_core.errors import DiffshegError
 
-from .job import Request, RequestQueue
-from .panel_settings import check_runtime, check_targets, error_message, generate_settings, with_markers
-from .report import MAX_LINE, REPORT_TEXT, model_label, report_line, warning_lines, write_report
+from ..environment import check_runtime
+from ..scene.report import MAX_LINE, REPORT_TEXT, model_label, report_line, warning_lines, write_report
+from .generate import Request, RequestQueue, check_targets, error_message, generate_settings, with_markers
 
 
 def strip_audio(strip) -> Path:
@@ -67,8 +67,8 @@ class StripsRun:
     'Set frame range' asks for it, once all have run."""
 
     def __init__(self, context, selected_only: bool = False):
-        from .bake import check_frames
-        from .sound import sound_strips
+        from ..scene.bake import check_frames
+        from ..scene.sound import sound_strips
 
         scene, settings = context.scene, context.scene.diffsheg
         strips = [s for s in sound_strips(scene) if s.select or not selected_only]

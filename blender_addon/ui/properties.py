@@ -11,10 +11,10 @@ from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProp
 
 from diffsheg_core.settings import CANDIDATES, GUIDANCE, OVERLAP, SKIP_GUIDANCE, STEPS, STYLE_GUIDANCE
 
-from . import preset
+from ..features.generate import CUSTOM_PRESET, DEFAULT_STYLE, NEUTRAL, NO_MIX
+from ..features.live import SOCKET_HOST as LIVE_HOST  # the VMC receiver's default host too
+from ..scene import preset
 
-CUSTOM_PRESET = "__custom__"
-LIVE_HOST = "127.0.0.1"  # live.SOCKET_HOST, the VMC receiver's default host
 LIVE_HOP, LIVE_HOPS = 3, (1, 16)  # diffsheg_core.live.engine: LiveConfig.hop, HOPS (numpy-free here)
 
 
@@ -39,8 +39,6 @@ def _preset_items(_self, _context):
 
 
 _style_items_cache: dict = {}
-NO_MIX = "__none__"
-DEFAULT_STYLE = "__default__"
 
 
 def style_names(settings) -> list[str]:
@@ -82,7 +80,7 @@ def _style_items(self, _context):
 # diffsheg_core.emotion.NAMES, in its order (a test checks): that module needs numpy, which
 # the add-on registers without.
 EMOTIONS = [
-    ("neutral", "Neutral", "No emotion: the face and body as generated"),
+    (NEUTRAL, "Neutral", "No emotion: the face and body as generated"),
     ("happy", "Happy", "Cheeks raised and a smile, livelier gestures, the head up"),
     ("sad", "Sad", "Inner brows up and mouth corners down, less movement, the head and chest lowered"),
     ("angry", "Angry", "Brows down, eyes narrowed, lips pressed, sharper strokes"),
@@ -90,7 +88,6 @@ EMOTIONS = [
     ("fearful", "Fearful", "Brows raised together, eyes wide, lips stretched"),
     ("disgusted", "Disgusted", "Nose wrinkled and upper lip raised, the head back"),
 ]
-NEUTRAL = EMOTIONS[0][0]
 
 
 def _mix_items(self, context):

@@ -1,25 +1,165 @@
-"""What the panel's settings ask for, checked before anything runs: the Request of a press of
-Generate (the whole clip, or a range of the take playing), and the checks and messages it
-needs (packages, audio, model, targets, preset, timeline style and emotion markers). Read
-on the main thread; the operators run what it returns (operators.py, job.py).
+"""A press of Generate: the request the panel's settings ask for, checked before anything
+runs, and the background job that runs it.
+
+The panel's settings (properties.py) are read on the main thread into a `Request`
+(`prepare`): what to generate (the whole clip, from the character's pose where asked, or a
+range of the take playing) and how to key it, with the checks and messages it needs
+(packages, audio, model, targets, preset, timeline style and emotion markers). Its `run`
+makes the Motion and touches no Blender data, so `GenerationJob` runs it in a daemon
+thread, with progress and a cancel event; `apply` (`apply_result`) keys the result on the
+main thread. `RequestQueue` runs several requests (one per sound strip, strips.py) one
+after another, under one cancel event, for the main thread to key each as it finishes. One
+line of batch_render.py is a `Request` too.
+
+`BackgroundJob` is the daemon thread a modal operator polls: `GenerationJob` here, the
+pip install of the preferences (preferences.InstallJob) and Live's finish too.
 """
 
 from __future__ import annotations
 
-import importlib
-from dataclasses import replace
+import threading
+import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import bpy
 
 from diffsheg_core.errors import DiffshegError
 
-from . import preset
-from .job import Request
-from .preferences import INSTALL_GPU_HINT, RUNTIME, missing_runtime, runtime_fix, torch_installed
-from .properties import CUSTOM_PRESET, DEFAULT_STYLE, NEUTRAL, NO_MIX
-from .report import model_label, report_details, report_line, write_report
+from ..environment import INSTALL_GPU_HINT, check_runtime, torch_installed
+from ..scene import preset
+from ..scene.report import model_label, report_details, report_line, write_report
 
+# The panel's choices that mean "none of the model's": Generate reads them (properties.py offers them)
+CUSTOM_PRESET = "__custom__"   # the preset: a .json file of the user's own
+NO_MIX = "__none__"            # the second style: none
+DEFAULT_STYLE = "__default__"  # the style: the model's default
+NEUTRAL = "neutral"            # the emotion: none (diffsheg_core.emotion.NAMES[0])
+
+
+@dataclass
+class Request:
+    """One press of Generate, resolved on the main thread: the whole clip as a new take
+    (from the character's pose where asked), or a range of the take playing generated anew."""
+
+    path: Path
+    options: object                  # BakeOptions
+    generation: object               # GenerateSettings
+    keep_face: bool = False
+    pins: tuple = ()                 # whole clip: the pose to start from
+    range: object | None = None      # regenerate.RangeRequest
+
+    def run(self, progress, cancel):
+        """The Motion (worker thread; touches no Blender data)."""
+        import diffsheg_core
+
+        if self.range is None:
+            return diffsheg_core.generate(str(self.path), settings=self.generation, pins=self.pins,
+                                          progress=progress, cancel=cancel)
+        r = self.range
+        return diffsheg_core.regenerate(r.source.motion, str(self.path), start=r.start, end=r.end,
+                                        settings=self.generation, keep_face=self.keep_face, pins=r.pins,
+                                        progress=progress, cancel=cancel)
+
+    def made_with(self, motion) -> dict:
+        """What the result was made with (model, seed, ...): a range's own record."""
+        return motion.meta["regenerated"][-1] if self.range is not None else motion.meta
+
+    def apply(self, scene, motion):
+        """Key `motion` (main thread): a new take of the whole clip, or of the range."""
+        if self.range is None:
+            from ..scene.bake import bake_motion
+
+            return bake_motion(scene, motion, str(self.path), self.options)
+        from .regenerate import apply_range
+
+        return apply_range(scene, self.range, motion, self.options)
+
+
+class BackgroundJob:
+    """`work` in a daemon thread: `start` it, poll `done` (or `wait`), then read what it left."""
+
+    def __init__(self):
+        self.started = time.perf_counter()
+        self._thread = threading.Thread(target=self.work, daemon=True)
+
+    def work(self) -> None:
+        raise NotImplementedError
+
+    def start(self):
+        self._thread.start()
+        return self
+
+    @property
+    def elapsed(self) -> float:
+        """Seconds since the job was made."""
+        return time.perf_counter() - self.started
+
+    @property
+    def done(self) -> bool:
+        return not self._thread.is_alive()
+
+    def wait(self, timeout: float | None = None) -> None:
+        self._thread.join(timeout)
+
+
+class GenerationJob(BackgroundJob):
+    """A request's generation in a daemon thread; poll `done`, then read `motion`/`error`.
+    `elapsed` counts generation, then keying."""
+
+    def __init__(self, request: Request, cancel: threading.Event | None = None):
+        super().__init__()
+        self.request = request
+        self.cancel = cancel if cancel is not None else threading.Event()
+        self.fraction = 0.0
+        self.motion = None
+        self.error: BaseException | None = None
+
+    def work(self) -> None:
+        try:
+            self.motion = self.request.run(self._progress, self.cancel)
+        except BaseException as exc:  # handed to the main thread, which reports it
+            self.error = exc
+
+    def _progress(self, p) -> None:
+        self.fraction = p.fraction
+
+
+class RequestQueue:
+    """Requests generated one after another, each in its own `GenerationJob`, all under one
+    cancel event. The main thread calls `advance` to start the next request once it has
+    keyed the previous one's Motion (Blender data are written on the main thread only)."""
+
+    def __init__(self, requests: list[Request]):
+        self.requests = list(requests)
+        self.cancel = threading.Event()
+        self.index = -1                          # the request under way (or last run)
+        self.job: GenerationJob | None = None
+        self.started = time.perf_counter()
+
+    def advance(self) -> GenerationJob | None:
+        """Start the next request's job; None when all have run or the queue was cancelled."""
+        if self.cancel.is_set() or self.index + 1 >= len(self.requests):
+            self.job = None
+            return None
+        self.index += 1
+        self.job = GenerationJob(self.requests[self.index], self.cancel).start()
+        return self.job
+
+    @property
+    def fraction(self) -> float:
+        """How far the whole queue is (each request an equal share)."""
+        if not self.requests:
+            return 1.0
+        current = self.job.fraction if self.job is not None else 0.0
+        return min(1.0, (max(self.index, 0) + current) / len(self.requests))
+
+    @property
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.started
+
+
+# ---------------------------------------------------------------- the panel's request
 
 def audio_file(settings) -> Path:
     raw = settings.audio_path.strip()
@@ -82,7 +222,7 @@ def panel_style(settings):
 
 
 def bake_options(settings):
-    from .bake import BakeOptions
+    from ..scene.bake import BakeOptions
 
     return BakeOptions(
         armature=settings.armature, face_meshes=settings.face_objects(), preset=preset_of(settings),
@@ -91,33 +231,6 @@ def bake_options(settings):
         max_face_error=settings.max_face_error,
         smoothing=settings.smoothing, add_sound=settings.add_sound,
         set_frame_range=settings.set_frame_range)
-
-
-def check_runtime() -> None:
-    """The runtime packages are there and import (e.g. a wheel for a newer OS fails here)."""
-    missing = missing_runtime()
-    if missing:
-        raise DiffshegError(f"missing Python packages: {', '.join(missing)}; {runtime_fix()}")
-    for name in RUNTIME:
-        try:
-            importlib.import_module(name)
-        except Exception as exc:  # ImportError, or an OSError from a shared library
-            needs = bundled_wheels_need()
-            raise DiffshegError(f"the Python package {name} is installed but does not load "
-                                f"({type(exc).__name__}: {exc}); "
-                                + (f"the bundled wheels need {needs} or newer; " if needs else "")
-                                + runtime_fix()) from None
-
-
-def bundled_wheels_need() -> str | None:
-    """The OS release the extension's wheels ask for (wheels/wheels.json, see build_addon.py)."""
-    import json
-
-    record = Path(__file__).resolve().parent / "wheels" / "wheels.json"
-    try:
-        return json.loads(record.read_text(encoding="utf-8")).get("requires_os")
-    except (OSError, ValueError):
-        return None
 
 
 def check_model(settings) -> None:
@@ -154,7 +267,7 @@ def check_targets(settings):
     options = bake_options(settings)
     if options.armature is None and not options.face_meshes:
         raise DiffshegError("no target: choose an armature and/or a face mesh in the panel")
-    from .bake import check_frames  # numpy: checked above
+    from ..scene.bake import check_frames  # numpy: checked above
 
     check_frames(options.start_frame)
     from diffsheg_core.checkpoints import stored_rig  # the runtime's packages: checked above
@@ -237,7 +350,7 @@ def marker_changes(scene, start_frame: int, prefix: str, parse, example: str) ->
     where there are none."""
     import argparse
 
-    from .bake import scene_fps
+    from ..scene.bake import scene_fps
 
     changes = {}
     for marker in sorted(scene.timeline_markers, key=lambda m: m.frame):

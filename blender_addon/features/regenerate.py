@@ -30,10 +30,10 @@ from diffsheg_core.motion import Motion
 from diffsheg_core.pipeline import Pin
 from diffsheg_core.rotations import axis_angle_to_matrix, convert
 
-from . import takes
-from .bake import BakeOptions, BakeResult, Group, auto_preset, group_values, plan_keys, scene_fps
-from .keying import GENERATED_KEY, Undo, action_fcurves, fcurves_of, undone_on_error
-from .retarget import joint_rotation, map_armature, passed_rotation
+from ..scene import takes
+from ..scene.bake import BakeOptions, BakeResult, Group, auto_preset, group_values, plan_keys, scene_fps
+from ..scene.keying import GENERATED_KEY, Undo, action_fcurves, fcurves_of, undone_on_error
+from ..scene.retarget import joint_rotation, map_armature, passed_rotation
 
 REACH = 2  # model frames on either side that one scene frame's value depends on (PCHIP face weights)
 
