@@ -74,7 +74,7 @@ MIN_CONTACT = 4         # frames: a shorter low, slow stretch is a step, not a c
 REACH_SLACK = 0.004     # m a pinned ankle may lie beyond the straight leg (IK stops 4 mm short)
 LIVE_LEASH = 0.5        # live: the share of the hips' distance from the capture's centre each segment takes back
 MODEL_SMOOTH_S = 0.2    # Gaussian sigma (s) a whole-body model's hips and legs are low-passed by before planting
-STEP_AWAY = 0.2         # m the hip may sway away from over a standing foot before the foot steps
+STEP_AWAY = 0.22        # m the hip may sway away from over a standing foot before the foot steps
 STEP_S = 0.33           # s a step takes, lift-off to landing
 STEP_LIFT = 0.09        # m the ankle rises at a step's middle (the capture's moves lift it 8.2 cm, feet_figures)
 STEP_REST_S = 0.8       # s a foot stands at least between two of its steps (unless the leg cannot reach)
@@ -291,16 +291,23 @@ FEET_MOVE = 0.15       # m/s over which an ankle counts as moving (a step or a g
 
 
 def feet_figures(lower: np.ndarray, trans: np.ndarray, fps: float) -> dict[str, float]:
-    """What a viewer sees of the feet, per foot and averaged over both: `skating` the mean
-    horizontal speed (m/s) of an ankle over the frames it is within FEET_LOW of its lowest
-    height (SpeechAct's measure), `contact` the share of frames it is that low and slower
-    than FEET_STILL, `moves per minute` the stretches it moves faster than FEET_MOVE, and
-    `lift` the median of those moves' highest ankle point above its lowest (m)."""
+    """`ankle_figures` of the canonical body's ankles."""
+    return ankle_figures([ankle for ankle, _ in foot_positions(lower, trans).values()], fps)
+
+
+def ankle_figures(ankles: list[np.ndarray], fps: float, up: int = 1) -> dict[str, float]:
+    """What a viewer sees of the feet, from each ankle's (T, 3) world positions in metres
+    (`up`: the vertical axis, 1 here, 2 in Blender), averaged over the feet: `skating` the
+    mean horizontal speed (m/s) of an ankle over the frames it is within FEET_LOW of its
+    lowest height (SpeechAct's measure), `contact` the share of frames it is that low and
+    slower than FEET_STILL, `moves per minute` the stretches it moves faster than
+    FEET_MOVE, and `lift` the median of those moves' highest ankle point above its lowest (m)."""
     skating, contact, moves, lifts = [], [], 0, []
-    for ankle, _ in foot_positions(lower, trans).values():
-        height = ankle[:, 1] - ankle[:, 1].min()
+    floor = [axis for axis in range(3) if axis != up]
+    for ankle in ankles:
+        height = ankle[:, up] - ankle[:, up].min()
         step = np.diff(ankle, axis=0, prepend=ankle[:1]) * fps
-        across, speed = np.linalg.norm(step[:, [0, 2]], axis=-1), np.linalg.norm(step, axis=-1)
+        across, speed = np.linalg.norm(step[:, floor], axis=-1), np.linalg.norm(step, axis=-1)
         low = height < FEET_LOW
         skating.append(float(across[low].mean()) if low.any() else 0.0)
         contact.append(float(np.mean(low & (speed < FEET_STILL))))
@@ -308,7 +315,8 @@ def feet_figures(lower: np.ndarray, trans: np.ndarray, fps: float) -> dict[str, 
         moves += len(runs)
         lifts += [float(height[max(a - 1, 0):b + 2].max()) for a, b in runs]
     return {"skating": float(np.mean(skating)), "contact": float(np.mean(contact)),
-            "moves per minute": moves / (len(lower) / fps / 60.0), "lift": float(np.median(lifts)) if lifts else 0.0}
+            "moves per minute": moves / (len(ankles[0]) / fps / 60.0),
+            "lift": float(np.median(lifts)) if lifts else 0.0}
 
 
 def plant_feet(lower: np.ndarray, trans: np.ndarray, fps: float,

@@ -5,10 +5,12 @@ floor, and "Upper body only" keying no leg."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from addon_fixtures import (bpy, build_mixamo_armature, build_smplx_body_armature, build_unreal_body_armature,
+from addon_fixtures import (DATA, bpy, build_mixamo_armature, build_smplx_body_armature, build_unreal_body_armature,
                             build_vroid_armature, cut_speech, ensure_registered, import_readyplayerme, mocap_motion,
                             reset_scene, set_fps)
 from addon_fixtures import exit_before_blender_teardown, rigify_blend  # noqa: F401 (fixtures)
@@ -232,3 +234,50 @@ def test_whole_body_take_plants_the_feet_on_every_rig(rig_name, speech_take, req
           f"within {100 * off.max():.2f} cm")
     assert slide < 0.0125
     assert off.max() < 0.015 and np.abs(contact).max() < 0.025
+
+
+# ------------------------------------------------------------ feet a viewer believes (issue 40, item 1)
+
+def _held_out_capture():
+    """The real take's last 20 s, upper body and the capture's own hips and legs (BEAT2 SMPL-X)."""
+    from addon_fixtures import BEAT2_NPZ
+
+    lower, trans, _ = lower_body.read_capture(BEAT2_NPZ, 15.0)
+    upper = mocap_motion()
+    n = min(upper.n_frames, len(lower))
+    tail = slice(n - 300, n)
+    part = replace(upper, rotations=upper.rotations[tail], face=upper.face[tail])
+    return lower_body.with_lower_body(part, lower[tail], trans[tail], lower_body.contacts(lower[tail], trans[tail], 15.0))
+
+
+@pytest.mark.parametrize("rig_name", ["readyplayerme", "beat"])
+def test_keyed_feet_stand_or_step_as_the_captures(rig_name, request, tmp_path):
+    """On the Ready Player Me avatar and the BEAT demo speaker, the rig's ankles in world
+    space (24 fps): the bundled model's take of 20 s of speech it never heard against the
+    real capture's held-out last 20 s keyed through the same preset, both measured by
+    lower_body.ankle_figures: skating at most twice the capture's, a foot down in 90 % of
+    frames, no more moves than the capture's, each lifted at least as high."""
+    import diffsheg_core
+    from blender_addon.scene.bake import BakeOptions, bake_motion, metres_per_unit
+    from blender_addon.scene.preset import load_preset
+
+    speech = cut_speech(tmp_path, 20.0, source=DATA / "audio" / "2_scott_0_4_4.wav")
+    made = diffsheg_core.generate(str(speech), seed=0, device="cpu")
+    figures = {}
+    for name, motion in (("capture", _held_out_capture()), ("generated", made)):
+        preset_name, build = RIGS[rig_name]
+        reset_scene(24.0)
+        rig = build(request)
+        scene = bpy.context.scene
+        bake_motion(scene, motion, None, BakeOptions(armature=rig, preset=load_preset(preset_name), add_sound=False))
+        metres = metres_per_unit(rig)
+        heads = foot_heads(scene, rig)
+        figures[name] = lower_body.ankle_figures([metres * heads[side] for side in FEET], scene.render.fps, up=2)
+    ours, capture = figures["generated"], figures["capture"]
+    print(f"{rig_name}: skating {100 * ours['skating']:.2f} cm/s (capture {100 * capture['skating']:.2f}), "
+          f"contact {ours['contact']:.2f} ({capture['contact']:.2f}), {ours['moves per minute']:.0f} moves/min "
+          f"({capture['moves per minute']:.0f}), lift {100 * ours['lift']:.1f} cm ({100 * capture['lift']:.1f})")
+    assert ours["skating"] <= 2 * capture["skating"]
+    assert ours["contact"] >= 0.9
+    assert ours["moves per minute"] <= capture["moves per minute"]
+    assert ours["lift"] >= capture["lift"]

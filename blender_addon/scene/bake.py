@@ -225,7 +225,7 @@ def location_channels(bone: str, location: np.ndarray) -> list[Channel]:
     return [Channel(path, i, location[:, i], group=bone) for i in range(3)]
 
 
-FOOT_BOUND_M = 0.002  # metres: how far the keys of the hips or of a thigh or shin may move a foot
+FOOT_BOUND_M = 0.0005  # metres: how far the keys of the hips or of a thigh or shin may move a foot (a standing foot stays still)
 
 
 def metres_per_unit(armature) -> float:

@@ -18,7 +18,7 @@ from diffsheg_core.rotations import convert, quaternion_sequence_continuous
 
 from .retarget import LegRig
 
-EASE_S = 0.2   # seconds over which a pin eases in and out
+EASE_S = 0.08  # seconds over which a pin eases in and out: the motion's own feet already land on the spot, the pin only takes out what the rig's proportions change, so a longer ease would drag a stepping foot over the floor
 
 
 def scene_spans(contacts: list, source_fps: float, fps: float, n_frames: int) -> list[tuple[int, int]]:
