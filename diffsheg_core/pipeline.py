@@ -492,6 +492,7 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     made = upper_body(to_motion(bundle, new, meta={}))  # the range's frames
     part = replace(base, rotations=base.rotations.copy(), face=base.face.copy())
     part.rotations[start:end], part.face[start:end] = made.rotations, made.face
+    ease_into_pins(part.rotations, part.joint_names, pins, start, end)
     if s.emotion is None and s.emotion_at is None:  # the range keeps the take's own emotion
         s = replace(s, emotion=motion.meta.get("emotion") or None, emotion_at=motion.meta.get("emotion_at") or None)
     track = emotion_track(s.emotion, s.emotion_at, motion.n_frames, bundle.config.fps)
@@ -529,6 +530,30 @@ def _known(bundle: ModelBundle, upper: Motion, whole: Motion) -> tuple[np.ndarra
     else:
         hold[:, legs] = True
     return values.astype(np.float32), hold
+
+
+PIN_EASE = 12        # frames either side of a pin over which its joint is eased through it
+PIN_SMOOTH = 2.5    # frames: the Gaussian sigma that takes the sampler's kink at a pin out
+
+
+def ease_into_pins(rotations: np.ndarray, joint_names: list[str], pins, start: int, end: int) -> None:
+    """Ease each pinned joint's rotations (T, J, 3, in place) through its pin: over PIN_EASE
+    frames either side (within the range [start, end)) the sampled curve is low-passed and
+    lifted by a raised cosine onto the pin, and blended back into the curve as sampled
+    towards the edges. The pin is met exactly; the sampler's own held value, painted into
+    a curve that had not quite reached it, would leave a kink the eye reads as a pop."""
+    for pin in pins:
+        j = joint_names.index(pin.joint)
+        a, b = max(start, pin.frame - PIN_EASE), min(end, pin.frame + PIN_EASE + 1)
+        t = np.arange(a, b)
+        curve = rotations[a:b, j].astype(np.float64)
+        weights = np.exp(-0.5 * ((t[:, None] - t[None, :]) / PIN_SMOOTH) ** 2)
+        smooth = weights @ curve / weights.sum(axis=1, keepdims=True)
+        bump = 0.5 * (1.0 + np.cos(np.pi * np.clip((t - pin.frame) / (PIN_EASE + 1), -1.0, 1.0)))[:, None]
+        smooth += bump * (np.asarray(pin.rotation, np.float64) - smooth[pin.frame - a])
+        rotations[a:b, j] = curve + bump * (smooth - curve)
+    for pin in pins:  # exact, also where two pins' eases overlap
+        rotations[pin.frame, joint_names.index(pin.joint)] = pin.rotation
 
 
 def _hold_pins(bundle: ModelBundle, normalised: np.ndarray, hold: np.ndarray, pins, start: int, end: int) -> None:

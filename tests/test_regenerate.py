@@ -58,19 +58,21 @@ def test_keep_face_keeps_the_face_inside_the_range(speech, take):
 
 
 def test_a_pin_is_met_and_flowed_into(speech, take):
-    """The right arm raised 30 degrees at a frame inside the range: met to the bit, and its
-    acceleration around the pin stays near the range's (measured 1.2-2.3x its median for
-    pins of 17-46 degrees over three seeds; the issue's goal is 2x)."""
+    """The right arm raised 30, 45 and 60 degrees at frames inside the range, three seeds:
+    met to the bit, and its acceleration around the pin at most twice the range's median
+    (issue 40, item 3; before pipeline.ease_into_pins: 1.6-4.3x, now 0.4-1.6x)."""
     arm = take.joint_names.index("RightArm")
-    frame = 135
-    target = take.rotations[frame, arm] + np.array([0.0, 0.0, 0.5], dtype=np.float32)
-    new = diffsheg_core.regenerate(take, *speech, start=START, end=END, seed=7,
-                                   pins=(Pin(frame, "RightArm", tuple(target)),))
-    got = new.rotations[frame, arm]
-    assert np.degrees(np.linalg.norm(got - target)) < 2.0
-    acc = np.linalg.norm(np.diff(new.rotations[:, arm], 2, axis=0), axis=1)
-    assert acc[frame - 4: frame + 3].max() <= 2.5 * np.median(acc[START: END - 2])
-    np.testing.assert_array_equal(new.rotations[END:], take.rotations[END:])
+    for seed in (7, 8, 9):
+        for frame, degrees in ((135, 30), (120, 60), (150, 45)):
+            target = take.rotations[frame, arm] + np.array([0.0, 0.0, np.radians(degrees)], dtype=np.float32)
+            new = diffsheg_core.regenerate(take, *speech, start=START, end=END, seed=seed,
+                                           pins=(Pin(frame, "RightArm", tuple(target)),))
+            got = new.rotations[frame, arm]
+            assert np.degrees(np.linalg.norm(got - target)) < 2.0
+            acc = np.linalg.norm(np.diff(new.rotations[:, arm], 2, axis=0), axis=1)
+            assert acc[frame - 4: frame + 3].max() <= 2.0 * np.median(acc[START: END - 2]), (seed, frame)
+            np.testing.assert_array_equal(new.rotations[END:], take.rotations[END:])
+            np.testing.assert_array_equal(new.rotations[:START], take.rotations[:START])
 
 
 @pytest.mark.parametrize("start,end,pins,match", [
