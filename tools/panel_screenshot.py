@@ -48,7 +48,7 @@ def character():
     s.audio_path = "//audio/talk_interview_take3.wav"
     s.armature = rig
     s.face_meshes.add().object = face
-    from diffsheg import takes
+    from diffsheg.scene import takes
     for number in (1, 2):
         name = takes.take_name("talk", number)
         action = bpy.data.actions.new(name)
