@@ -1,6 +1,24 @@
-"""Lip-sync of the bundled model on real speech in languages other than English (issue 29, item 3).
+"""Lip-sync of the bundled model on real speech in languages other than English (issue 29, item 3;
+issue 42).
 
-Runs the bundled model with its default settings (seeds 0 and 1) on every recording in
+First, against a real Mandarin face (issue 42): the bundled model (seeds 0 and 1) on the 5
+takes of ../shared/data/lang_capture/zh_facegood (read Mandarin, one speaker, the face
+solved onto FACEGOOD's 116-blendshape rig at 30 fps, mapped onto ARKit at 15 fps by
+diffsheg_core.training.metrics.facegood, whose docstring gives the mapping and how well
+it holds), per take:
+  jaw r whole / voiced   Pearson correlation of our jawOpen with the captured jaw opening
+              (mouth_stretch_c) over the whole clip / over the voiced frames (qc.voiced_frames,
+              as the English figure), each the best within +-qc.MAX_LAG; per seed in brackets
+  x English   that figure over the same figure of the model's jaw against BEAT2's captured
+              SMPL-X jaw of the English take 2_scott_0_1_1 (its last row)
+  capture / model follow level   r voiced of the captured jaw / of our jawOpen with the
+              voice's level (qc.voiced_level_correlation: the loudness figure below)
+  voiced share, items  share of voiced frames; voiced runs (gaps under 0.3 s merged) and
+              their median length: the takes are single syllables and words with pauses
+and a second table of the other mapped mouth channels' agreement (whole / voiced, means
+over seeds). 1114_2_05 is the take the tests hold out. --facegood-only stops there.
+
+Then runs the bundled model with its default settings (seeds 0 and 1) on every recording in
 ../shared/data/audio/lang/ and on the real English recordings of ../shared/data (the take
 beat2/2_scott_0_1_1 and audio/2_scott_0_3_3, 2_scott_0_4_4, 12_zhao_2_3_3,
 2_scott_0_103_103_28s; Forrest_tts is synthetic and left out), and prints per file and per
@@ -37,6 +55,7 @@ ratios, the take's phone-following, its agreement with the captured jaw and its 
 percentile jawOpen (1 is a fully open ARKit jaw) are printed for each K.
 
     python bench/eval_languages.py [--seeds 0 1] [--steps N] [--model FILE] [--loudness-gain K ...]
+                                   [--facegood-only]
 """
 
 from __future__ import annotations
@@ -57,6 +76,8 @@ from diffsheg_core.qc import (lip_closures, mouth_voice_correlation, speech_leve
                               voiced_frames, voiced_level_correlation, voiced_mouth_voice_correlation)
 from diffsheg_core.training.evaluate import load_reference
 from diffsheg_core.training.metrics import face_channel, mouth_opening, phone_tier, phoneme_contrast, read_textgrid
+from diffsheg_core.training.metrics.facegood import (ARKIT_FROM_RIG, HELD_OUT, agreement, arkit_curves,
+                                                     measure_take, read_names, read_take, take_names)
 from diffsheg_core.training.metrics.lipsync import (BILABIALS, OPEN_VOWELS, base_phone, phone_following,
                                                      phone_middles, values_at, viseme_jaw,
                                                      voiced_reference_correlation)
@@ -68,6 +89,7 @@ LANG = DATA / "audio" / "lang"
 TAKE_WAV = DATA / "beat2" / "2_scott_0_1_1.wav"
 TAKE_TEXTGRID = DATA / "beat2" / "2_scott_0_1_1.TextGrid"
 TAKE_CAPTURE = DATA / "beat2" / "2_scott_0_1_1.npz"
+FACEGOOD = DATA / "lang_capture" / "zh_facegood"
 ENGLISH = (TAKE_WAV, *(DATA / "audio" / name for name in (
     "2_scott_0_3_3.wav", "2_scott_0_4_4.wav", "12_zhao_2_3_3.wav", "2_scott_0_103_103_28s.wav")))
 ESPEAK_VOICES = {"de": "de", "es": "es", "fr": "fr", "hi": "hi", "ja": "ja", "ru": "ru", "sv": "sv"}
@@ -180,6 +202,82 @@ def captured_face(motions: list[Motion]) -> str:
             f"(seeds {', '.join(f'{x:.2f}' for x in model)}), the exact visemes {exact:.2f}")
 
 
+def voiced_runs(voiced: np.ndarray, fps: float, gap: float = 0.3) -> list[float]:
+    """Seconds of each run of voiced frames, runs under `gap` s apart merged: the items spoken."""
+    frames = np.flatnonzero(voiced)
+    if not len(frames):
+        return []
+    breaks = np.flatnonzero(np.diff(frames) > gap * fps + 1)
+    starts, ends = frames[np.r_[0, breaks + 1]], frames[np.r_[breaks, len(frames) - 1]]
+    return list((ends - starts + 1) / fps)
+
+
+def _seeds(values: list[float]) -> str:
+    return f"{np.mean(values):.2f} ({', '.join(f'{x:.2f}' for x in values)})"
+
+
+def facegood_tables(takes: dict[str, list[Motion]], english: list[Motion]) -> str:
+    """The captured-face figures of the FACEGOOD Mandarin takes against English's (issue 42)."""
+    audio = load_audio(TAKE_WAV)
+    real = captured_jaw(english[0].fps)
+    en = [agreement(mouth_opening(m), real, m.fps, audio) for m in english]
+    en_whole, en_voiced = float(np.mean([w for w, _ in en])), float(np.mean([v for _, v in en]))
+    head = ["take", "seconds", "voiced share", "items (median s)", "jaw r whole", "x English", "jaw r voiced",
+            "x English", "capture follows level", "model follows level"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    others = [name for name in ARKIT_FROM_RIG if name != "jawOpen"]
+    head2 = ["take", *others]
+    lines2 = ["| " + " | ".join(head2) + " |", "|" + "---|" * len(head2)]
+    names = read_names(FACEGOOD / "bs_names.json")
+    whole_all, voiced_all, shares, items, per_channel = [], [], [], [], {n: [] for n in others}
+    for name, motions in takes.items():
+        take = read_take(FACEGOOD, name, names)
+        a, fps, n = take.audio, motions[0].fps, motions[0].n_frames
+        figures = [measure_take(m, take) for m in motions]
+        whole = [f["jawOpen"][0] for f in figures]
+        voiced = [f["jawOpen"][1] for f in figures]
+        whole_all.append(np.mean(whole))
+        voiced_all.append(np.mean(voiced))
+        marks = voiced_frames(a.samples, a.sample_rate, fps, n)
+        runs = voiced_runs(marks, fps)
+        shares.append(marks.mean())
+        items.extend(runs)
+        jaw = arkit_curves(take, fps, n)["jawOpen"]
+        label = f"{name} (held out)" if name == HELD_OUT else name
+        lines.append(
+            f"| {label} | {a.duration:.1f} | {marks.mean():.2f} | {len(runs)} ({np.median(runs):.2f}) | "
+            f"{_seeds(whole)} | {np.mean(whole) / en_whole:.2f} | {_seeds(voiced)} | "
+            f"{np.mean(voiced) / en_voiced:.2f} | "
+            f"{voiced_level_correlation(jaw, fps, a.samples, a.sample_rate):.2f} | "
+            f"{np.mean([voiced_mouth_voice_correlation(m, a.samples, a.sample_rate) for m in motions]):.2f} |")
+        cells = []
+        for channel in others:
+            pair = np.array([f[channel] for f in figures])
+            per_channel[channel].append(pair.mean(0))
+            still = np.isnan(pair).all()  # the take never uses the channel's rig shapes
+            cells.append("n/a (still)" if still else f"{pair[:, 0].mean():.2f} / {pair[:, 1].mean():.2f}")
+        lines2.append(f"| {label} | " + " | ".join(cells) + " |")
+    whole_mean, voiced_mean = float(np.mean(whole_all)), float(np.mean(voiced_all))
+    lines.append(f"| **zh mean of {len(takes)}** | | {np.mean(shares):.2f} | {len(items)} ({np.median(items):.2f}) | "
+                 f"**{whole_mean:.2f}** | **{whole_mean / en_whole:.2f}** | **{voiced_mean:.2f}** | "
+                 f"**{voiced_mean / en_voiced:.2f}** | | |")
+    fps = english[0].fps
+    en_marks = voiced_frames(audio.samples, audio.sample_rate, fps, english[0].n_frames)
+    en_runs = voiced_runs(en_marks, fps)
+    lines.append(
+        f"| en {TAKE_WAV.stem} (BEAT2 SMPL-X jaw) | {audio.duration:.1f} | {en_marks.mean():.2f} | "
+        f"{len(en_runs)} ({np.median(en_runs):.2f}) | {_seeds([w for w, _ in en])} | 1 | "
+        f"{_seeds([v for _, v in en])} | 1 | "
+        f"{voiced_level_correlation(real, fps, audio.samples, audio.sample_rate):.2f} | "
+        f"{np.mean([voiced_mouth_voice_correlation(m, audio.samples, audio.sample_rate) for m in english]):.2f} |")
+    means = [np.nanmean(per_channel[c], 0) for c in others]
+    lines2.append(f"| **zh mean of {len(takes)}** | "
+                  + " | ".join(f"**{w:.2f} / {v:.2f}**" for w, v in means) + " |")
+    return ("Captured Mandarin face (FACEGOOD zh_facegood, mapped onto ARKit), jawOpen against the captured jaw:\n"
+            + "\n".join(lines) + "\n\nThe other mapped mouth channels, r whole / r voiced (means over seeds):\n"
+            + "\n".join(lines2))
+
+
 def with_loudness_gain(motion: Motion, audio, k: float) -> Motion:
     """`motion` with jawOpen times (level's amplitude / the median voiced level's) ** k,
     the level within +-12 dB of that median."""
@@ -254,12 +352,23 @@ def main() -> None:
     parser.add_argument("--model", default=None, help="model file (default: the bundled model)")
     parser.add_argument("--loudness-gain", type=float, nargs="+", default=None, metavar="K",
                         help="also measure the mouth made to follow the voice's level by these gains (0: as made)")
+    parser.add_argument("--facegood-only", action="store_true",
+                        help="only the captured Mandarin face's figures (issue 42)")
     args = parser.parse_args()
     bundle = load_model(args.model)
     options = {} if args.steps is None else {"steps": args.steps}
-    generated, started = {}, time.perf_counter()
+    started = time.perf_counter()
+    generated = {TAKE_WAV: [generate(TAKE_WAV, model=bundle, seed=s, **options) for s in args.seeds]}
+    facegood = {name: [generate(FACEGOOD / f"{name}.wav", model=bundle, seed=s, **options) for s in args.seeds]
+                for name in take_names(FACEGOOD)}
+    print(facegood_tables(facegood, generated[TAKE_WAV]))
+    print()
+    if args.facegood_only:
+        print(f"{len(facegood)} takes, seeds {args.seeds}: {time.perf_counter() - started:.0f} s")
+        return
     for path in (*ENGLISH, *sorted(LANG.glob("*.wav"))):
-        generated[path] = [generate(path, model=bundle, seed=s, **options) for s in args.seeds]
+        if path not in generated:
+            generated[path] = [generate(path, model=bundle, seed=s, **options) for s in args.seeds]
     rows = [measure(path, motions) for path, motions in generated.items()]
     print(table(rows))
     print()

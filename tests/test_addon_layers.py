@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from import_graph import assert_no_cycle
+
 REPO = Path(__file__).resolve().parents[1]
 ADDON = REPO / "blender_addon"
 PACKAGE = "blender_addon"
@@ -91,22 +93,7 @@ def test_imports_go_down_the_layers(module):
 
 def test_no_module_imports_itself_through_a_cycle():
     graph = {m: imported(m) for m in MODULES}
-    done, active = set(), []
-
-    def visit(node: str) -> None:
-        if node in active:
-            raise AssertionError("import cycle: " + " -> ".join(active[active.index(node):] + [node]))
-        if node in done:
-            return
-        active.append(node)
-        for target in sorted(graph[node]):
-            if target:  # the package root is imported first by everything, and imports ui/ only
-                visit(target)
-        active.pop()
-        done.add(node)
-
-    for module in graph:
-        visit(module)
+    assert_no_cycle(graph)
 
 
 def test_the_add_on_never_imports_its_drivers():

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from import_graph import assert_no_cycle
+
 PACKAGE = Path(__file__).resolve().parents[1] / "diffsheg_core"
 TORCH_LAYER = "torch_layer"  # the modules that import torch (the tooling aside): networks, backend, HuBERT...
 TOOLING = "training"
@@ -114,22 +116,7 @@ def test_runtime_modules_import_each_other_without_cycles():
             if (inner in modules) and inner != module and name.startswith("diffsheg_core"):
                 targets.add(inner)
         graph[module] = targets
-    done, active = set(), []
-
-    def visit(node: str) -> None:
-        if node in active:
-            raise AssertionError("import cycle: " + " -> ".join(active[active.index(node):] + [node]))
-        if node in done:
-            return
-        active.append(node)
-        for target in sorted(graph[node]):
-            if target:  # everything imports the package root first; the root imports light
-                visit(target)
-        active.pop()
-        done.add(node)
-
-    for module in graph:
-        visit(module)
+    assert_no_cycle(graph)
 
 
 BLOCK = """

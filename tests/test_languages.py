@@ -306,3 +306,81 @@ def test_a_japanese_transcript_is_read_as_kana_or_the_missing_reader_is_named(mo
     monkeypatch.setitem(sys.modules, "fugashi", None)  # not installed
     with pytest.raises(DiffshegError, match="pip install fugashi unidic-lite"):
         _readable("単に", "ja")
+
+
+FACEGOOD = DATA / "lang_capture" / "zh_facegood"
+# Issue 42: the bundled model (seed 0) on the held-out FACEGOOD take 1114_2_05 against its
+# captured face mapped onto ARKit (training.metrics.facegood), measured: jawOpen 0.70 over
+# the whole clip, 0.39 over voiced frames (takes 01-04: 0.47-0.49), 0.76x the 0.51 of the
+# model's jaw against BEAT2's captured jaw of the English take; mouthFunnel 0.55 / 0.45,
+# mouthPucker 0.52 / 0.40, mouthClose 0.30 / 0.31 (whole / voiced). The floors leave about
+# 0.1 of margin.
+FACEGOOD_FLOORS = {"jawOpen": (0.6, 0.3), "mouthFunnel": (0.4, 0.35), "mouthPucker": (0.4, 0.3),
+                   "mouthClose": (0.15, 0.2)}
+"""ARKit channel: (floor whole clip, floor voiced frames) on 1114_2_05, seed 0."""
+FACEGOOD_RATIO_FLOOR = 0.6
+"""Voiced-frame jaw agreement on 1114_2_05 over English's (measured 0.76)."""
+
+
+def test_the_facegood_mapping_reads_every_take(tmp_path):
+    from diffsheg_core.training.metrics.facegood import (ARKIT_FROM_RIG, JAW, N_CHANNELS, arkit_curves, read_names,
+                                                         read_take, resample_curves, take_names)
+
+    names = read_names(FACEGOOD / "bs_names.json")
+    assert len(names) == N_CHANNELS and names[74] == JAW
+    assert take_names(FACEGOOD) == [f"1114_2_0{k}" for k in range(1, 6)]
+    for name in take_names(FACEGOOD):
+        take = read_take(FACEGOOD, name, names)
+        assert take.values.shape[1] == N_CHANNELS and abs(take.n_frames / 30 - take.audio.duration) < 0.1
+        n = int(take.audio.duration * 15)
+        curves = arkit_curves(take, 15.0, n)
+        assert sorted(curves) == sorted(ARKIT_FROM_RIG)
+        for arkit, curve in curves.items():
+            assert curve.shape == (n,) and curve.min() >= 0 and curve.max() <= 1, (name, arkit)
+        # jawOpen is the rig's jaw opening at 15 fps, and it moves: open in speech, shut in pauses
+        jaw = take.channel(JAW)
+        i = 2 * np.arange(1, n - 1)  # frame i / 15 s is capture frame 2i, low-passed [1/4, 1/2, 1/4]
+        assert np.allclose(curves["jawOpen"][1:-1], (jaw[i - 1] + 2 * jaw[i] + jaw[i + 1]) / 4)
+        assert np.percentile(curves["jawOpen"], 95) > 0.3 and np.median(curves["jawOpen"]) < 0.05
+        for rounding in ("mouthFunnel", "mouthClose"):  # every take rounds and shuts its lips somewhere
+            assert curves[rounding].max() > 0.3, (name, rounding)
+    assert np.allclose(resample_curves(np.arange(8.0), 30, 15, 4), [0.25, 2, 4, 6])
+
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "bs_names.json").write_text((FACEGOOD / "bs_names.json").read_text())
+    (bad / "t.wav").write_bytes((FACEGOOD / "1114_2_05.wav").read_bytes())
+    np.save(bad / "bs_value_t.npy", np.zeros((3384, 115), np.float32))
+    with pytest.raises(DiffshegError, match="one column per name"):
+        read_take(bad, "t")
+    np.save(bad / "bs_value_t.npy", np.zeros((3000, 116), np.float32))
+    with pytest.raises(DiffshegError, match="lasts 100.00 s"):
+        read_take(bad, "t")
+
+
+def test_the_held_out_mandarin_take_s_mouth_agrees_with_its_captured_face():
+    """The bundled model's mouth on real read Mandarin against the speaker's captured face
+    (FACEGOOD, mapped onto ARKit), and its jaw's agreement as a share of English's with
+    BEAT2's captured jaw (bench/eval_languages.py prints every take, two seeds)."""
+    from diffsheg_core.training.evaluate import load_reference
+    from diffsheg_core.training.metrics import mouth_opening
+    from diffsheg_core.training.metrics.facegood import HELD_OUT, agreement, arkit_curves, measure_take, read_take
+
+    bundle = load_model()
+    take = read_take(FACEGOOD, HELD_OUT)
+    motion = generate(take.audio, model=bundle, seed=0)
+    figures = measure_take(motion, take)
+    english_audio = load_audio(TAKE_WAV)
+    english = generate(english_audio, model=bundle, seed=0)
+    real = mouth_opening(load_reference(DATA / "beat2" / "2_scott_0_1_1.npz", fps=english.fps))
+    _, english_voiced = agreement(mouth_opening(english), real, english.fps, english_audio)
+    ratio = figures["jawOpen"][1] / english_voiced
+    print(f"{HELD_OUT}: " + ", ".join(f"{k} {w:.2f} / {v:.2f}" for k, (w, v) in figures.items())
+          + f"; jaw over voiced frames {ratio:.2f}x English's {english_voiced:.2f}")
+    for channel, (whole, voiced) in FACEGOOD_FLOORS.items():
+        assert figures[channel][0] > whole and figures[channel][1] > voiced, (channel, figures[channel])
+    assert ratio > FACEGOOD_RATIO_FLOOR, (ratio, figures["jawOpen"], english_voiced)
+    # the figure is the face's timing, not the mapping's level: the capture shuffled in time agrees with nothing
+    order = np.random.default_rng(0).permutation(motion.n_frames)
+    jaw = arkit_curves(take, motion.fps, motion.n_frames)["jawOpen"][order]
+    assert abs(agreement(mouth_opening(motion), jaw, motion.fps, take.audio)[1]) < 0.1
