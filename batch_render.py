@@ -116,7 +116,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     r.add_argument("--regenerate", metavar="START-END", type=frame_range,
                    help="generate scene frames START to END anew as a new take, with the generation options "
                         "given (another --seed, --style, ...); everything outside stays as it is")
-    r.add_argument("--keep-face", action="store_true", help="with --regenerate: keep the face inside the range too")
+    r.add_argument("--hold-face", action="store_true", help="with --regenerate: keep the take's face inside the range "
+                                                            "(only the gestures change)")
     m = p.add_argument_group("dialogue libraries (a manifest of lines, run on Ray; README: studios)")
     m.add_argument("--manifest", help="CSV or JSON Lines, one row per line (id, audio, blend, armature, face, "
                                       "preset, generation settings, outputs); the options above are the "
@@ -229,7 +230,7 @@ def run_regenerate(args) -> None:
         raise DiffshegError(f"take '{span.take}' was made without an audio file: it cannot be regenerated")
     audio = check_audio_path(span.source.audio_path)
     check_outputs(args, scene, audio, several=False)
-    request = addon("features.generate").Request(audio, options, settings, keep_face=args.keep_face, range=span)
+    request = addon("features.generate").Request(audio, options, settings, hold_face=args.hold_face, range=span)
     generate_and_write(args, scene, request, f"{span.take} frames {first}-{last}", several=False)
 
 
@@ -295,9 +296,9 @@ def run_manifest(args) -> int:
     """The lines of args.manifest on Ray (studio.py); the exit code."""
     from diffsheg_core.errors import DiffshegError
 
-    if args.audio or args.save or args.regenerate or args.keep_face:
+    if args.audio or args.save or args.regenerate or args.hold_face:
         raise DiffshegError("--manifest names the audio and outputs of every line: leave out --audio, --save, "
-                            "--regenerate and --keep-face (--output is the output folder)")
+                            "--regenerate and --hold-face (--output is the output folder)")
     defaults = vars(args)  # the options are the defaults of every row (manifest.read_manifest)
     out = Path(args.output).expanduser().resolve() if args.output else OUT / Path(args.manifest).stem
     return studio.run_manifest(Path(args.manifest).expanduser().resolve(), out, defaults,
@@ -331,8 +332,8 @@ def main(argv: list[str]) -> int:
             return run_manifest(args)
         if args.blend:
             bpy.ops.wm.open_mainfile(filepath=str(Path(args.blend).expanduser().resolve()))
-        if args.keep_face and args.regenerate is None:
-            raise DiffshegError("--keep-face goes with --regenerate START-END (a whole new take has a face of its "
+        if args.hold_face and args.regenerate is None:
+            raise DiffshegError("--hold-face goes with --regenerate START-END (a whole new take has a face of its "
                                 "own: for the same face with other gestures, pass --face-seed)")
         if args.regenerate is not None:
             if args.audio is not None or not bpy.data.filepath:

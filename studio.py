@@ -13,7 +13,7 @@ from scratch; a line that fails (bad audio, a character without a camera for a v
 fails alone. A task writes its line's outputs as hidden staged files beside their final
 names (in the output folder itself, so the relative paths a .blend or FBX saves resolve
 from there); the driver records the line as done and then renames them into place
-(diffsheg_core.manifest.Ledger), so a driver or worker killed at any moment leaves under
+(diffsheg_core.ledger.Ledger), so a driver or worker killed at any moment leaves under
 the outputs' names only outputs of lines recorded done, and the next run finishes or
 removes what it left. An output that cannot be put in place fails its line alone. The
 driver writes the QC report (diffsheg_core.qc) at the end.
@@ -99,7 +99,8 @@ def process_line(line, out_dir: str) -> dict:
     of this attempt's own; returns what the driver records and reports (the outputs' final
     paths, the attempt's name). Raises DiffshegError for a line that cannot be done."""
     import diffsheg_core
-    from diffsheg_core.manifest import output_name, stage_name, staged_path
+    from diffsheg_core.ledger import stage_name, staged_path
+    from diffsheg_core.manifest import output_name
 
     started = time.perf_counter()
     generate = lambda: diffsheg_core.generate(  # noqa: E731
@@ -269,7 +270,8 @@ def run_manifest(manifest: Path, out_dir: Path, defaults: dict, address: str | N
     """Run every line of `manifest` not done yet on Ray; returns the exit code (0: every
     line done or skipped as done before, 1: some failed; the report says which)."""
     from diffsheg_core import qc
-    from diffsheg_core.manifest import Ledger, line_keys, read_manifest
+    from diffsheg_core.ledger import Ledger, line_keys
+    from diffsheg_core.manifest import read_manifest
 
     lines = read_manifest(Path(manifest), defaults, presets=["auto", *addon("scene.preset").available_presets()],
                           style_names=_style_names(defaults.get("model")))

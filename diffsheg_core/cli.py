@@ -34,7 +34,6 @@ def _generate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", dest="dataset", choices=["beat", "show"], help=argparse.SUPPRESS)  # its old name
     p.add_argument("--stats", help="folder of the official normalisation statistics (official checkpoints)")
     p.add_argument("--sampling", choices=sorted(PRESETS), help="FOPPAS sampling settings (default: the model's)")
-    p.add_argument("--preset", dest="sampling", choices=sorted(PRESETS), help=argparse.SUPPRESS)  # its old name
     p.add_argument("--no-prior", action="store_true",
                    help="start later FOPPAS windows from pure noise, as in the paper, instead of from "
                         "the model's gesture prior (models that have one)")

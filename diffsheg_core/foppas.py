@@ -50,7 +50,7 @@ import numpy as np
 from .diffusion import Schedule
 from .errors import DiffshegError
 from .progress import Progress, ProgressCallback, check_cancel
-from .settings import CANDIDATES
+from .validate import CANDIDATES, check_seed
 
 PROPOSAL_STREAM = 0x5EED0F9A0D  # the proposal's generator is seeded with (seed, this)
 FACE_STREAM = 0xFACE5EED  # the face's generator is seeded with (face_seed, this)
@@ -582,13 +582,6 @@ def _range_windows(span: int, done: int, length: int, overlap: int, pins: np.nda
         windows.append((a, b))
         a, done = b - overlap, b
     return windows + [last]
-
-
-def check_seed(seed) -> int:
-    """A sampling seed: any whole number >= 0 (numpy's SeedSequence takes integers of any size)."""
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise DiffshegError(f"seed must be a whole number >= 0, got {seed!r}")
-    return int(seed)
 
 
 def sample_long(sampler: Foppas, make_eps_fn: Callable[[np.ndarray], EpsFn], cond: np.ndarray,

@@ -32,8 +32,8 @@ from .phonetic import (PhoneticConfig, fingerprint, log_mel, phonetic_encoding, 
                        stack_posteriors)
 from .progress import ProgressCallback
 from .runtime.backends import open_network
-from .settings import (GUIDANCE, SKIP_GUIDANCE, STYLE_GUIDANCE, GenerateSettings, StyleSpec, check_number,
-                       parse_whole)
+from .settings import GenerateSettings, StyleSpec
+from .validate import GUIDANCE, SKIP_GUIDANCE, STYLE_GUIDANCE, check_number, parse_whole
 
 AudioInput = Union[str, Path, np.ndarray, Audio]
 
@@ -454,14 +454,14 @@ class Pin:
 
 
 def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = None, *, start: int, end: int,
-               settings: Optional[GenerateSettings] = None, keep_face: bool = False, pins: tuple[Pin, ...] = (),
+               settings: Optional[GenerateSettings] = None, hold_face: bool = False, pins: tuple[Pin, ...] = (),
                sampling: Optional[FoppasConfig] = None, progress: Optional[ProgressCallback] = None,
                cancel: Optional[threading.Event] = None, **options) -> Motion:
     """`motion` (made from `audio` by a model of its layout) with frames [start, end)
     generated anew with other `settings` or options (a seed, a style): the frames before
     and after the range are held and the sampler inpaints the range against both
     (`foppas.inpaint_range`). Every frame outside the range is returned bit for bit; with
-    `keep_face` the face inside it too. `pins` are poses the new motion passes through."""
+    `hold_face` the take's face inside it too (only the gestures change). `pins` are poses the new motion passes through."""
     s = replace(settings or GenerateSettings(), **options)
     bundle = s.model if isinstance(s.model, ModelBundle) else load_model(s.model)
     layout = bundle.layout
@@ -483,7 +483,7 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     laid = take_emotion(motion)
     base = motion if laid is None else remove_emotion(motion, laid)  # what the take's emotion was laid over
     normalised, hold = _known(bundle, base, whole)
-    if keep_face:
+    if hold_face:
         hold[start:end, layout.gesture_dim:] = True
     _hold_pins(bundle, normalised, hold, pins, start, end)
     new = inpaint_range(sampler, make_eps_fn, cond, normalised, start, end, s.seed, hold, progress, cancel,
@@ -500,9 +500,9 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
         part = apply_emotion(part, track, held=tuple((p.frame, p.joint) for p in pins))
     rotations, face = motion.rotations.copy(), motion.face.copy()
     rotations[start:end] = part.rotations[start:end]
-    if not keep_face:
+    if not hold_face:
         face[start:end] = part.face[start:end]
-    record = {"start": int(start), "end": int(end), "keep_face": keep_face, "pins": len(pins),
+    record = {"start": int(start), "end": int(end), "hold_face": hold_face, "pins": len(pins),
               **generation_meta(bundle, s, plan, network, speech)}
     lower = whole.rotations[:, len(motion.joint_names):]
     return replace(whole, rotations=np.concatenate([rotations, lower], axis=1), face=face,

@@ -15,54 +15,11 @@ from dataclasses import dataclass, fields
 from typing import Union
 
 from .errors import DiffshegError
-
-STEPS = (1, 1000)
-OVERLAP = (0, 64)
-CANDIDATES = (1, 16)
-GUIDANCE = (0.0, 10.0)
-STYLE_GUIDANCE = (0.0, 10.0)
-SKIP_GUIDANCE = (0.0, 1.0)
-THREADS = (1, 256)
-DEVICES = ("auto", "cpu", "cuda")
-BACKENDS = ("auto", "onnx", "torch")
-PRECISIONS = ("fp32", "bf16", "fp16")
-
+from .validate import (BACKENDS, CANDIDATES, DEVICES, GUIDANCE, OVERLAP, PRECISIONS, SKIP_GUIDANCE, STEPS,
+                       STYLE_GUIDANCE, THREADS, _plain_number, check_number, check_seed, parse_whole)
 
 StyleSpec = Union[int, str, dict]
 """A style: a class index, a style name, or weights over indices or names."""
-
-
-def check_number(name: str, value, bounds: tuple, whole: bool = False) -> int | float:
-    """`value` as a plain int (`whole`) or float if it is a finite number within `bounds`
-    (an upper bound of math.inf: none), else a DiffshegError. numpy numbers count as numbers."""
-    lo, hi = bounds
-    number = _plain_number(value, whole)
-    if number is None or not lo <= number <= hi:
-        kind = "a whole number" if whole else "a number"
-        span = f">= {lo:g}" if hi == math.inf else f"from {lo:g} to {hi:g}"
-        raise DiffshegError(f"{name} must be {kind} {span}, got {value!r}")
-    return number
-
-
-def _plain_number(value, whole: bool) -> int | float | None:
-    """`value` as a Python int (`whole`) or finite float; None if it is no such number (a bool is not)."""
-    # numbers' ABCs take numpy's scalars too, without importing numpy (the add-on registers without it)
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral if whole else numbers.Real):
-        return None
-    if whole:
-        return int(value)
-    try:
-        number = float(value)
-    except OverflowError:  # an int beyond the floats
-        return None
-    return number if math.isfinite(number) else None
-
-
-def parse_whole(text: str) -> int | None:
-    """The whole number `text` spells in ASCII digits ('12', ' 12 '); None for anything else
-    ('-1', '1.5', and digits str.isdigit takes but int() does not, such as '²')."""
-    text = text.strip()
-    return int(text) if text.isascii() and text.isdigit() else None
 
 
 def _check_choice(name: str, value, choices: tuple) -> str:
@@ -151,7 +108,7 @@ class GenerateSettings:
     style_guidance: float | None = None  # style strength: eps_null + s (eps_style - eps_null); 1: off
     emotion: str | dict | None = None   # 'happy', 'happy=0.6' or {name: intensity}; None: neutral (see emotion.py)
     emotion_at: tuple | None = None     # emotion changes over time: ((seconds, emotion), ...); before the first, `emotion`
-    upper_body_only: bool = False       # no hips and legs (lower_body.py): for seated characters, or legs keyed by hand
+    upper_body_only: bool = False       # no hips and legs (lower_body): for seated characters, or legs keyed by hand
     guidance: float | None = None       # classifier-free guidance scale; 1: off
     skip_guidance: float | None = None  # gesture energy (skip guidance); 0: off
     device: str = "auto"
@@ -160,8 +117,6 @@ class GenerateSettings:
     threads: int | None = None          # CPU threads; None: runtime.backends.default_threads
 
     def __post_init__(self):
-        from .foppas import check_seed
-
         self._set("seed", check_seed(self.seed))
         if self.face_seed is not None:
             self._set("face_seed", check_seed(self.face_seed))

@@ -137,19 +137,19 @@ def test_the_bundled_model_is_an_input_of_a_batch(scene_blend, tmp_path):
 
 
 def test_regenerate_a_range_of_a_saved_take_keeping_the_face(scene_blend, tmp_path):
-    """A take saved by one batch, then --regenerate 20-60 --keep-face on that file: a new
+    """A take saved by one batch, then --regenerate 20-60 --hold-face on that file: a new
     take plays, the frames outside the range and the whole face evaluate as before."""
     talk = cut_speech(tmp_path, seconds=8.0, name="talk.wav")
     first = tmp_path / "first.blend"
     assert _batch("--blend", str(scene_blend), "--audio", str(talk), "--preset", "beat", "--device", "cpu",
                   "--no-render", "--save", str(first), cwd=tmp_path).returncode == 0
-    for bad, match in ((["--regenerate", "60-20"], "START <= END"), (["--keep-face"], "goes with --regenerate"),
+    for bad, match in ((["--regenerate", "60-20"], "START <= END"), (["--hold-face"], "goes with --regenerate"),
                        (["--regenerate", "20-60", "--audio", str(talk)], "leave out --audio"),
                        (["--regenerate", "90-200"], "within the take's frames 1-96")):
         proc = _batch("--blend", str(first), "--preset", "beat", "--no-render", *bad, cwd=tmp_path)
         assert proc.returncode != 0 and match in proc.stderr, (bad, proc.stderr[-500:])
     second = tmp_path / "second.blend"
-    proc = _batch("--blend", str(first), "--regenerate", "20-60", "--keep-face", "--seed", "4", "--preset", "beat",
+    proc = _batch("--blend", str(first), "--regenerate", "20-60", "--hold-face", "--seed", "4", "--preset", "beat",
                   "--device", "cpu", "--no-render", "--save", str(second), cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "talk take 1 frames 20-60: talk take 2:" in proc.stdout

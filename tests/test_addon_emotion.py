@@ -169,7 +169,7 @@ def test_live_carries_the_panels_emotion_and_follows_it_while_running(speech):
             brows.append((s.emotion, key.value))
         time.sleep(1 / 60)
     run.end(bpy.context)
-    (t, spec), = run.session.mood.changes
+    (t, spec), = run.session.emotion.changes
     assert spec == {"sad": 1.0} and t > 0
     happy = [v for e, v in brows if e == "happy"]
     sad = [v for e, v in brows if e == "sad"][-5:]  # once eased in

@@ -288,11 +288,11 @@ def test_panel_options_are_the_models_defaults_until_set(speech):
     assert motion.meta["skip_guidance"] == 0.25 and motion.meta["overlap"] == 6 and motion.meta["steps"] == STEPS
 
 
-def test_keep_face_keys_the_same_face_for_a_new_seed(speech):
+def test_own_face_seed_keys_the_same_face_for_a_new_seed(speech):
     scene = reset_scene()
     face = append_face()
     settings = _configure(scene, speech, None, "beat", face)
-    settings.keep_face, settings.face_seed = True, 11
+    settings.use_face_seed, settings.face_seed = True, 11
 
     def jaw_keys():
         assert bpy.ops.diffsheg.generate() == {"FINISHED"}
@@ -303,7 +303,7 @@ def test_keep_face_keys_the_same_face_for_a_new_seed(speech):
     settings.seed = 5
     second = jaw_keys()
     assert np.array_equal(first, second)
-    settings.keep_face = False
+    settings.use_face_seed = False
     assert not np.array_equal(jaw_keys(), second)
 
 

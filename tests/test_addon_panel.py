@@ -86,7 +86,7 @@ def test_the_main_panel_and_its_collapsed_sub_panels():
     sampling = {e[1] for e in draw(DIFFSHEG_PT_sampling) if e[0] == "prop"}
     assert sampling == {"model_path", "seed", "set_steps", "steps", "candidates", "set_overlap", "overlap",
                         "set_guidance", "guidance", "set_gesture_energy", "gesture_energy", "style_strength",
-                        "keep_face", "face_seed", "device"}
+                        "use_face_seed", "face_seed", "device"}
     keys = {e[1] for e in draw(DIFFSHEG_PT_keys) if e[0] == "prop"}
     assert keys == {"key_mode", "max_error", "max_face_error", "smoothing", "start_at_scene_start",
                     "start_frame", "add_sound", "set_frame_range", "upper_body_only"}

@@ -1,7 +1,7 @@
 """Regenerate a range of a take in headless Blender (issue 25, items 3 and 4): the BEAT
 rig and the ARKit face, 20 s of real speech, the bundled model. Only the range changes
 (every F-curve outside it evaluates as before, every key there stays, the animator's
-too), the new keys keep the error bound, the joins carry no jump, Keep face keeps the
+too), the new keys keep the error bound, the joins carry no jump, Keep the take's face keeps the
 face, the animator's keys inside the range are pins, and a take can start from the
 character's pose."""
 
@@ -61,9 +61,9 @@ def _keys(id_data) -> dict:
 
 def _regenerate(scene, options, speech, first=FIRST, last=LAST, **kwargs):
     request = regenerate.prepare_range(scene, options, first, last)
-    keep_face = kwargs.pop("keep_face", False)
+    hold_face = kwargs.pop("hold_face", False)
     new = diffsheg_core.regenerate(request.source.motion, str(speech), start=request.start, end=request.end,
-                                   keep_face=keep_face, pins=request.pins, device="cpu", **kwargs)
+                                   hold_face=hold_face, pins=request.pins, device="cpu", **kwargs)
     return request, new, regenerate.apply_range(scene, request, new, options)
 
 
@@ -145,13 +145,13 @@ def _join_ratios(armature, frames) -> tuple[float, float]:
     return acc[FIRST - 5: FIRST + 1].mean() / inside, acc[LAST - 4: LAST + 2].mean() / inside
 
 
-def test_keep_face_keeps_every_face_curve(motion, speech):
+def test_hold_face_keeps_every_face_curve(motion, speech):
     scene, options = _scene(motion, speech)
     face = options.face_meshes[0].data.shape_keys
     frames = np.arange(1, 481)
     before = _evaluate(face, frames)
     body = _evaluate(options.armature, frames)
-    _regenerate(scene, options, speech, seed=8, keep_face=True)
+    _regenerate(scene, options, speech, seed=8, hold_face=True)
     after = _evaluate(face, frames)
     for path in before:
         np.testing.assert_allclose(after[path], before[path], atol=1e-5, err_msg=str(path))

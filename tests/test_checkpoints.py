@@ -14,9 +14,10 @@ from safetensors.torch import load_file
 from conftest import random_bundle
 from diffsheg_core import CheckpointError, DiffshegError, generate
 from diffsheg_core.bvh import read_bvh
-from diffsheg_core.checkpoints import (load_model, official_stats, read_safetensors, save_checkpoint,
-                                       stored_style_count, stored_style_names)
+from diffsheg_core.checkpoints import (load_model, read_safetensors, save_checkpoint, stored_style_count,
+                                       stored_style_names)
 from diffsheg_core.motion import read_arkit_json
+from diffsheg_core.official_checkpoints import official_stats
 from diffsheg_core.runtime.backends import choose_backend
 from diffsheg_core.torch_layer.model import ModelConfig, UniEG
 
@@ -215,7 +216,7 @@ def crafted_npy(path, payload) -> None:
 
 
 def test_show_stats_are_read_as_np_load_reads_them(data_dir):
-    from diffsheg_core.checkpoints import _show_stats
+    from diffsheg_core.official_checkpoints import _show_stats
 
     path = data_dir / "show" / "talkshow_mean_std.npy"
     expected = np.load(path, allow_pickle=True).item()

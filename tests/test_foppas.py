@@ -12,12 +12,12 @@ from diffsheg_core.audio import load_audio, n_motion_frames
 from diffsheg_core.diffusion import Schedule
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.foppas import (PROPOSAL_STREAM, Foppas, FoppasConfig, FoppasStream, PRESETS,
-                                  carry_overlap, check_seed, inpaint_range, jump_schedule, model_calls, plan_windows,
-                                  sample_long)
+                                  carry_overlap, inpaint_range, jump_schedule, model_calls, plan_windows, sample_long)
 from diffsheg_core.guidance import Guidance
 from diffsheg_core.pipeline import generate, make_eps_fn_factory, style_vector
 from diffsheg_core.prior import GesturePrior
 from diffsheg_core.runtime.backends import open_network
+from diffsheg_core.validate import check_seed
 
 
 def test_official_schedules_match_golden(golden_dir):

@@ -226,7 +226,7 @@ def test_live_legs_arrive_where_the_lower_body_puts_them(receiver):
     translation) sends the hips, legs, feet and toes: the Hips stand where the translation
     puts them, and each ankle and toe, by Unity's own forward kinematics from the bones
     received, is where the lower body puts it (mirrored into Unity axes)."""
-    from diffsheg_core import lower_body as lb
+    from diffsheg_core.lower_body import body as lb
 
     whole = generate(str(SAMPLE), steps=5)
     k = whole.n_frames // 2

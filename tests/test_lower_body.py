@@ -18,6 +18,7 @@ from diffsheg_core.audio import Audio, load_audio
 from diffsheg_core.checkpoints import load_model
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.pipeline import generate, regenerate
+from diffsheg_core.rotations import quaternion_to_axis_angle
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 TAKE_WAV = DATA / "beat2" / "2_scott_0_1_1.wav"
@@ -264,7 +265,7 @@ def test_a_live_frame_is_final_when_emitted(take):
             flags[a:b + 1] = True
         np.testing.assert_array_equal(down[side], flags)
     assert planned > n
-    raw = lb.quaternion_to_axis_angle(stream._planner.rotations[:planned])
+    raw = quaternion_to_axis_angle(stream._planner.rotations[:planned])
     whole, _ = lb.plant_feet(raw, stream._floored, FPS)
     np.testing.assert_allclose(stream.lower, whole[:n], atol=1e-6)
     np.testing.assert_array_equal(stream.trans, stream._floored[:n])

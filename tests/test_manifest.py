@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from diffsheg_core.errors import DiffshegError
-from diffsheg_core.manifest import (OUTPUTS, Ledger, Line, ManifestError, line_key, read_manifest, stage_name,
-                                   staged_path, with_settings)
+from diffsheg_core.ledger import Ledger, line_key, stage_name, staged_path
+from diffsheg_core.manifest import OUTPUTS, Line, ManifestError, read_manifest, with_settings
 from diffsheg_core.settings import GenerateSettings
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
@@ -339,14 +339,14 @@ def test_a_line_break_inside_a_cell_keeps_the_rows_and_their_numbers(project, se
 
 def test_a_run_hashes_each_file_once(project, monkeypatch):
     """10,000 lines of one character hash its .blend once, not once per line (defect 10)."""
-    from diffsheg_core import manifest as manifest_module
+    from diffsheg_core import ledger as ledger_module
 
     rows = "".join(f"l{i},{SPEECH if i % 2 else SPEECH2},chars/hero.blend,blend\n" for i in range(50))
     lines = read_manifest(write(project / "lines.csv", "id,audio,blend,outputs\n" + rows), {}, PRESETS, STYLES)
     hashed = []
-    real = manifest_module.file_digest
-    monkeypatch.setattr(manifest_module, "file_digest", lambda path, *a: hashed.append(str(path)) or real(path))
-    keys = manifest_module.line_keys(lines)
+    real = ledger_module.file_digest
+    monkeypatch.setattr(ledger_module, "file_digest", lambda path, *a: hashed.append(str(path)) or real(path))
+    keys = ledger_module.line_keys(lines)
     assert sorted(hashed) == sorted({str(SPEECH), str(SPEECH2), str(project / "chars" / "hero.blend")})
     monkeypatch.undo()
     assert keys == {line.id: line_key(line) for line in lines}

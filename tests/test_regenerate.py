@@ -51,8 +51,8 @@ def test_only_the_range_changes_and_the_joins_carry_no_jump(speech, take):
     assert left <= 1.5 and right <= 1.5, ratios
 
 
-def test_keep_face_keeps_the_face_inside_the_range(speech, take):
-    new = diffsheg_core.regenerate(take, *speech, start=START, end=END, seed=7, keep_face=True)
+def test_hold_face_keeps_the_face_inside_the_range(speech, take):
+    new = diffsheg_core.regenerate(take, *speech, start=START, end=END, seed=7, hold_face=True)
     np.testing.assert_array_equal(new.face, take.face)
     assert np.abs(new.rotations[START:END] - take.rotations[START:END]).mean() > 0.01
 

@@ -65,7 +65,7 @@ def character():
         s.preset, s.preset_file = "__custom__", "//presets/my_rig.json"
         s.mix_style, s.style_mix = "0", 0.3
         s.emotion, s.emotion_intensity = "sad", 0.6
-        s.device, s.key_mode, s.keep_face = "GPU", "EVERY_FRAME", True
+        s.device, s.key_mode, s.use_face_seed, s.hold_face = "GPU", "EVERY_FRAME", True, True
         s.live_source, s.live_vmc = "SOCKET", True
 
 

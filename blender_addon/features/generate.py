@@ -45,7 +45,7 @@ class Request:
     path: Path
     options: object                  # BakeOptions
     generation: object               # GenerateSettings
-    keep_face: bool = False
+    hold_face: bool = False          # a range: the take's face held, only the gestures new
     pins: tuple = ()                 # whole clip: the pose to start from
     range: object | None = None      # regenerate.RangeRequest
 
@@ -58,7 +58,7 @@ class Request:
                                           progress=progress, cancel=cancel)
         r = self.range
         return diffsheg_core.regenerate(r.source.motion, str(self.path), start=r.start, end=r.end,
-                                        settings=self.generation, keep_face=self.keep_face, pins=r.pins,
+                                        settings=self.generation, hold_face=self.hold_face, pins=r.pins,
                                         progress=progress, cancel=cancel)
 
     def made_with(self, motion) -> dict:
@@ -190,7 +190,7 @@ def generate_settings(settings):
     return GenerateSettings(
         model=bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None,
         seed=settings.seed,
-        face_seed=settings.face_seed if settings.keep_face else None,
+        face_seed=settings.face_seed if settings.use_face_seed else None,
         steps=settings.steps if settings.set_steps else None,
         candidates=settings.candidates,
         overlap=settings.overlap if settings.set_overlap else None,
@@ -309,7 +309,7 @@ def prepare(context) -> Request:
     generation = with_markers(generation, scene, request.source.start_frame)
     if generation.emotion is None and generation.emotion_at is not None:
         generation = replace(generation, emotion=request.source.motion.meta.get("emotion") or None)
-    return Request(path, options, generation, keep_face=settings.keep_face, range=request)
+    return Request(path, options, generation, hold_face=settings.hold_face, range=request)
 
 
 def with_markers(generation, scene, start_frame: int):

@@ -4,7 +4,7 @@ The motion plants its feet on the canonical body; on a rig whose legs, hips widt
 height differ, the same turns move the feet a little. Over each contact span of the motion
 (meta "contacts") the rig's ankle is pinned where it is at the span's middle frame and the
 foot keeps that frame's orientation (eased in and out), and each leg is solved with two-bone
-IK on the rig's own bone lengths (diffsheg_core.leg_ik, as the canonical body's). Live
+IK on the rig's own bone lengths (diffsheg_core.lower_body.leg_ik, as the canonical body's). Live
 (`LiveFeet`) pins a foot a frame at a time, where it lands. numpy only, fed with the rig's
 rest matrices (retarget.LegRig): bones between the keyed ones are taken at rest.
 """
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from diffsheg_core.leg_ik import pin_goals, two_bone
+from diffsheg_core.lower_body.leg_ik import pin_goals, two_bone
 from diffsheg_core.rotations import convert, quaternion_sequence_continuous
 
 from .retarget import LegRig
@@ -58,7 +58,7 @@ def _pose(leg: LegRig, displacement: np.ndarray, quaternions: dict[str, np.ndarr
 def plant_foot(leg: LegRig, displacement: np.ndarray, quaternions: dict[str, np.ndarray],
                spans: list[tuple[int, int]], fps: float) -> dict[str, np.ndarray]:
     """New local quaternions of the leg's thigh, shin and foot (by bone name) that pin the
-    ankle and the foot's orientation over each span (diffsheg_core.leg_ik). `quaternions`:
+    ankle and the foot's orientation over each span (diffsheg_core.lower_body.leg_ik). `quaternions`:
     local (T, 4) of "hips" and of the leg's bones."""
     worlds, heads = _pose(leg, displacement, quaternions)
     ankle, foot = heads[3], worlds[3]

@@ -21,7 +21,7 @@ import numpy as np
 
 from diffsheg_core.bvh import beat_skeleton
 from diffsheg_core.errors import DiffshegError
-from diffsheg_core.leg_ik import swing
+from diffsheg_core.lower_body.leg_ik import swing
 from diffsheg_core.lower_body import JOINTS as LOWER_JOINTS, LEGS, canonical_leg_length
 from diffsheg_core.motion import Motion
 from diffsheg_core.rigs import SMPLX_JOINTS, SMPLX_PARENTS

@@ -170,6 +170,8 @@ class DIFFSHEG_PT_generate(_Panel, bpy.types.Panel):
             frames = col.column(align=True)
             frames.prop(s, "range_start")
             frames.prop(s, "range_end")
+        if s.range_mode != "WHOLE":
+            col.prop(s, "hold_face")
         if s.range_mode == "WHOLE":  # a range starts from the take's own frames
             col.row(heading="Start").prop(s, "start_from_pose", text="From pose")
 
@@ -205,10 +207,7 @@ class DIFFSHEG_PT_sampling(_Panel, bpy.types.Panel):
         col.prop(s, "style_strength")
 
         col = layout.column()
-        col.prop(s, "keep_face")
-        sub = col.row()
-        sub.active = s.keep_face
-        sub.prop(s, "face_seed")
+        _toggled(col, s, "use_face_seed", "face_seed", "Face seed")
 
         col = layout.column()
         col.row().prop(s, "device", expand=True)

@@ -9,7 +9,7 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        IntProperty, PointerProperty, StringProperty)
 
-from diffsheg_core.settings import CANDIDATES, GUIDANCE, OVERLAP, SKIP_GUIDANCE, STEPS, STYLE_GUIDANCE
+from diffsheg_core.validate import CANDIDATES, GUIDANCE, OVERLAP, SKIP_GUIDANCE, STEPS, STYLE_GUIDANCE
 
 from ..features.generate import CUSTOM_PRESET, DEFAULT_STYLE, NEUTRAL, NO_MIX
 from ..features.live import SOCKET_HOST as LIVE_HOST  # the VMC receiver's default host too
@@ -131,11 +131,14 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
                                            "support from the add-on's preferences")
     seed: IntProperty(name="Seed", default=0, min=0,
                       description="Same seed, same motion; another seed gives other gestures")
-    keep_face: BoolProperty(name="Keep face", default=False,
-                            description="Keep the face (lip-sync, blinks, brows) of the face seed while "
-                                        "the seed changes the gestures")
+    use_face_seed: BoolProperty(name="Face seed", default=False,
+                                description="Give the face (lip-sync, blinks, brows) a seed of its own, so the "
+                                            "Seed changes the gestures and the face stays")
     face_seed: IntProperty(name="Face seed", default=0, min=0,
-                           description="The seed of the face when Keep face is on")
+                           description="The seed of the face when the Face seed box is ticked")
+    hold_face: BoolProperty(name="Keep face", default=False,
+                            description="Regenerating a range: keep the face the take has there, so only the "
+                                        "gestures change")
     candidates: IntProperty(name="Candidates", default=1, min=CANDIDATES[0], max=CANDIDATES[1],
                             description="Try each stretch of motion this many times and keep the one that "
                                         "joins best: smoother, but that many times slower")

@@ -65,14 +65,14 @@ def run(args: argparse.Namespace) -> int:
     live = LiveConfig(hop=args.hop, lookahead=args.lookahead)
     session = LiveSession(source, settings, live)
     sender = _vmc_sender(args.osc, session) if args.osc else None
-    mood = ", ".join(f"{k} {v:g}" for k, v in (settings.emotion or {}).items()) or "neutral"
+    emotion = ", ".join(f"{k} {v:g}" for k, v in (settings.emotion or {}).items()) or "neutral"
 
     def started() -> None:
         """Say what runs once the source has started: a socket's port is then known (port 0)."""
         where = (f"listening on {source.description} for raw 16-bit mono PCM" if isinstance(source, TcpSource)
                  else f"live from {source.description}")
         print(f"{where}, model {session.bundle.model_id}, hop {live.hop} frames, "
-              f"{'upper body only' if session.legs is None else 'whole body'}, emotion {mood}"
+              f"{'upper body only' if session.legs is None else 'whole body'}, emotion {emotion}"
               f"{f', VMC to {args.osc}' if sender else ''}; Ctrl-C ends, a line (sad, happy=0.5, neutral) "
               "changes the emotion", file=sys.stderr, flush=True)
 

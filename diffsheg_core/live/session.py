@@ -162,8 +162,8 @@ class LiveSession:
                                                settings.precision, settings.threads)
         self.engine = LiveEngine(self.bundle, self.network, settings, source.sample_rate, live)
         # the emotion and the hips and legs laid over what the model makes, as `generate` lays them
-        self.mood = EmotionStream(settings.emotion, self.bundle.config.fps)  # set_emotion changes it
-        self._moods: list[Motion] = []  # the frames made, with the emotion (the recording's)
+        self.emotion = EmotionStream(settings.emotion, self.bundle.config.fps)  # set_emotion changes it
+        self._emotional: list[Motion] = []  # the frames made, with the emotion (the recording's)
         # a whole-body model's own hips and legs, planted as they come (PlantStream); for a model
         # whose layout stops at the waist, legs cut from the capture to go with the arms
         # (LowerBodyStream); none with upper_body_only
@@ -189,7 +189,7 @@ class LiveSession:
         """Change the emotion while live (any thread; e.g. the panel's menu): it eases in from
         the next hop over emotion.SWITCH_S, and the recording notes when ("emotion_at").
         A DiffshegError for a bad one, with nothing changed."""
-        self.mood.set(emotion)
+        self.emotion.set(emotion)
 
     @property
     def joint_names(self) -> list[str]:
@@ -229,12 +229,12 @@ class LiveSession:
         self.source.stop()
         engine = self.engine
         meta = engine.meta()
-        meta["emotion_at"] = [[t, e] for t, e in self.mood.changes]
+        meta["emotion_at"] = [[t, e] for t, e in self.emotion.changes]
         meta["warnings"] = meta["warnings"] + self._warnings()
         motion = upper_body(engine.motion(meta=meta))
-        if self._moods:
-            motion = replace(motion, rotations=np.concatenate([m.rotations for m in self._moods]),
-                             face=np.concatenate([m.face for m in self._moods]))
+        if self._emotional:
+            motion = replace(motion, rotations=np.concatenate([m.rotations for m in self._emotional]),
+                             face=np.concatenate([m.face for m in self._emotional]))
         if self.legs is not None:
             motion = with_lower_body(motion, self.legs.lower, self.legs.trans, self.legs.contacts())
             motion = replace(motion, meta={**motion.meta, "lower_body": self.legs_source})
@@ -358,8 +358,8 @@ class LiveSession:
             self.compute += time.perf_counter() - started
             return
         made = to_motion(self.bundle, normalised, meta={})
-        part = self.mood.add(upper_body(made))  # the emotion never touches the legs
-        self._moods.append(part)
+        part = self.emotion.add(upper_body(made))  # the emotion never touches the legs
+        self._emotional.append(part)
         rotations, roots, down = part.rotations, [None] * part.n_frames, [None] * part.n_frames
         if self.legs is not None:  # the model's own legs, or legs to go with the arms as shown
             lower, roots, feet = self.legs.add(made if self.legs_source == "model" else part)

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..checkpoints import TORCH_HOW_TO, ModelBundle
 from ..errors import DiffshegError
-from ..settings import BACKENDS, DEVICES, PRECISIONS, THREADS, check_number, parse_whole
+from ..validate import BACKENDS, DEVICES, PRECISIONS, THREADS, check_number, parse_whole
 THREADS_ENV = "DIFFSHEG_THREADS"
 
 

@@ -1,7 +1,7 @@
 """Reading official DiffSHEG checkpoints, which are torch pickles: `torch.load` with
 `weights_only=True`. The rest of loading them (the state dict as numpy, the configuration
-inferred from its shapes, the normalisation statistics) is numpy, in `checkpoints`, which
-imports this module when it meets such a file.
+inferred from its shapes, the normalisation statistics) is numpy, in `official_checkpoints`;
+`checkpoints` imports this module when it meets such a file.
 """
 
 from __future__ import annotations

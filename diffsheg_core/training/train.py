@@ -42,7 +42,7 @@ from ..errors import DiffshegError
 from ..foppas import PRESETS, FoppasConfig, with_overrides
 from ..pipeline import check_skip_guidance, hubert_encoding
 from ..rigs import get_layout
-from ..settings import check_number
+from ..validate import check_number
 from .train_phonetic import load_phonetic, speech_encoding as phonetic_speech
 from ..prior import GesturePrior
 from ..torch_layer.devices import resolve_device

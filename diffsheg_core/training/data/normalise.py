@@ -54,7 +54,7 @@ def compute_stats(takes: list[Take]) -> NormStats:
 def official_stats(layout: Layout, folder: str | Path) -> NormStats:
     """The statistics the official checkpoints were trained with, from `folder`
     (../shared/data/beat for `beat`, ../shared/data/show for `smplx`)."""
-    from ...checkpoints import official_stats as read_official
+    from ...official_checkpoints import official_stats as read_official
 
     mean, std = read_official("beat" if layout.name == "beat" else "show", folder)
     if len(mean) != layout.dim:

@@ -1,7 +1,7 @@
 """Planting a foot: pins over contact spans and two-bone IK, in rotation matrices.
 
-One implementation for both places a foot is planted: the canonical body that
-`lower_body` makes, and a rig's own legs after keying (the add-on's feet.py). A pin holds
+One implementation for both places a foot is planted: the canonical body's legs
+(`lower_body.feet`), and a rig's own legs after keying (the add-on's scene/feet.py). A pin holds
 the ankle at a spot and the foot at an orientation over [first, last] frames, eased in and
 out over `ease` frames; a frame between two pins' eases follows the nearer span. A pin may
 start before the frames or end after them (a live stream solves a hop of frames at a time).
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from ..rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 Pin = tuple[int, int, np.ndarray, np.ndarray]
 """(first, last, ankle position (3,), foot rotation (3, 3)) held over frames first..last."""
