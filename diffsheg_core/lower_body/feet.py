@@ -174,6 +174,9 @@ class FootSteps:
             limit = DROP_SPEED / self.fps
             self.drop = float(np.clip(min(need, MAX_DROP), self.drop - limit, self.drop + limit))
             drops[k] = self.drop
+            for side, (up, _, _) in LEGS.items():  # a foot the leg cannot reach is not standing, only stretched for
+                if down[side][k] and _drop_to_reach(side, goals[side][0][k], world[up][1][k]) > self.drop + REACH_SLACK:
+                    down[side][k] = False
         for side in LEGS:
             self.down[side].append(down[side])
         self.n += n
