@@ -39,9 +39,16 @@ DATA = REPO / "tools" / "docs_figures_data.json"
 IMAGES = REPO / "docs" / "images"
 
 
-def _caption(fig, group: dict) -> None:
+def _save(fig, group: dict, out: Path, bottom: float) -> Path:
+    """Caption the figure with where and when its numbers were measured, and write it."""
+    import matplotlib.pyplot as plt
+
     fig.text(0.01, 0.012, f"Measured {group['date']} on a {group['machine']}: {group['bench']}",
              fontsize=8, color="#444444", ha="left", va="bottom")
+    fig.subplots_adjust(bottom=bottom, top=0.92)
+    fig.savefig(out)
+    plt.close(fig)
+    return out
 
 
 def plot_keys(data: dict, out: Path) -> Path:
@@ -76,11 +83,7 @@ def plot_keys(data: dict, out: Path) -> Path:
                        for name, r in g["ours_over"].items())
     fig.text(0.01, 0.048, textwrap.fill(f"Ours over theirs at the same measured worst error, as the bench "
                                         f"printed it: {ratios}.", 140), fontsize=8, color="#444444", va="bottom")
-    _caption(fig, g)
-    fig.subplots_adjust(bottom=0.2, top=0.92)
-    fig.savefig(out)
-    plt.close(fig)
-    return out
+    return _save(fig, g, out, 0.2)
 
 
 def plot_live(data: dict, out: Path) -> Path:
@@ -106,11 +109,7 @@ def plot_live(data: dict, out: Path) -> Path:
     ax.legend(fontsize=8, loc="upper left", ncols=4)
     compute = ", ".join(f"{row['setting']}: {row['compute_per_s']:.2f} s" for row in g["rows"])
     fig.text(0.01, 0.055, f"Compute per second of speech: {compute}.", fontsize=8, color="#444444")
-    _caption(fig, g)
-    fig.subplots_adjust(bottom=0.21, top=0.92)
-    fig.savefig(out)
-    plt.close(fig)
-    return out
+    return _save(fig, g, out, 0.21)
 
 
 def plot_backends(data: dict, out: Path) -> Path:
@@ -131,11 +130,7 @@ def plot_backends(data: dict, out: Path) -> Path:
     ax.set_ylim(0, 26)
     ax.set_title(g["title"], fontsize=10)
     ax.legend(fontsize=8, loc="upper left")
-    _caption(fig, g)
-    fig.subplots_adjust(bottom=0.14, top=0.92)
-    fig.savefig(out)
-    plt.close(fig)
-    return out
+    return _save(fig, g, out, 0.14)
 
 
 def plots() -> list[Path]:
