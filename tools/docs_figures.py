@@ -2,6 +2,7 @@
 
     python tools/docs_figures.py plots     # benchmark plots from tools/docs_figures_data.json (matplotlib)
     python tools/docs_figures.py demo      # a still of the main job's preview (out/demo.mp4; ffmpeg)
+    python tools/docs_figures.py feet      # the capture's feet beside the generated (bench/render_feet.py)
     python tools/docs_figures.py panel     # the sidebar panel in a real Blender window (Xvfb)
     python tools/docs_figures.py all
 
@@ -162,6 +163,19 @@ def demo(render: bool = False, body_at: float = 2.5, face_at: float = 5.8) -> li
     return [out]
 
 
+def feet(render: bool = False) -> list[Path]:
+    """The contact sheet of bench/render_feet.py: the capture and the generated take of the same
+    speech side by side, whole body and feet."""
+    sheet = REPO / "out" / "render-feet" / "feet_sheet.png"
+    if render or not sheet.exists():
+        subprocess.run([sys.executable, "bench/render_feet.py", "--seconds", "10", "--out", "out/render-feet"],
+                       cwd=REPO, check=True)
+    IMAGES.mkdir(parents=True, exist_ok=True)
+    out = IMAGES / "feet-sheet.png"
+    shutil.copyfile(sheet, out)
+    return [out]
+
+
 # (file, screen, panel_screenshot.py flags, crop as (left, top, bottom) in pixels: left from the
 # area's right edge, bottom from its top): set for Debian's Blender 3.4 at these screen sizes
 SHOTS = (
@@ -231,8 +245,8 @@ def panel(blender: str = "blender") -> list[Path]:
 
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=("plots", "demo", "panel", "all"))
-    parser.add_argument("--render", action="store_true", help="demo: run the main job even if out/demo.mp4 exists")
+    parser.add_argument("what", choices=("plots", "demo", "feet", "panel", "all"))
+    parser.add_argument("--render", action="store_true", help="demo, feet: render again even if the video is there")
     parser.add_argument("--blender", default="blender", help="panel: the Blender program (3.4+)")
     args = parser.parse_args(argv)
     made = []
@@ -240,6 +254,8 @@ def main(argv: list[str]) -> int:
         made += plots()
     if args.what in ("demo", "all"):
         made += demo(args.render)
+    if args.what in ("feet", "all"):
+        made += feet(args.render)
     if args.what in ("panel", "all"):
         made += panel(args.blender)
     for path in made:
