@@ -63,7 +63,13 @@ def character():
     if RANGE:  # the other choices drawn: a range of frames, a custom preset, a style mix, an emotion
         s.range_mode, s.range_start, s.range_end = "FRAMES", 1048, 1120
         s.preset, s.preset_file = "__custom__", "//presets/my_rig.json"
-        s.mix_style, s.style_mix = "0", 0.3
+        for style in ("animated", "0"):  # the bundled model's style names, or indices where they are unknown
+            try:
+                s.mix_style = style
+                break
+            except TypeError:
+                continue
+        s.style_mix = 0.3
         s.emotion, s.emotion_intensity = "sad", 0.6
         s.device, s.key_mode, s.use_face_seed, s.hold_face = "GPU", "EVERY_FRAME", True, True
         s.live_source, s.live_vmc = "SOCKET", True
