@@ -45,10 +45,13 @@ LIVE_STEPS = 25  # the schedule `LiveConfig.later_start` counts in (rescaled to 
 class LiveConfig:
     """How the stream is sampled. The defaults, by bench/bench_live.py on the 2-core CI
     machine (bundled model, one thread, real speech): see the README's Live section.
-    - hop 3 and lookahead 1 show frames 0.45 s (p95) after their audio; hop 4 costs 0.07 s
+    - hop 3 and lookahead 1 showed frames 0.45 s (p95) after their audio; hop 4 costs 0.07 s
       more latency for a fifth less compute.
-    - A lookahead of 1-2 frames gives the phonetic encoder the sound after a frame: with
-      none, jawOpen at open vowels over bilabials fell to 0.84x offline's (2 seeds, 64 s).
+    - A lookahead of 2 frames gives the phonetic encoder the sound after a frame. Measured
+      with a window's features stopping at its lookahead, as they do live (2026-12-05, 2
+      seeds, 64 s, H 3): jawOpen at open vowels over bilabials 0.79x offline's at lookahead
+      1, 1.01x at 2, 0.97x at 3; mouth-voice 0.94x, 0.98x, 0.97x. (Earlier figures, 0.98x at
+      lookahead 1, came from a bench whose windows saw the audio after their lookahead.)
     - Later windows start at index 14 of 25 steps, FOPPAS's published value, rather than the
       bundled model's 17: 15 network calls a window instead of 18, with the same figures
       against offline (wrist speed 0.74x / 0.76x, jitter 0.96x / 1.03x, lip-sync 0.98x both);
@@ -65,7 +68,7 @@ class LiveConfig:
 
     hop: int = 3                       # new frames per window
     max_hop: int = 12                  # frames a window may take when more are waiting: a slow machine keeps up
-    lookahead: int = 1                 # frames of audio a window waits for past its new frames
+    lookahead: int = 2                 # frames of audio a window waits for past its new frames
     context: float = 3.0               # seconds of audio the speech features of a window are computed over
     later_start: Optional[int] = 14    # schedule index later windows start from, at 25 steps (None: the model's)
     legs_eta: Optional[float] = None   # eta of a whole-body model's legs (None: the model's eta)
