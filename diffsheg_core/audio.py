@@ -247,20 +247,10 @@ def probe_audio(path: str | os.PathLike) -> None:
     try:
         info = sf.info(str(path))
     except sf.SoundFileError as sf_error:
-        _check_wav_header(path)  # a WAV with a damaged header, named as reading it would
-        try:
-            import audioread
-
-            with audioread.audio_open(str(path)) as decoder:
-                _check_channels(path, decoder.channels)
-                return
-        except AudioError:
-            raise
-        except Exception:  # not installed, or cannot open it: the decoder's own message
-            raise _not_audio(path, sf_error) from None
+        _read_with_audioread(path, sf_error, samples=False)
+        return
     _check_channels(path, info.channels)
-    _check_rate(info.samplerate, f"the sample rate of '{path}'",
-                "its header is wrong or it is not speech; resample it to 16000-48000 Hz")
+    _check_header_rate(path, info.samplerate)
 
 
 def _not_audio(path: Path, sf_error: Exception) -> AudioError:
@@ -305,6 +295,16 @@ def _warn_if_truncated(path: Path, info, n_frames: int) -> Optional[str]:
 
 def _decode_with_audioread(path: Path, sf_error: Exception) -> tuple[np.ndarray, int]:
     """(N, C) float32 frames via audioread (ffmpeg, GStreamer, ...) for what libsndfile cannot read."""
+    rate, channels, pcm = _read_with_audioread(path, sf_error)
+    frame = 2 * channels  # 16-bit samples; a partial last frame is dropped
+    samples = np.frombuffer(pcm[: len(pcm) // frame * frame], dtype="<i2").astype(np.float32) / 32768.0
+    return samples.reshape(-1, channels), rate
+
+
+def _read_with_audioread(path: Path, sf_error: Exception, samples: bool = True) -> tuple[int, int, bytes]:
+    """(sample rate, channels, 16-bit PCM: every sample, or none with `samples` False) of a
+    file libsndfile refused (`sf_error`), through audioread; an AudioError naming a damaged
+    WAV header, or saying the file cannot be decoded here."""
     not_audio = _not_audio(path, sf_error)
     _check_wav_header(path)  # what libsndfile refused may be a WAV with a damaged header
     try:
@@ -315,14 +315,17 @@ def _decode_with_audioread(path: Path, sf_error: Exception) -> tuple[np.ndarray,
         with audioread.audio_open(str(path)) as decoder:
             rate, channels = decoder.samplerate, decoder.channels
             _check_channels(path, channels)
-            pcm = b"".join(decoder)
+            pcm = b"".join(decoder) if samples else b""
     except AudioError:
         raise
     except Exception:  # whatever a decoder raises on a damaged file (DecodeError, audioop.error, EOFError, ...)
         raise not_audio from None
-    frame = 2 * channels  # 16-bit samples; a partial last frame is dropped
-    samples = np.frombuffer(pcm[: len(pcm) // frame * frame], dtype="<i2").astype(np.float32) / 32768.0
-    return samples.reshape(-1, channels), rate
+    return rate, channels, pcm
+
+
+def _check_header_rate(path: Path, rate) -> None:
+    _check_rate(rate, f"the sample rate of '{path}'", "its header is wrong or it is not speech; resample it to "
+                "16000-48000 Hz")
 
 
 def _check_wav_header(path: Path) -> None:
@@ -334,8 +337,7 @@ def _check_wav_header(path: Path) -> None:
         return
     tag, channels, rate, bits = header
     _check_channels(path, channels)
-    _check_rate(rate, f"the sample rate of '{path}'",
-                "its header is wrong or it is not speech; resample it to 16000-48000 Hz")
+    _check_header_rate(path, rate)
     if tag == 1 and not 1 <= bits <= 32:  # integer PCM (other codecs may declare 0)
         raise AudioError(f"'{path}' declares {bits} bits per sample in its header (PCM has 8, 16, 24 or 32): "
                          "the header is damaged; save it again as 16-bit WAV")

@@ -13,23 +13,14 @@ from pathlib import Path
 
 import pytest
 
-from import_graph import assert_no_cycle
+from import_graph import assert_no_cycle, modules_below
 
 REPO = Path(__file__).resolve().parents[1]
 ADDON = REPO / "blender_addon"
 PACKAGE = "blender_addon"
 
 
-def addon_modules() -> dict[str, Path]:
-    """Dotted names below the add-on ("" for its __init__.py, "scene" for scene/__init__.py)."""
-    out = {}
-    for path in sorted(ADDON.rglob("*.py")):
-        parts = path.relative_to(ADDON).with_suffix("").parts
-        out[".".join(p for p in parts if p != "__init__")] = path
-    return out
-
-
-MODULES = addon_modules()
+MODULES = modules_below(ADDON)
 
 
 def imported(module: str) -> set[str]:

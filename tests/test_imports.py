@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from import_graph import assert_no_cycle
+from import_graph import assert_no_cycle, modules_below
 
 PACKAGE = Path(__file__).resolve().parents[1] / "diffsheg_core"
 TORCH_LAYER = "torch_layer"  # the modules that import torch (the tooling aside): networks, backend, HuBERT...
@@ -25,22 +25,13 @@ BUNDLED = ("onnxruntime", "soundfile", "soxr", "safetensors")
 RUNTIME_ENTRY_POINTS = ("pipeline", "live.session", "runtime.backends", "checkpoints", "audio")
 
 
-def package_modules() -> dict[str, Path]:
-    """Dotted names (below diffsheg_core; "" for the package itself) of all its modules."""
-    out = {}
-    for path in sorted(PACKAGE.rglob("*.py")):
-        parts = path.relative_to(PACKAGE).with_suffix("").parts
-        out[".".join(p for p in parts if p != "__init__")] = path
-    return out
-
-
 def runtime_modules() -> dict[str, Path]:
     """The runtime's modules: all but the tooling and the torch layer."""
-    return {m: p for m, p in package_modules().items() if m.split(".")[0] not in (TOOLING, TORCH_LAYER)}
+    return {m: p for m, p in modules_below(PACKAGE).items() if m.split(".")[0] not in (TOOLING, TORCH_LAYER)}
 
 
 def torch_layer_modules() -> dict[str, Path]:
-    return {m: p for m, p in package_modules().items() if m.split(".")[0] == TORCH_LAYER}
+    return {m: p for m, p in modules_below(PACKAGE).items() if m.split(".")[0] == TORCH_LAYER}
 
 
 def imports(path: Path, module: str, top_level_only: bool) -> set[str]:

@@ -133,9 +133,9 @@ class _Stance:
 
 class FootSteps:
     """Where a whole-body model's feet go, frame by frame: a foot stands where it landed,
-    flat on the floor, until the model's own ankle has wandered STEP_AWAY from that spot
-    (and the foot has stood STEP_REST_S), or the leg could reach it only with the hips
-    lowered more than MAX_DROP; then it steps there: lifted STEP_LIFT at the step's middle,
+    flat on the floor, until the hip has swayed STEP_AWAY past that spot (and the foot has
+    stood STEP_REST_S), or the leg could reach it only with the hips lowered more than
+    MAX_DROP; then it steps to where the model's own ankle is: lifted STEP_LIFT at the step's middle,
     moved over the floor while up, set down over STEP_S. One foot steps at a time. Never a
     glide: a foot is still or in the air. The hips come down as far as a standing foot
     needs to be reached (the knees bend), at most DROP_SPEED, and rise again as slowly.
@@ -162,11 +162,12 @@ class FootSteps:
             t = self.n + k
             for side, (up, _, foot) in LEGS.items():
                 ankle, hip = world[foot][1][k], world[up][1][k]
-                rotation = _flat(side, convert(world[foot][0][k], "quaternion", "matrix"))
-                here = self.feet.setdefault(side, _Stance(_on_floor_at(ankle), rotation))
+                here = self.feet.get(side)
+                if here is None:
+                    here = self.feet[side] = _Stance(_on_floor_at(ankle), _flat(side, world[foot][0][k]))
                 if here.step is None and self._should_step(side, here, ankle, hip, t):
                     here.step = (t, here.spot, here.rotation)
-                    here.spot, here.rotation = _on_floor_at(ankle), rotation
+                    here.spot, here.rotation = _on_floor_at(ankle), _flat(side, world[foot][0][k])
                 goals[side][0][k], goals[side][1][k], down[side][k] = self._place(here, t)
             # a stepping foot's landing spot counts already: the hips are down by the time it lands
             need = max([_drop_to_reach(side, spot, world[up][1][k]) for side, (up, _, _) in LEGS.items()
@@ -246,10 +247,11 @@ def _on_floor_at(ankle: np.ndarray) -> np.ndarray:
     return np.array([ankle[0], _ankle_height(), ankle[2]])
 
 
-def _flat(side: str, rotation: np.ndarray) -> np.ndarray:
-    """The foot's world rotation flat on the floor: its turn about the vertical alone."""
+def _flat(side: str, quaternion: np.ndarray) -> np.ndarray:
+    """The foot's world rotation (from its world quaternion) flat on the floor: its turn
+    about the vertical alone."""
     forward = _offsets()[f"{'Right' if side == 'right' else 'Left'}ForeFoot"]
-    now = rotation @ forward
+    now = convert(quaternion, "quaternion", "matrix") @ forward
     angle = np.arctan2(now[0], now[2]) - np.arctan2(forward[0], forward[2])
     return axis_angle_to_matrix(np.array([0.0, angle, 0.0]))
 
