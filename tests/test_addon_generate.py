@@ -440,7 +440,7 @@ def test_the_demo_character_shows_its_face(speech_motion, tmp_path):
     assert (scene.render.resolution_x, scene.render.resolution_y) == (640, 360)
     result = bake_motion(scene, speech_motion, None, BakeOptions(armature=armature, face_meshes=[face],
                                                                  add_sound=False))
-    assert "preset Auto chose 'beat'" in result.preset_notes[0] and not result.unmatched_shape_keys["DemoFace"]
+    assert "preset Auto chose 'beat'" in result.preset_notes[0] and not result.unmatched_shape_keys[face.name]
     cut = round(demo.CUT_SECONDS * 24)
     assert {m.frame: m.camera.name for m in scene.timeline_markers if m.frame <= cut + 1} == {
         1: "DemoCamera", 1 + cut: "DemoCloseUp"}
@@ -456,6 +456,94 @@ def test_the_demo_character_shows_its_face(speech_motion, tmp_path):
         rgba = np.array(image.pixels[:]).reshape(-1, 4)
         skin.append(float(np.mean((rgba[:, 0] > rgba[:, 2] + 0.08) & (rgba[:, 0] > 0.3))))  # warm skin tones
     assert skin[1] > 0.08 and skin[1] > 5 * skin[0], skin  # measured 0.10 and 0.007
+
+
+def test_the_demo_speaker_is_a_person_skinned_to_its_skeleton():
+    """The main job's speaker is MakeHuman's base mesh fitted to the BEAT skeleton: a person
+    1.6-1.9 m tall whose head, hands and feet lie at those bones, and who follows its bones:
+    with the left arm raised and the head turned, the hand's and the face's vertices keep to
+    their bones within 2 cm."""
+    from mathutils import Quaternion
+
+    from blender_addon.scene import demo
+
+    reset_scene(fps=24)
+    armature = demo.build_beat_armature()
+    body = demo.body_of(armature)
+    bones = armature.data.bones
+
+    def vertices():
+        mesh = body.evaluated_get(bpy.context.evaluated_depsgraph_get()).to_mesh()
+        co = np.empty(3 * len(mesh.vertices))
+        mesh.vertices.foreach_get("co", co)
+        body.evaluated_get(bpy.context.evaluated_depsgraph_get()).to_mesh_clear()
+        return co.reshape(-1, 3) @ np.array(body.matrix_world)[:3, :3].T + np.array(body.matrix_world)[:3, 3]
+
+    def owned(name):  # the vertices a bone weighs most
+        group = body.vertex_groups[name].index
+        return np.array([max(v.groups, key=lambda g: g.weight).group == group if v.groups else False
+                         for v in body.data.vertices])
+
+    rest = vertices()
+    assert len(rest) > 10000 and 1.6 < np.ptp(rest[:, 2]) < 1.9, np.ptp(rest[:, 2])
+    parts = {name: owned(name) for name in ("Head", "LeftHand", "RightHand", "LeftFoot", "RightFoot")}
+    for name, mask in parts.items():
+        centre = rest[mask].mean(axis=0)
+        assert np.linalg.norm(centre - np.array(armature.matrix_world @ bones[name].head_local)) < 0.15, name
+    before = {name: rest[parts[name]] - np.array(armature.matrix_world @ bones[name].head_local)
+              for name in ("Head", "LeftHand")}
+    armature.pose.bones["LeftArm"].rotation_quaternion = Quaternion((1, 0, 0), 1.0)
+    armature.pose.bones["Head"].rotation_quaternion = Quaternion((0, 1, 0), 0.5)
+    bpy.context.view_layer.update()
+    posed = vertices()
+    for name, offsets in before.items():
+        pose = armature.matrix_world @ armature.pose.bones[name].matrix
+        turned = offsets @ np.array(pose.to_3x3().normalized() @ bones[name].matrix_local.to_3x3().inverted()).T
+        moved = posed[parts[name]] - (np.array(pose.translation) + turned)
+        assert np.percentile(np.linalg.norm(moved, axis=1), 90) < 0.02, name
+
+
+def test_the_demo_close_up_keeps_the_head_in_frame():
+    """The main job's take (the bundled sample speech, hips swaying and stepping): at every
+    frame the Head bone's head (the skull's base) and tail (eye level) seen through the
+    close-up camera stay inside the picture with a 15 % margin, and the face is big in it;
+    the same with the hips pushed 30 cm along each of their axes."""
+    from bpy_extras.object_utils import world_to_camera_view
+
+    from blender_addon.scene import demo
+    from diffsheg_core.audio import SAMPLE_SPEECH
+
+    scene = reset_scene(fps=24)
+    armature = demo.build_beat_armature()
+    face = demo.build_face(armature)
+    demo.setup_preview(scene, armature)
+    bake_motion(scene, diffsheg_core.generate(str(SAMPLE_SPEECH), seed=0, device="cpu"), None,
+                BakeOptions(armature=armature, face_meshes=[face], add_sound=False))
+    close = scene.objects["DemoCloseUp"]
+    head = armature.pose.bones["Head"]
+    hips = armature.pose.bones["Hips"]
+
+    def seen():
+        points = [world_to_camera_view(scene, close, armature.matrix_world @ p) for p in (head.head, head.tail)]
+        return np.array([(p.x, p.y) for p in points]), min(p.z for p in points)
+
+    worst, sizes = 0.0, []
+    for frame in range(scene.frame_start, scene.frame_end + 1):
+        scene.frame_set(frame)
+        xy, depth = seen()
+        assert depth > 0.3, (frame, depth)  # in front of the camera
+        worst = max(worst, float(np.max(np.abs(xy - 0.5))))
+        sizes.append(float(np.linalg.norm(xy[1] - xy[0])))
+    print(f"head in the close-up: at most {worst:.3f} from the centre, skull base to eyes {min(sizes):.2f}-"
+          f"{max(sizes):.2f} of the frame")
+    assert worst < 0.35 and min(sizes) > 0.1
+    for shift in ((0.3, 0, 0), (-0.3, 0, 0), (0, 0.3, 0), (0, -0.3, 0), (0, 0, 0.3), (0, 0, -0.3)):
+        scene.frame_set(scene.frame_start + 100)
+        hips.location = shift
+        bpy.context.view_layer.update()
+        xy, _ = seen()
+        assert np.max(np.abs(xy - 0.5)) < 0.35, (shift, xy)
+        hips.location = (0.0, 0.0, 0.0)
 
 
 def test_panel_styles_come_from_the_model_and_mix(tmp_path):
