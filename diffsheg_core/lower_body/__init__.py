@@ -11,7 +11,7 @@ from a real full-body capture by motion matching, with the feet planted (live,
 model made drives the lower body, never the reverse.
 
     body      the canonical body's legs (BEAT skeleton, floor y = 0): joints, feet, contacts,
-              figures; a Motion's lower body taken out or put in
+              figures (feet_figures, foot_yaw); a Motion's lower body taken out or put in
     leg_ik    pins over contact spans and two-bone IK (the canonical body's and a rig's legs)
     feet      the feet pinned where they landed (plant_feet) or standing and stepping
               (FootSteps, step_feet)
@@ -26,7 +26,7 @@ numpy only: it runs inside Blender.
 from __future__ import annotations
 
 from .body import (CONTACT_HEIGHT, JOINTS, LEGS, ankle_figures, canonical_leg_length, contacts, feet_figures,
-                   figures, foot_positions, foot_skating, lower_rotations, upper_body, with_lower_body)
+                   figures, foot_positions, foot_skating, foot_yaw, lower_rotations, upper_body, with_lower_body)
 from .capture import (ASSET, HELD_OUT_S, LAYOUTS, LowerBodyLibrary, add_lower_body, arm_energy, build,
                       legs_source, main, plant, read_capture, sample, settle)
 from .feet import FootSteps, plant_feet, step_feet
@@ -35,7 +35,8 @@ from .stream import LowerBodyStream, PlantStream
 __all__ = [
     "ASSET", "CONTACT_HEIGHT", "HELD_OUT_S", "JOINTS", "LAYOUTS", "LEGS", "FootSteps", "LowerBodyLibrary",
     "LowerBodyStream", "PlantStream", "add_lower_body", "ankle_figures", "arm_energy", "build",
-    "canonical_leg_length", "contacts", "feet_figures", "figures", "foot_positions", "foot_skating", "legs_source",
+    "canonical_leg_length", "contacts", "feet_figures", "figures", "foot_positions", "foot_skating", "foot_yaw",
+    "legs_source",
     "lower_rotations", "main", "plant", "plant_feet", "read_capture", "sample", "settle", "step_feet", "upper_body",
     "with_lower_body",
 ]

@@ -165,6 +165,24 @@ def ankle_figures(ankles: list[np.ndarray], fps: float, up: int = 1) -> dict[str
             "lift": float(np.median(lifts)) if lifts else 0.0}
 
 
+def foot_yaw(lower: np.ndarray, trans: np.ndarray) -> dict[str, np.ndarray]:
+    """Per foot (T,) how far its toes turn out from the hips' facing, in degrees about the
+    vertical (positive: out, away from the other foot; negative: in, pigeon-toed): the angle
+    on the floor between the foot's forward (ankle-side sole to toe base, the foot bone's +z)
+    and the pelvis's forward (its +z), on the canonical body."""
+    world = _world(lower, trans)
+    ahead = np.array([0.0, 0.0, 1.0])
+    hips = _apply(world["Hips"][0], ahead)
+    out = {}
+    for side, prefix, outward in (("right", "Right", -1.0), ("left", "Left", 1.0)):
+        foot = _apply(world[f"{prefix}Foot"][0], ahead)
+        # signed turn about +y (towards +x, the body's left) from the hips' forward to the foot's
+        turn = np.arctan2(hips[:, 2] * foot[:, 0] - hips[:, 0] * foot[:, 2],
+                          hips[:, 0] * foot[:, 0] + hips[:, 2] * foot[:, 2])
+        out[side] = np.degrees(outward * turn)
+    return out
+
+
 def _lowest(world: dict) -> np.ndarray:
     """(T,) the height of the lowest foot point (either sole or toe end)."""
     return np.min([world[f"{p}{point}"][1][:, 1] for p in ("Right", "Left") for point in ("Sole", "ToeEnd")], axis=0)

@@ -7,6 +7,8 @@ numpy only: it runs inside Blender.
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -54,6 +56,7 @@ def _leg_pins(side: str, ankle: np.ndarray, hip: np.ndarray, foot: np.ndarray, s
             for span in spans for a, b, spot in _reachable(ankle, hip, span, _reach(side))]
 
 
+@lru_cache(maxsize=None)
 def _reach(side: str) -> float:
     """How far from the hip a pinned ankle may lie on that leg (thigh + shin + REACH_SLACK)."""
     off = _offsets()
@@ -195,7 +198,7 @@ class FootSteps:
         if _drop_to_reach(side, here.spot, hip) > MAX_DROP:
             return True
         # the foot stays while the hip sways over it; it steps once the hip has left it far behind
-        away = np.linalg.norm((hip - here.spot)[[0, 2]])
+        away = math.hypot(hip[0] - here.spot[0], hip[2] - here.spot[2])
         return away > STEP_AWAY and t - here.landed >= self.rest_frames
 
     def _place(self, here: _Stance, t: int) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -217,10 +220,10 @@ class FootSteps:
 def _drop_to_reach(side: str, ankle: np.ndarray, hip: np.ndarray) -> float:
     """How far the hip must come down for the leg to reach `ankle` (0: it does)."""
     reach = _reach(side) - REACH_SLACK
-    across = np.linalg.norm((hip - ankle)[[0, 2]])
+    across = math.hypot(hip[0] - ankle[0], hip[2] - ankle[2])  # per frame and foot: plain floats are faster
     if across >= reach:
         return np.inf
-    return max(0.0, float(hip[1] - ankle[1] - np.sqrt(reach ** 2 - across ** 2)))
+    return max(0.0, float(hip[1] - ankle[1] - math.sqrt(reach ** 2 - across ** 2)))
 
 
 def _lowered(world: dict, drops: np.ndarray) -> dict:
@@ -249,8 +252,10 @@ def _on_floor_at(ankle: np.ndarray) -> np.ndarray:
 
 def _flat(side: str, quaternion: np.ndarray) -> np.ndarray:
     """The foot's world rotation (from its world quaternion) flat on the floor: its turn
-    about the vertical alone."""
-    forward = _offsets()[f"{'Right' if side == 'right' else 'Left'}ForeFoot"]
+    about the vertical alone, that of its toes (ToeBase, ahead of the sole; not the
+    fore-foot, which lies straight below the ankle and says nothing of where the toes point:
+    issue 40, pigeon-toed feet)."""
+    forward = _offsets()[f"{'Right' if side == 'right' else 'Left'}ToeBase"]
     now = convert(quaternion, "quaternion", "matrix") @ forward
     angle = np.arctan2(now[0], now[2]) - np.arctan2(forward[0], forward[2])
     return axis_angle_to_matrix(np.array([0.0, angle, 0.0]))
