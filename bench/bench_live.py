@@ -18,6 +18,7 @@ For each hop H tried (and the diffusion steps), on one real take with its phone 
   and with another process keeping one core busy (--busy).
 
     python bench/bench_live.py                         # quality and compute, hops 3 4 6, lookahead 0 2
+    python bench/bench_live.py --sampling fast quality --hops 3 --lookaheads 2   # both samplings
     python bench/bench_live.py --realtime --seconds 20 --busy
     python bench/bench_live.py --model ../runs/default-v8.safetensors   # another model
 
@@ -93,24 +94,27 @@ def mean_of(rows: list[dict]) -> dict:
 
 def bench_quality(args, bundle, network, audio: Audio, phones) -> None:
     seeds = range(args.seeds)
-    offline = []
-    for seed in seeds:
-        m = generate(audio, settings=GenerateSettings(model=bundle, seed=seed, threads=1))
-        offline.append(quality(m, audio, foppas_seams(m.n_frames, bundle.config.clip_len, 4), phones))
-    base = mean_of(offline)
-    print(f"\n{audio.duration:.1f} s of speech, seeds {list(seeds)}; ratios are live / offline")
-    print(f"{'setting':<22}" + "".join(f"{k:>19}" for k in base) + f"{'compute/s':>11}")
-    print(f"{'offline':<22}" + "".join(f"{v:>19.3f}" for v in base.values()))
-    for steps, hop, lookahead in settings_tried(args):
+    base = {}
+    for sampling in args.sampling:
+        offline = []
+        for seed in seeds:
+            m = generate(audio, settings=GenerateSettings(model=bundle, seed=seed, threads=1, sampling=sampling))
+            offline.append(quality(m, audio, foppas_seams(m.n_frames, bundle.config.clip_len, 4), phones))
+        base[sampling] = mean_of(offline)
+    print(f"\n{audio.duration:.1f} s of speech, seeds {list(seeds)}; ratios are live / offline of the same sampling")
+    print(f"{'setting':<30}" + "".join(f"{k:>19}" for k in base[args.sampling[0]]) + f"{'compute/s':>11}")
+    for sampling, values in base.items():
+        print(f"{'offline ' + sampling:<30}" + "".join(f"{v:>19.3f}" for v in values.values()))
+    for sampling, steps, hop, lookahead in settings_tried(args):
         rows, compute = [], 0.0
         for seed in seeds:
-            settings = GenerateSettings(model=bundle, seed=seed, steps=steps, threads=1)
+            settings = GenerateSettings(model=bundle, seed=seed, steps=steps, threads=1, sampling=sampling)
             m, c = run_live(bundle, network, audio, live_config(args, hop, lookahead), settings)
             compute += c / audio.duration / len(seeds)
             rows.append(quality(m, audio, list(range(hop, m.n_frames, hop)), phones))
         q = mean_of(rows)
-        cells = "".join(f"{v:>11.3f} ({v / base[k]:4.2f}x)" for k, v in q.items())
-        print(f"{label(steps, hop, lookahead):<22}{cells}{compute:>10.3f}s", flush=True)
+        cells = "".join(f"{v:>11.3f} ({v / base[sampling][k]:4.2f}x)" for k, v in q.items())
+        print(f"{label(sampling, steps, hop, lookahead):<30}{cells}{compute:>10.3f}s", flush=True)
 
 
 def bench_legs(args, bundle, network, audio: Audio) -> None:
@@ -126,7 +130,7 @@ def bench_legs(args, bundle, network, audio: Audio) -> None:
     print(f"\nlegs ({'the model' if own else 'the capture'}'s), {audio.duration:.1f} s of speech, seeds "
           f"{list(range(args.seeds))}, hops of {args.hops[0]} (capture: {_legs_cells(lb.figures(capture[0], capture[1], fps))})")
     for seed in range(args.seeds):
-        settings = GenerateSettings(model=bundle, seed=seed, threads=1)
+        settings = GenerateSettings(model=bundle, seed=seed, threads=1, sampling=args.sampling[0])
         offline = generate(audio, settings=settings)
         hop = args.hops[0]
         made = run_live(bundle, network, audio, live_config(args, hop), settings)[0] if own else lb.upper_body(offline)
@@ -168,11 +172,12 @@ def live_config(args, hop: int, lookahead: int = LiveConfig.lookahead) -> LiveCo
 
 
 def settings_tried(args) -> list[tuple]:
-    return [(steps, hop, lookahead) for steps in args.steps for hop in args.hops for lookahead in args.lookaheads]
+    return [(sampling, steps, hop, lookahead) for sampling in args.sampling for steps in args.steps
+            for hop in args.hops for lookahead in args.lookaheads]
 
 
-def label(steps, hop: int, lookahead: int) -> str:
-    return f"H={hop} L={lookahead}" + (f" steps={steps}" if steps else "")
+def label(sampling: str, steps, hop: int, lookahead: int) -> str:
+    return f"{sampling} H={hop} L={lookahead}" + (f" steps={steps}" if steps else "")
 
 
 def busy_loop() -> None:
@@ -186,7 +191,7 @@ def bench_latency(args, audio_path: Path) -> None:
 
     print(f"\nreal time: the first {args.seconds:g} s of {audio_path.name} played at 1x, latency from the "
           "audio arriving to the frame being shown (s)")
-    print(f"{'setting':<28}{'p50':>8}{'p95':>8}{'max':>8}{'compute/s':>11}{'underrun s':>12}")
+    print(f"{'setting':<36}{'p50':>8}{'p95':>8}{'max':>8}{'compute/s':>11}{'underrun s':>12}")
     clip = Path(args.out) / "live_clip.wav"
     import soundfile as sf
     full = read_audio_file(audio_path)
@@ -197,12 +202,12 @@ def bench_latency(args, audio_path: Path) -> None:
             hog = multiprocessing.Process(target=busy_loop, daemon=True)
             hog.start()
         try:
-            for steps, hop, lookahead in settings_tried(args):
-                settings = GenerateSettings(model=args.model, seed=0, steps=steps, threads=1)
+            for sampling, steps, hop, lookahead in settings_tried(args):
+                settings = GenerateSettings(model=args.model, seed=0, steps=steps, threads=1, sampling=sampling)
                 session = LiveSession(FileSource(str(clip)), settings, live_config(args, hop, lookahead))
                 result = session.run_to_end()
                 s = latency_summary(result.latencies)
-                print(f"{label(steps, hop, lookahead) + ' ' + load:<28}{s['p50']:>8.3f}{s['p95']:>8.3f}{s['max']:>8.3f}"
+                print(f"{label(sampling, steps, hop, lookahead) + ' ' + load:<36}{s['p50']:>8.3f}{s['p95']:>8.3f}{s['max']:>8.3f}"
                       f"{result.compute / result.audio.duration:>10.3f}s{result.underrun_seconds:>12.2f}", flush=True)
         finally:
             if hog is not None:
@@ -212,7 +217,9 @@ def bench_latency(args, audio_path: Path) -> None:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--hops", type=int, nargs="+", default=[3, 4, 6])
-    p.add_argument("--steps", type=int, nargs="+", default=[0], help="diffusion steps (0: the model's)")
+    p.add_argument("--sampling", nargs="+", default=["fast"], choices=["fast", "quality"],
+                   help="samplings tried (default: fast, the default)")
+    p.add_argument("--steps", type=int, nargs="+", default=[0], help="diffusion steps (0: the sampling's)")
     p.add_argument("--lookaheads", type=int, nargs="+", default=[0, 2], help="frames of lookahead tried")
     p.add_argument("--seeds", type=int, default=2)
     p.add_argument("--seconds", type=float, default=20.0, help="audio played in the real-time runs")

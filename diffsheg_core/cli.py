@@ -16,7 +16,6 @@ from .live import cli as live_cli
 
 
 def _generate_parser(sub: argparse._SubParsersAction) -> None:
-    from .foppas import PRESETS
     from .settings import add_arguments
 
     p = sub.add_parser("generate", help="generate motion from a speech recording",
@@ -33,7 +32,6 @@ def _generate_parser(sub: argparse._SubParsersAction) -> None:
                         "tensor shapes)")
     p.add_argument("--config", dest="dataset", choices=["beat", "show"], help=argparse.SUPPRESS)  # its old name
     p.add_argument("--stats", help="folder of the official normalisation statistics (official checkpoints)")
-    p.add_argument("--sampling", choices=sorted(PRESETS), help="FOPPAS sampling settings (default: the model's)")
     p.add_argument("--no-prior", action="store_true",
                    help="start later FOPPAS windows from pure noise, as in the paper, instead of from "
                         "the model's gesture prior (models that have one)")
@@ -52,7 +50,7 @@ def run_generate(args: argparse.Namespace) -> int:
     from .audio import SAMPLE_SPEECH
     from .checkpoints import files_read, load_model
     from .files import check_outputs
-    from .foppas import PRESETS
+    from .foppas import sampling_settings
     from .pipeline import generate, open_speech
     from .runtime.backends import open_network
     from .settings import from_arguments
@@ -80,7 +78,7 @@ def run_generate(args: argparse.Namespace) -> int:
         bar.set_postfix_str(f"clip {p.clip + 1}/{p.n_clips}", refresh=False)
         bar.update(int(p.fraction * 1000) - bar.n)
 
-    sampling = PRESETS[args.sampling] if args.sampling else bundle.sampling
+    sampling = sampling_settings(bundle.sampling, settings.sampling)
     if args.no_prior:
         sampling = replace(sampling, prior_start=False)
     if args.no_refine:

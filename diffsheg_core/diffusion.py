@@ -73,6 +73,15 @@ class Schedule:
             keep = np.unique(np.round(np.linspace(0, n - 1, steps)).astype(np.int64))
         return Schedule(alphas_cumprod=self.alphas_cumprod[keep], timesteps=self.timesteps[keep])
 
+    def at(self, timesteps) -> "Schedule":
+        """The sub-schedule at the given timesteps of this one (ascending, distinct): a few-step
+        sampler's own spacing rather than the even 'ddim<steps>' one."""
+        keep = np.asarray(timesteps, dtype=np.int64)
+        if keep.ndim != 1 or not len(keep) or np.any(np.diff(keep) <= 0) or keep[0] < 0 or keep[-1] >= len(self):
+            raise ValueError(f"timesteps must be distinct, ascending and from 0 to {len(self) - 1}, "
+                             f"got {list(np.asarray(timesteps).tolist())}")
+        return Schedule(alphas_cumprod=self.alphas_cumprod[keep], timesteps=self.timesteps[keep])
+
     def model_timesteps(self, index):
         """Original-indexing timesteps the model is conditioned on, for schedule indices
         (an array of the same kind as `index`)."""

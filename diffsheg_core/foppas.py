@@ -61,10 +61,13 @@ HOLD_CARRY = 16  # frames at least that a held value's gap is carried into (a pi
 class EpsFn(Protocol):
     """(x_t of shape (B, L, D), schedule index) -> predicted noise (B, L, D). Only the
     refining pass passes `refine=True` (a guided model then multiplies its gesture
-    skip-guidance scale by `FoppasConfig.refine_skip`, see pipeline.make_eps_fn_factory), so a
-    function of (x, index) serves a sampler without that pass."""
+    skip-guidance scale by `FoppasConfig.refine_skip`, see pipeline.make_eps_fn_factory), and
+    only a later window's face-first steps (`FoppasConfig.face_start`) pass `face_only=True`
+    (only the face channels of the result are used: the expression branch alone runs), so a
+    function of (x, index) serves a sampler without them."""
 
-    def __call__(self, x: np.ndarray, index: int, refine: bool = False) -> np.ndarray: ...
+    def __call__(self, x: np.ndarray, index: int, refine: bool = False, face_only: bool = False
+                 ) -> np.ndarray: ...
 
 Proposal = Callable[[np.ndarray, int, np.random.Generator], np.ndarray]
 """(known overlap frames (n, D), window length, generator) -> a (length, C) draw of the
@@ -85,11 +88,18 @@ class FoppasConfig:
     reference_renoise: bool = True     # jump back with the beta of the current index, as the official code
     eta: float = 0.0                   # 0: deterministic DDIM
     branch_eta: Optional[float] = None  # the eta of a lower branch's channels (None: eta)
+    face_eta: Optional[float] = None   # the eta of the face's channels (None: eta)
     prior_start: bool = True           # later windows start from the model's gesture prior, if it has one
     candidates: int = 1                # later windows sampled this many times in one batch; the best continues
     carry: int = 0                     # frames the overlap's x0 gap is carried into (0: off, as the official code)
     refine: Optional[int] = None       # schedule index of a last pass over each window's gestures (None: off)
     refine_skip: float = 1.0           # that pass's skip-guidance scale, as a multiple of the steps'
+    timesteps: Optional[tuple] = None  # the steps' model timesteps, ascending (None: the even 'ddim<steps>' spacing)
+    face_start: Optional[int] = None   # schedule index a later window's face starts from (None: later_start)
+
+    def __post_init__(self):
+        if isinstance(self.timesteps, list):  # read back from a model file's JSON
+            object.__setattr__(self, "timesteps", tuple(self.timesteps))
 
     def check(self, clip_len: int) -> None:
         """Raise ValueError naming any setting that cannot work with `clip_len`-frame windows."""
@@ -114,10 +124,21 @@ class FoppasConfig:
                                         or not 0 <= self.refine < self.steps):
             raise ValueError(f"refine must be None (off) or a step index from 0 to {self.steps - 1}, "
                              f"got {self.refine!r}")
-        if self.branch_eta is not None and (isinstance(self.branch_eta, bool)
-                                            or not isinstance(self.branch_eta, (int, float))
-                                            or not 0 <= self.branch_eta <= 1):
-            raise ValueError(f"branch_eta must be None (eta) or a number from 0 to 1, got {self.branch_eta!r}")
+        for name in ("branch_eta", "face_eta"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                      or not 0 <= value <= 1):
+                raise ValueError(f"{name} must be None (eta) or a number from 0 to 1, got {value!r}")
+        if self.timesteps is not None:
+            values = self.timesteps
+            if not isinstance(values, tuple) or len(values) != self.steps or not all(
+                    isinstance(t, int) and not isinstance(t, bool) for t in values):
+                raise ValueError(f"timesteps must be {self.steps} whole numbers, one per step, got {values!r}")
+            Schedule.linear().at(values)  # ascending, distinct, in range: or a ValueError saying so
+        if self.face_start is not None and (isinstance(self.face_start, bool) or not isinstance(self.face_start, int)
+                                            or not self.start_index <= self.face_start < self.steps):
+            raise ValueError(f"face_start must be None (later_start) or a step index from later_start "
+                             f"({self.start_index}) to {self.steps - 1}, got {self.face_start!r}")
         if isinstance(self.refine_skip, bool) or not isinstance(self.refine_skip, (int, float)) \
                 or not 0 <= self.refine_skip < float("inf"):
             raise ValueError(f"refine_skip must be a finite number >= 0, got {self.refine_skip!r}")
@@ -132,11 +153,23 @@ class FoppasConfig:
                 return index
             return min(steps - 1, round(index * (steps - 1) / (self.steps - 1)))
 
-        return replace(self, steps=steps, later_start=rescale(self.later_start), refine=rescale(self.refine))
+        if steps == self.steps:
+            return self
+        return replace(self, steps=steps, later_start=rescale(self.later_start), refine=rescale(self.refine),
+                       face_start=rescale(self.face_start), timesteps=None)
 
     @property
     def start_index(self) -> int:
         return self.steps - 1 if self.later_start is None else self.later_start
+
+    @property
+    def face_index(self) -> int:
+        """The schedule index a later window's face starts from (at or above `start_index`)."""
+        return self.start_index if self.face_start is None else self.face_start
+
+    def schedule(self, base: Schedule) -> Schedule:
+        """The steps' sub-schedule of `base`: at `timesteps`, or evenly spaced."""
+        return base.respaced(self.steps) if self.timesteps is None else base.at(self.timesteps)
 
 
 PRESETS: dict[str, FoppasConfig] = {
@@ -145,6 +178,41 @@ PRESETS: dict[str, FoppasConfig] = {
     "official-beat-n5": FoppasConfig(jump_n_sample=5),
     "no-resample": FoppasConfig(jump_length=1, jump_n_sample=1),
 }
+
+FAST_TIMESTEPS = (50, 300, 450, 650, 900)
+"""The fast sampling's steps (model timesteps), chosen with bench/bench_sampling.py on the
+bundled model: the face steps at all five (the expression branch alone above the gestures'
+start: five face steps keep its blinks, three lose nine in ten), the gestures at the lowest
+two, low enough to leave no wobble after the refining pass (docs/foppas.md, "Fast sampling")."""
+
+SAMPLINGS = ("fast", "quality")
+"""The named samplings: `fast` (the default) and `quality` (the model's own settings, 25 steps
+for the bundled model); `sampling_settings` turns a name, or a preset's, into settings."""
+
+
+def fast_sampling(config: FoppasConfig) -> FoppasConfig:
+    """A model's sampling settings `config` at FAST_TIMESTEPS: the first window from the top;
+    a later window's gestures from the second step (from the gesture prior, continuing the
+    overlap) and its face from the top, the face's steps above the gestures' running the
+    expression branch alone (`face_start`) and deterministic (`face_eta` 0: with stochastic
+    steps this few, the face loses its blinks); no RePaint jumps; the refining pass, if the
+    model has one, at the lowest step. A later window costs two full network calls, three of
+    the expression branch and the refining pass's gesture branch, instead of 18 and the pass."""
+    return replace(config, steps=len(FAST_TIMESTEPS), timesteps=FAST_TIMESTEPS, later_start=1,
+                   face_start=len(FAST_TIMESTEPS) - 1, face_eta=0.0, jump_length=1, jump_n_sample=1,
+                   refine=None if config.refine is None else 0)
+
+
+def sampling_settings(model_sampling: FoppasConfig, name: str) -> FoppasConfig:
+    """The settings a sampling `name` means for a model whose own are `model_sampling`: `fast`,
+    `quality` (the model's) or a preset (PRESETS, the official code's settings)."""
+    if name == "fast":
+        return fast_sampling(model_sampling)
+    if name == "quality":
+        return model_sampling
+    if name in PRESETS:
+        return PRESETS[name]
+    raise DiffshegError(f"unknown sampling {name!r}: use {', '.join(SAMPLINGS + tuple(PRESETS))}")
 
 
 def jump_schedule(start: int, jump_length: int = 1, jump_n_sample: int = 1) -> list[int]:
@@ -206,7 +274,7 @@ class Foppas:
         branch: how many of the gestures, the last, a lower branch makes: their noise comes
         from streams of their own (see `Noise`), and best-of-N compares the others."""
         config.check(clip_len)
-        self.schedule = schedule.respaced(config.steps)
+        self.schedule = config.schedule(schedule)
         self.config = config
         self.clip_len = clip_len
         self.dim = dim
@@ -246,7 +314,12 @@ class Foppas:
             c = draw.shape[-1]
             x[..., :c] = sched.q_sample(draw.astype(np.float32), config.start_index, x[..., :c])
         times = self.times(known is not None)
-        n_calls, call = model_calls(times) + (config.refine is not None), 0
+        face_times = list(range(config.face_index, config.start_index, -1)) if known is not None else []
+        n_calls, call = model_calls(times) + len(face_times) + (config.refine is not None), 0
+        for t_now in face_times:  # the face from higher up: the gestures wait at their start
+            x = self.face_step(eps_fn, x, t_now, known, fixed, randn)
+            on_step(call, n_calls)
+            call += 1
         for t_now, t_next in zip(times, times[1:]):
             if t_next > t_now:
                 beta_index = t_now if config.reference_renoise else t_next
@@ -257,7 +330,7 @@ class Foppas:
                 eps = carry_overlap(sched, x, t_now, eps, known, config.carry, self.gestures)
             if fixed is not None:
                 eps = carry_fixed(sched, x, t_now, eps, fixed, max(config.carry, HOLD_CARRY), self.gestures)
-            x = self.step(x, t_now, eps, randn(*x.shape) if config.eta > 0 or self.branch_eta > 0 else None)
+            x = self.step(x, t_now, eps, randn(*x.shape) if self._steps_draw_noise else None)
             if known is not None:
                 level = sched.noise_level_prev(t_now)
                 noisy_known = float((1 - level ** 2) ** 0.5) * known + level * randn(batch, *known.shape[1:])
@@ -275,6 +348,23 @@ class Foppas:
             on_step(call, n_calls)
         return x if fixed is None else fixed.paint(x, 0.0, x)
 
+    def face_step(self, eps_fn: EpsFn, x: np.ndarray, index: int, known: Optional[np.ndarray],
+                  fixed: Optional[Fixed], randn: Callable[..., np.ndarray]) -> np.ndarray:
+        """One step of the face channels alone from schedule `index` (the expression branch
+        sees only the face, so it runs without the gesture branch); the gestures stay as they
+        are. The known overlap and held values of the face are painted in as in a full step."""
+        g, sched = self.gestures, self.schedule
+        eps = eps_fn(x, index, face_only=True)
+        noise = randn(*x.shape)[..., g:] if self._steps_draw_noise else None  # as a full step draws
+        face, _ = sched.ddim_step(x[..., g:], index, eps[..., g:], self.face_eta, noise)
+        level = sched.noise_level_prev(index)
+        if known is not None:
+            noisy = float((1 - level ** 2) ** 0.5) * known[..., g:] + level * randn(len(x), *known.shape[1:])[..., g:]
+            face = self.paint_overlap(face, noisy, level)
+        if fixed is not None:
+            face = fixed.paint(np.concatenate([x[..., :g], face], axis=-1), level, randn(*x.shape))[..., g:]
+        return np.concatenate([x[..., :g], face], axis=-1).astype(np.float32, copy=False)
+
     @property
     def branch_eta(self) -> float:
         """The eta a lower branch's channels are stepped with (0 without a branch)."""
@@ -282,13 +372,26 @@ class Foppas:
             return 0.0
         return self.config.eta if self.config.branch_eta is None else self.config.branch_eta
 
+    @property
+    def _steps_draw_noise(self) -> bool:
+        """Whether a step draws noise (some channels are stepped stochastically)."""
+        return max(self.config.eta, self.branch_eta, self.face_eta) > 0
+
+    @property
+    def face_eta(self) -> float:
+        """The eta the face's channels are stepped with."""
+        return self.config.eta if self.config.face_eta is None else self.config.face_eta
+
     def step(self, x: np.ndarray, index: int, eps: np.ndarray, noise: Optional[np.ndarray]) -> np.ndarray:
-        """One DDIM step of every channel from schedule `index`, a lower branch's with its own eta."""
+        """One DDIM step of every channel from schedule `index`, a lower branch's and the face's
+        with their own eta."""
         x_next, _ = self.schedule.ddim_step(x, index, eps, self.config.eta, noise)
-        if self.branch and self.branch_eta != self.config.eta:
-            legs = slice(self.upper, self.gestures)
-            x_next[..., legs], _ = self.schedule.ddim_step(x[..., legs], index, eps[..., legs], self.branch_eta,
-                                                           None if noise is None else noise[..., legs])
+        own = [(slice(self.upper, self.gestures), self.branch_eta)] if self.branch else []
+        own += [(slice(self.gestures, None), self.face_eta)] if self.gestures < self.dim else []
+        for channels, eta in own:
+            if eta != self.config.eta:
+                x_next[..., channels], _ = self.schedule.ddim_step(x[..., channels], index, eps[..., channels], eta,
+                                                                   None if noise is None else noise[..., channels])
         return x_next
 
     def paint_overlap(self, x: np.ndarray, known: np.ndarray, level: float) -> np.ndarray:

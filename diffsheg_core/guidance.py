@@ -78,14 +78,30 @@ def skip_guided(out: np.ndarray, scale: float) -> np.ndarray:
 
 def step_eps(net: Network, gesture_dim: int, x: np.ndarray, timesteps: np.ndarray, mel: np.ndarray,
              speech: Optional[np.ndarray], style: np.ndarray, x0_coefs: tuple[np.ndarray, np.ndarray],
-             guidance: Guidance = Guidance()) -> np.ndarray:
-    """Guided noise prediction (B, L, D) for x_t (B, L, D), gesture channels first.
+             guidance: Guidance = Guidance(), face_only: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Guided noise prediction (B, L, D) for x_t (B, L, D), gesture channels first, and the
+    speech features (B, L, A) the branches fused (`gesture_eps` takes them again).
 
     timesteps: (B,) in the 1000-step indexing; x0_coefs: sqrt(1/abar_t), sqrt(1/abar_t - 1)
-    as (B, 1, 1); style: (B, S) one-hot.
+    as (B, 1, 1); style: (B, S) one-hot. face_only: run the expression branch alone (it
+    never sees the gestures); the gesture channels of the prediction are zero.
     """
-    b = x.shape[0]
     gesture, expression = x[..., :gesture_dim], x[..., gesture_dim:]
+    eps_exp, audio = face_eps(net, expression, timesteps, mel, speech, style, guidance)
+    if face_only:
+        return np.concatenate([np.zeros_like(gesture), eps_exp], axis=-1), audio
+    a, c = x0_coefs
+    expression_x0 = (a * expression - c * eps_exp).astype(np.float32)
+    eps_ges = gesture_eps(net, gesture, timesteps, audio, speech, style, expression_x0, guidance)
+    return np.concatenate([eps_ges, eps_exp], axis=-1), audio
+
+
+def face_eps(net: Network, expression: np.ndarray, timesteps: np.ndarray, mel: np.ndarray,
+             speech: Optional[np.ndarray], style: np.ndarray, guidance: Guidance = Guidance()
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """The expression branch's guided noise prediction (B, L, E) and the speech features
+    (B, L, A) both branches fuse (those of the conditioned rows)."""
+    b = expression.shape[0]
     with_null_rows = guidance.scale is not None  # classifier-free guidance: a null-condition row per row
     n = 2 if with_null_rows else 1
     null = np.repeat([True, False], b) if with_null_rows else None
@@ -93,12 +109,18 @@ def step_eps(net: Network, gesture_dim: int, x: np.ndarray, timesteps: np.ndarra
                                     _rows(speech, n), _rows(style, n), null)
     if with_null_rows:
         eps_exp, audio = classifier_free(eps_exp, guidance.scale), audio[b:]
-    a, c = x0_coefs
-    expression_x0 = (a * expression - c * eps_exp).astype(np.float32)
+    return eps_exp, audio
 
+
+def gesture_eps(net: Network, gesture: np.ndarray, timesteps: np.ndarray, audio: np.ndarray,
+                speech: Optional[np.ndarray], style: np.ndarray, expression_x0: np.ndarray,
+                guidance: Guidance = Guidance()) -> np.ndarray:
+    """The gesture branch's guided noise prediction (B, L, G), fed the speech features
+    `audio` and the face's x0 (see `face_eps`)."""
+    b = gesture.shape[0]
     if guidance.skip is not None:   # [conditioned | without self-attention]
         null, attend, mix = None, np.repeat([True, False], b), skip_guided
-    elif with_null_rows:            # [null | conditioned]
+    elif guidance.scale is not None:  # [null | conditioned]
         null, attend, mix = np.repeat([True, False], b), None, classifier_free
     else:
         null, attend, mix = None, None, None
@@ -118,4 +140,4 @@ def step_eps(net: Network, gesture_dim: int, x: np.ndarray, timesteps: np.ndarra
     if guidance.style is not None:
         conditioned = eps_all[b:2 * b] if mix is classifier_free else eps_all[:b]
         eps_ges = eps_ges + np.float32(guidance.style - 1.0) * (conditioned - eps_all[-b:])
-    return np.concatenate([eps_ges, eps_exp], axis=-1)
+    return eps_ges

@@ -10,11 +10,12 @@ or empty; an empty cell takes the default from the command line, `defaults`):
     armature      armature object name (default: the scene's only armature)
     face          face mesh object names, separated by ';' (default: meshes with shape keys)
     preset        rig preset name, 'auto', or a preset .json file
-    style, style_at, emotion, emotion_at, seed, face_seed, steps, overlap, candidates,
+    style, style_at, emotion, emotion_at, seed, face_seed, sampling, steps, overlap, candidates,
     guidance, skip_guidance (or gesture_energy), style_guidance, upper_body_only (1/0)
                   the generation settings, spelt as on the command line (`--style calm=0.7,
                   animated=0.3`, `--style-at 0=calm,12.5=animated`, `--emotion sad=0.6`,
-                  `--emotion-at 0=happy,12.5=sad`) and checked by
+                  `--emotion-at 0=happy,12.5=sad`, `--sampling quality`: fast, the default, or
+                  quality, the model's own 25 steps, or an official preset) and checked by
                   diffsheg_core.settings as the command line's are, so a row means what the
                   command line means
     start_frame, max_error, max_face_error, every_frame
@@ -72,8 +73,8 @@ NEEDS_CHARACTER = frozenset({"blend", "fbx_unreal", "fbx_unity", "glb", "mp4"})
 """Outputs that key the motion onto a character, so need its .blend."""
 
 CHARACTER = ("blend", "armature", "face", "preset")
-GENERATION = ("style", "style_at", "emotion", "emotion_at", "seed", "face_seed", "steps", "overlap",
-              "candidates", "guidance", "skip_guidance", "style_guidance", "upper_body_only")
+GENERATION = ("style", "style_at", "emotion", "emotion_at", "seed", "face_seed", "sampling", "steps",
+              "overlap", "candidates", "guidance", "skip_guidance", "style_guidance", "upper_body_only")
 KEYING = ("start_frame", "max_error", "max_face_error", "every_frame")
 COLUMNS = ("id", "audio") + CHARACTER + GENERATION + KEYING + ("outputs",)
 ALIASES = {"gesture_energy": "skip_guidance"}
@@ -452,11 +453,24 @@ def _parse(name: str, value, folder: Path):
         return _check_style_at(_argument(parse_style_at, value) if isinstance(value, str) else value)
     if name == "emotion":
         return check_emotion(value)
+    if name == "sampling":
+        return _sampling(value)
     if name == "emotion_at":
         return _check_emotion_at(_argument(parse_emotion_at, value) if isinstance(value, str) else value)
     if name in _NUMBERS:
         return _number(name, value)
     raise DiffshegError(f"unknown column {name}")
+
+
+def _sampling(value) -> str:
+    """A sampling's name (`--sampling`): fast, quality or an official preset, in any case."""
+    from .foppas import PRESETS, SAMPLINGS
+
+    given = _text("sampling", value)
+    if given.lower() not in SAMPLINGS + tuple(PRESETS):
+        raise DiffshegError(f"unknown sampling {given!r}: use fast (the default), quality (the model's own "
+                            f"sampling, 25 steps) or an official preset ({', '.join(PRESETS)})")
+    return given.lower()
 
 
 def _text(name: str, value) -> str:

@@ -24,8 +24,8 @@ from .checkpoints import ModelBundle, load_model
 from .diffusion import Schedule
 from .emotion import apply_emotion, emotion_track, remove_emotion, take_emotion
 from .errors import DiffshegError
-from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, inpaint_range, with_overrides
-from .guidance import Guidance, step_eps
+from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, inpaint_range, sampling_settings, with_overrides
+from .guidance import Guidance, face_eps, gesture_eps, step_eps
 from .lower_body import JOINTS as LOWER_JOINTS, add_lower_body, legs_source, lower_rotations, plant, upper_body
 from .motion import Motion
 from .phonetic import (PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel, recogniser_frames,
@@ -283,10 +283,11 @@ class Plan:
 
 def make_plan(bundle: ModelBundle, s: GenerateSettings, sampling: Optional[FoppasConfig] = None,
               n_frames: int = 0) -> Plan:
-    """Resolve `s` against `bundle`: the sampling settings `s` asks for over the model's (or
-    `sampling`), its guidance and style (a track of `n_frames` frames for `s.style_at`). Bad
+    """Resolve `s` against `bundle`: the sampling settings `s` asks for (its named sampling of
+    the model's, or `sampling`) with its overrides, its guidance and style (a track of `n_frames` frames for `s.style_at`). Bad
     settings raise DiffshegError."""
-    config = with_overrides(sampling or bundle.sampling, steps=s.steps, overlap=s.overlap, candidates=s.candidates)
+    config = with_overrides(sampling or sampling_settings(bundle.sampling, s.sampling), steps=s.steps,
+                            overlap=s.overlap, candidates=s.candidates)
     scale = resolve_guidance(bundle, s.guidance)
     guidance = Guidance(scale, resolve_skip_guidance(bundle, s.skip_guidance),
                         resolve_style_guidance(bundle, s.style_guidance))
@@ -329,13 +330,24 @@ def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas, style: Op
         mel = cond[..., : cfg.mel_dim]
         speech = cond[..., cfg.mel_dim: end] if cfg.has_speech_input else None
         window_style = style if style is not None else cond[:, :, end:].mean(axis=1)
+        fused: dict[int, np.ndarray] = {}  # the window's speech features at a step, (1, L, A)
+        g = cfg.gesture_dim
 
-        def eps_fn(x: np.ndarray, index: int, refine: bool = False) -> np.ndarray:
+        def eps_fn(x: np.ndarray, index: int, refine: bool = False, face_only: bool = False) -> np.ndarray:
             rows = len(x)  # best-of-N: one window, several candidates
             idx = np.full(rows, index)
-            return step_eps(network, cfg.gesture_dim, x, sched.model_timesteps(idx), _repeat(mel, rows),
-                            _repeat(speech, rows), _repeat(window_style, rows), sched.x0_coefs(idx, x),
-                            refining if refine else guidance)
+            timesteps, speech_rows, style_rows = sched.model_timesteps(idx), _repeat(speech, rows), \
+                _repeat(window_style, rows)
+            if refine:  # the face is final: it is the gestures' face x0, and its branch need not run
+                if index not in fused:
+                    fused[index] = face_eps(network, x[:1, :, g:], timesteps[:1], mel, speech, window_style)[1]
+                eps_ges = gesture_eps(network, x[..., :g], timesteps, _repeat(fused[index], rows), speech_rows,
+                                      style_rows, x[..., g:], refining)
+                return np.concatenate([eps_ges, np.zeros_like(x[..., g:])], axis=-1)
+            eps, audio = step_eps(network, g, x, timesteps, _repeat(mel, rows), speech_rows, style_rows,
+                                  sched.x0_coefs(idx, x), guidance, face_only)
+            fused[index] = audio[:1]
+            return eps
 
         return eps_fn
 
@@ -343,7 +355,7 @@ def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas, style: Op
 
 
 def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
-             settings: Optional[GenerateSettings] = None, sampling: Optional[FoppasConfig] = None,
+             settings: Optional[GenerateSettings] = None, sampling: Union[str, FoppasConfig, None] = None,
              hubert_path: Optional[str] = None, hubert_quirk: bool = False,
              pins: tuple["Pin", ...] = (), progress: Optional[ProgressCallback] = None,
              cancel: Optional[threading.Event] = None, **options) -> Motion:
@@ -359,8 +371,10 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     stochastic body): the same face for every seed, other gestures. None: `seed` drives both.
     guidance / skip_guidance: classifier-free and gesture skip-guidance scales (None: the
     model's defaults; 1 and 0 turn them off).
-    steps / overlap / candidates override the FOPPAS settings `sampling` (default: the
-    model's). candidates: every window after the first is sampled this many times in
+    sampling (a setting): 'fast' (default, five steps a window) or 'quality' (the model's own
+    settings, 25 steps for the bundled model), or an official preset; the `sampling` argument,
+    a FoppasConfig, replaces it outright (research). steps / overlap / candidates override
+    what either gives. candidates: every window after the first is sampled this many times in
     one batch and the one that best continues the motion is kept (`foppas.seam_scores`).
     backend: 'auto' (onnx where the model has its graphs and no GPU is asked for or found),
     'onnx' (onnxruntime, CPU) or 'torch'; device: 'auto', 'cpu' or 'cuda' (torch).
@@ -371,6 +385,8 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     progress: called after every diffusion step; cancel: checked before every step.
     The result has one frame per 1/fps s of audio (fps of the model, 15 for BEAT).
     """
+    if isinstance(sampling, str):  # a named sampling is a setting
+        sampling, options = None, {**options, "sampling": sampling}
     s = replace(settings or GenerateSettings(), **options)
     bundle = s.model if isinstance(s.model, ModelBundle) else load_model(s.model)
     network = open_network(bundle, s.backend, s.device, s.precision, s.threads)
@@ -434,7 +450,8 @@ def generation_meta(bundle: ModelBundle, s: GenerateSettings, plan: Plan, networ
         "emotion": s.emotion or {}, "emotion_at": [[t, spec] for t, spec in s.emotion_at or ()],
         "guidance": plan.guidance_scale,
         "skip_guidance": plan.guidance.skip,
-        "steps": config.steps, "overlap": config.overlap, "candidates": config.candidates,
+        "sampling": s.sampling, "steps": config.steps,
+        "timesteps": None if config.timesteps is None else list(config.timesteps), "overlap": config.overlap, "candidates": config.candidates,
         "prior_start": uses_prior(bundle, config), "carry": config.carry,
         "refine": config.refine, "refine_skip": config.refine_skip if config.refine is not None else None,
         "clip_len": bundle.config.clip_len, "backend": network.name,

@@ -118,6 +118,21 @@ def test_every_generation_option_of_the_panel_is_a_batch_option(scene_blend, tmp
     assert "Traceback" not in bad.stderr
 
 
+def test_the_25_step_sampling_stays_selectable_as_sampling_quality(scene_blend, tmp_path):
+    """Issue 39, item 5: --sampling quality reaches generation (the model's own 25 steps), the
+    default is fast; the report (the saved .blend's Text, --report) says which."""
+    speech = cut_speech(tmp_path, seconds=1.0)
+    for option, said in (([], "sampling: fast, 5 steps"), (["--sampling", "quality"], "sampling: quality, 25 steps")):
+        report = tmp_path / f"{said[10:14]}.txt"
+        proc = _batch("--blend", str(scene_blend), "--audio", str(speech), "--preset", "beat", "--device", "cpu",
+                      *option, "--no-render", "--report", str(report), cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        assert said in report.read_text(encoding="utf-8").splitlines(), report.read_text(encoding="utf-8")
+    bad = _batch("--blend", str(scene_blend), "--audio", str(speech), "--sampling", "slow", "--no-render",
+                 cwd=tmp_path)
+    assert bad.returncode == 2 and "--sampling: invalid choice: 'slow'" in bad.stderr and "quality" in bad.stderr
+
+
 def test_the_bundled_model_is_an_input_of_a_batch(scene_blend, tmp_path):
     import hashlib
 

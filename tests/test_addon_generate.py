@@ -288,6 +288,43 @@ def test_panel_options_are_the_models_defaults_until_set(speech):
     assert motion.meta["skip_guidance"] == 0.25 and motion.meta["overlap"] == 6 and motion.meta["steps"] == STEPS
 
 
+def test_the_panels_sampling_is_fast_unless_quality_is_chosen(speech):
+    """Issue 39, item 5: the Sampling sub-panel's Sampling (Fast, the default, or Quality)
+    is GenerateSettings.sampling; the greyed-out Steps shows the chosen sampling's own count
+    until Set steps is ticked, and a ticked count stays whatever the sampling."""
+    import json
+
+    from blender_addon.features.generate import generate_settings
+    from blender_addon.ui.properties import DIFFSHEG_PG_settings, SAMPLING_STEPS
+    from diffsheg_core.checkpoints import _stored_metadata
+    from diffsheg_core.foppas import FAST_TIMESTEPS
+
+    # the numpy-free counts the panel shows are the core's
+    assert SAMPLING_STEPS == {"FAST": len(FAST_TIMESTEPS),
+                              "QUALITY": json.loads(_stored_metadata(None)["sampling"])["steps"]}
+    settings = reset_scene().diffsheg
+    items = DIFFSHEG_PG_settings.bl_rna.properties["sampling"].enum_items
+    assert [(i.identifier, i.name) for i in items] == [("FAST", "Fast"), ("QUALITY", "Quality")]
+    assert "4.5 times faster" in items["FAST"].description and "25 steps" in items["QUALITY"].description
+    assert (settings.sampling, settings.steps, settings.set_steps) == ("FAST", 5, False)
+    assert (generate_settings(settings).sampling, generate_settings(settings).steps) == ("fast", None)
+    settings.sampling = "QUALITY"
+    assert (generate_settings(settings).sampling, generate_settings(settings).steps) == ("quality", None)
+    assert settings.steps == 25  # what applies, greyed out
+    settings.set_steps, settings.steps = True, 7
+    settings.sampling = "FAST"
+    assert settings.steps == 7 and (generate_settings(settings).sampling, generate_settings(settings).steps) == (
+        "fast", 7)
+
+    short = cut_speech(speech.parent, seconds=1.0, name="short.wav")
+    settings.set_steps, settings.device = False, "CPU"
+    for choice, steps in (("QUALITY", 25), ("FAST", 5)):
+        settings.sampling = choice
+        motion = diffsheg_core.generate(str(short), settings=generate_settings(settings))
+        assert (motion.meta["sampling"], motion.meta["steps"]) == (choice.lower(), steps)
+    assert motion.meta["timesteps"] == list(FAST_TIMESTEPS)
+
+
 def test_own_face_seed_keys_the_same_face_for_a_new_seed(speech):
     scene = reset_scene()
     face = append_face()

@@ -84,7 +84,7 @@ def test_the_main_panel_and_its_collapsed_sub_panels():
     for cls in (DIFFSHEG_PT_sampling, DIFFSHEG_PT_keys):
         assert cls.bl_parent_id == "DIFFSHEG_PT_generate" and "DEFAULT_CLOSED" in cls.bl_options
     sampling = {e[1] for e in draw(DIFFSHEG_PT_sampling) if e[0] == "prop"}
-    assert sampling == {"model_path", "seed", "set_steps", "steps", "candidates", "set_overlap", "overlap",
+    assert sampling == {"model_path", "seed", "sampling", "set_steps", "steps", "candidates", "set_overlap", "overlap",
                         "set_guidance", "guidance", "set_gesture_energy", "gesture_energy", "style_strength",
                         "use_face_seed", "face_seed", "device"}
     keys = {e[1] for e in draw(DIFFSHEG_PT_keys) if e[0] == "prop"}
@@ -118,7 +118,7 @@ def test_every_label_fits_the_default_sidebar_width():
                 assert len(shown) <= CHECKBOX, (name, shown)
             elif split:
                 assert len(shown) <= LABEL_COLUMN, (name, shown)
-    for name in ("range_mode", "range_start", "range_end", "start_from_pose", "set_steps", "gesture_energy",
+    for name in ("range_mode", "range_start", "range_end", "start_from_pose", "sampling", "set_steps", "gesture_energy",
                  "style_strength", "steps", "device", "max_error", "max_face_error"):
         description = rna[name].description
         assert description and description[0].isupper() and not description.endswith("."), name

@@ -256,8 +256,11 @@ def test_refine_window_replaces_the_gestures_by_the_x0_at_its_step_and_paints_th
 
 
 def test_the_refining_pass_steers_with_the_skip_scale_times_refine_skip(model):
-    """eps_fn(..., refine=True) is the step with skip guidance s * refine_skip; without
-    skip guidance it is the plain step."""
+    """eps_fn(..., refine=True) is the gesture branch with skip guidance s * refine_skip, fed
+    the window's face as the face's x0 (it is final: the expression branch does not run
+    again); without skip guidance it is the plain gesture branch. The face's part is zero."""
+    from diffsheg_core.guidance import face_eps, gesture_eps
+
     cfg = model.config
     sampler = Foppas(Schedule.linear(), FoppasConfig(refine=1, refine_skip=3.5), cfg.clip_len, cfg.dim)
     network = open_network(model, backend="onnx", device="cpu")
@@ -265,13 +268,18 @@ def test_the_refining_pass_steers_with_the_skip_scale_times_refine_skip(model):
     rng = np.random.default_rng(0)
     cond = rng.random((1, cfg.clip_len, cfg.mel_dim), dtype=np.float32)
     x = rng.standard_normal((1, cfg.clip_len, cfg.dim)).astype(np.float32)
+    g, t = cfg.gesture_dim, sampler.schedule.model_timesteps(np.array([1]))
+    audio = face_eps(network, x[..., g:], t, cond, None, style)[1]
 
     def eps(guidance, refine):
         return make_eps_fn_factory(model, network, sampler, style, guidance)(cond)(x, 1, refine=refine)
 
-    assert np.array_equal(eps(Guidance(skip=0.1), True), eps(Guidance(skip=0.1 * 3.5), False))
-    assert not np.allclose(eps(Guidance(skip=0.1), True), eps(Guidance(skip=0.1), False))
-    assert np.array_equal(eps(Guidance(), True), eps(Guidance(), False))
+    for given, steered in ((Guidance(skip=0.1), Guidance(skip=0.1 * 3.5)), (Guidance(), Guidance())):
+        refined = eps(given, True)
+        assert not refined[..., g:].any()
+        np.testing.assert_allclose(refined[..., :g], gesture_eps(network, x[..., :g], t, audio, None, style,
+                                                                 x[..., g:], steered), atol=1e-6)
+    assert not np.allclose(eps(Guidance(skip=0.1), True)[..., :g], eps(Guidance(skip=0.1), False)[..., :g])
 
 
 def test_refine_follows_the_number_of_steps():
@@ -584,3 +592,94 @@ def test_best_of_n_is_recorded_changes_only_later_windows_and_keeps_a_fixed_face
     for bad in (0, 17, 2.5):
         with pytest.raises(DiffshegError, match="candidates must be a whole number from 1 to 16"):
             generate(speech, model=model, steps=3, candidates=bad)
+
+
+# ---------------------------------------------------------------- the fast sampling
+
+def test_the_fast_sampling_steps_at_its_own_timesteps_and_keeps_the_models_settings():
+    """`fast_sampling` of a model's settings: five steps at FAST_TIMESTEPS (the schedule's
+    model timesteps), later windows' gestures from the second step and the face from the top
+    (deterministic), no RePaint jumps, the refining pass at the lowest step; the rest (carry,
+    the prior, eta, refine_skip) as the model has them. --steps N gives N even steps."""
+    from diffsheg_core.foppas import FAST_TIMESTEPS, fast_sampling, sampling_settings
+
+    model = replace(PRESETS["no-resample"], eta=1.0, carry=12, refine=1, refine_skip=3.5)
+    fast = fast_sampling(model)
+    assert fast.timesteps == FAST_TIMESTEPS and fast.steps == len(FAST_TIMESTEPS)
+    assert (fast.later_start, fast.face_start, fast.face_eta, fast.refine) == (1, 4, 0.0, 0)
+    assert (fast.eta, fast.carry, fast.refine_skip, fast.prior_start) == (1.0, 12, 3.5, True)
+    assert list(Foppas(Schedule.linear(), fast, 34, 4).schedule.timesteps) == list(FAST_TIMESTEPS)
+    assert fast_sampling(replace(model, refine=None)).refine is None
+    assert sampling_settings(model, "fast") == fast and sampling_settings(model, "quality") == model
+    assert sampling_settings(model, "official-show") == PRESETS["official-show"]
+    with pytest.raises(DiffshegError, match="unknown sampling 'slow': use fast, quality, official-beat"):
+        sampling_settings(model, "slow")
+    six = fast.with_steps(6)
+    assert six.timesteps is None and six.steps == 6 and six.later_start == 1 and six.face_start == 5
+    assert fast.with_steps(5) == fast
+    # the settings survive a model file's JSON (a list comes back as the tuple)
+    assert FoppasConfig(**json.loads(json.dumps(fast.__dict__))) == fast
+
+
+@pytest.mark.parametrize("setting,match", [
+    (dict(timesteps=(50, 300, 450)), "timesteps must be 5 whole numbers"),
+    (dict(timesteps=(50, 300, 300, 650, 900)), "distinct, ascending"),
+    (dict(timesteps=(50, 300, 450, 650, 1000)), "from 0 to 999"),
+    (dict(timesteps=(50, 300, 450, 650, 900.0)), "whole numbers"),
+    (dict(face_start=0), "face_start must be None"),
+    (dict(face_start=5), "face_start must be None"),
+    (dict(face_eta=1.5), "face_eta must be None"),
+])
+def test_bad_fast_settings_are_refused(setting, match):
+    from diffsheg_core.foppas import fast_sampling
+
+    config = replace(fast_sampling(PRESETS["no-resample"]), **setting)
+    with pytest.raises(ValueError, match=match):
+        config.check(34)
+
+
+def test_a_later_windows_face_steps_first_alone_and_the_gestures_wait_at_their_start():
+    """Above the gestures' start, a later window runs the expression branch alone
+    (`face_only`) at the higher steps; the gesture channels it is given stay as they were
+    drawn and are not stepped until the gestures' start; then every step is a full one."""
+    from diffsheg_core.foppas import fast_sampling
+
+    g, d = 3, 5
+    config = replace(fast_sampling(PRESETS["no-resample"]), refine=None, eta=1.0)
+    sampler = Foppas(Schedule.linear(), config, 34, d, gestures=g)
+    calls, seen = [], []
+
+    def eps_fn(x, index, refine=False, face_only=False):
+        calls.append((index, face_only))
+        seen.append(x[..., :g].copy())
+        return np.full_like(x, 0.1)
+
+    known = np.zeros((1, 4, d), np.float32)
+    sampler.sample_window(eps_fn, 34, known, sampler.noise(0))
+    assert calls == [(4, True), (3, True), (2, True), (1, False), (0, False)]
+    assert np.array_equal(seen[0], seen[1]) and np.array_equal(seen[1], seen[2]) and np.array_equal(seen[2], seen[3])
+    calls.clear()
+    sampler.sample_window(eps_fn, 34, None, sampler.noise(0))  # the first window: every step full
+    assert calls == [(i, False) for i in range(4, -1, -1)]
+
+
+def test_the_face_steps_alone_are_the_steps_a_joint_sampler_takes():
+    """The expression branch never sees the gestures, so a face stepped alone above the
+    gestures' start is the face a joint step would give: with an eps_fn whose face noise
+    depends only on the face, a window's face with face_start is that of the same settings
+    with the gestures starting at the top (to float rounding), for a deterministic face."""
+    g, d = 3, 5
+    base = replace(PRESETS["no-resample"], steps=5, timesteps=(50, 300, 450, 650, 900), later_start=4, eta=0.0,
+                   prior_start=False)
+    face_first = replace(base, later_start=1, face_start=4)
+
+    def eps_fn(x, index, refine=False, face_only=False):
+        out = np.zeros_like(x)
+        out[..., g:] = np.tanh(x[..., g:]) * (1 + index) / 5
+        out[..., :g] = 0.0 if face_only else np.sin(x[..., :g])
+        return out
+
+    known = np.ones((1, 4, d), np.float32)
+    faces = [Foppas(Schedule.linear(), c, 34, d, gestures=g).sample_window(eps_fn, 34, known, Foppas(
+        Schedule.linear(), c, 34, d, gestures=g).noise(3))[..., g:] for c in (base, face_first)]
+    np.testing.assert_allclose(faces[0], faces[1], atol=1e-5)

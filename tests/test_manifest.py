@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from diffsheg_core.errors import DiffshegError
+from diffsheg_core.foppas import PRESETS as FOPPAS_PRESETS
 from diffsheg_core.ledger import Ledger, line_key, stage_name, staged_path
 from diffsheg_core.manifest import OUTPUTS, Line, ManifestError, read_manifest, with_settings
 from diffsheg_core.settings import GenerateSettings
@@ -257,6 +258,44 @@ def test_emotion_columns_are_read_and_checked_as_the_command_line_does(project):
                                                                            (2.0, {"angry": 0.5}))
     assert b.settings.emotion == {"happy": 1.0}  # the command line's default
     assert line_key(a) != line_key(replace(a, settings=replace(a.settings, emotion={"sad": 0.7})))
+
+
+def test_the_sampling_column_is_read_and_checked_as_the_command_line_does(project):
+    """Issue 39, item 5: a row's `sampling` (fast, quality or an official preset) over the
+    command line's --sampling; a bad one is named with its row and the choices, by
+    batch_render.py --check too."""
+    import subprocess
+    import sys
+
+    manifest = write(project / "lines.csv", "id,audio,sampling,outputs\n"
+                     f"a,{SPEECH},quality,npz\n"
+                     f"b,{SPEECH},,npz\n"
+                     f"c,{SPEECH}, Fast ,npz\n"
+                     f"d,{SPEECH},no-resample,npz\n")
+    a, b, c, d = read_manifest(manifest, {}, PRESETS, STYLES)
+    assert [line.settings.sampling for line in (a, b, c, d)] == ["quality", "fast", "fast", "no-resample"]
+    assert read_manifest(manifest, {"sampling": "quality"}, PRESETS, STYLES)[1].settings.sampling == "quality"
+    assert line_key(a) != line_key(b)  # a line done fast is done again in quality
+    jsonl = write(project / "lines.jsonl", json.dumps({"id": "a", "audio": str(SPEECH), "sampling": "quality",
+                                                       "outputs": "npz"}) + "\n")
+    assert read_manifest(jsonl, {}, PRESETS, STYLES)[0].settings == GenerateSettings(sampling="quality")
+
+    bad = write(project / "bad.csv", manifest.read_text() + f"e,{SPEECH},slow,npz\nf,{SPEECH},25,npz\n")
+    with pytest.raises(ManifestError) as caught:
+        read_manifest(bad, {}, PRESETS, STYLES)
+    assert caught.value.problems == [
+        f"row {row}, column sampling: unknown sampling '{value}': use fast (the default), quality (the model's "
+        f"own sampling, 25 steps) or an official preset ({', '.join(FOPPAS_PRESETS)})"
+        for row, value in ((6, "slow"), (7, "25"))]
+    with pytest.raises(ManifestError, match="defaults \\(command line\\), sampling: unknown sampling 'slow'"):
+        read_manifest(manifest, {"sampling": "slow"}, PRESETS, STYLES)
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[1] / "batch_render.py"),
+                           "--manifest", str(bad), "--check", "--output", str(project / "out")],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert "row 6, column sampling: unknown sampling 'slow'" in proc.stderr
+    assert "row 7, column sampling: unknown sampling '25'" in proc.stderr
+    assert "row 2," not in proc.stderr and not (project / "out").exists()
 
 
 def test_upper_body_only_is_a_flag_column(project):

@@ -51,7 +51,7 @@ def golden_args(io: dict, rows: slice) -> tuple:
 def sample_golden(network, cfg: ModelConfig, io: dict, guidance) -> np.ndarray:
     """The sampling path, one window (batch row) per call as the sampler runs it."""
     return np.concatenate([
-        step_eps(network, cfg.gesture_dim, *golden_args(io, slice(row, row + 1)), Guidance(guidance))
+        step_eps(network, cfg.gesture_dim, *golden_args(io, slice(row, row + 1)), Guidance(guidance))[0]
         for row in range(len(io["x_t"]))])
 
 
@@ -93,7 +93,7 @@ def test_guided_step_eps_keeps_the_rows_of_a_batch_apart(golden_dir):
     bundle = golden_bundle(golden_dir, "show_small", SHOW)
     io = dict(np.load(golden_dir / "show_small_io.npz"))
     out = step_eps(TorchNetwork(bundle, "cpu", "fp32"), bundle.config.gesture_dim,
-                   *golden_args(io, slice(None)), Guidance(1.25))
+                   *golden_args(io, slice(None)), Guidance(1.25))[0]
     assert np.abs(out - io["eps_out"]).max() < 1e-5
 
 
@@ -173,8 +173,8 @@ def test_skip_guidance_steers_gestures_away_from_the_branch_without_self_attenti
     for row in range(2):  # one window per call, as the sampler runs it
         r = slice(row, row + 1)
         args = (x[r], timesteps[r], mel[r], None, style[r], (coefs[0][r], coefs[1][r]))
-        guided = step_eps(network, g, *args, Guidance(2.0))
-        skipped = step_eps(network, g, *args, Guidance(2.0, skip=0.5))
+        guided = step_eps(network, g, *args, Guidance(2.0))[0]
+        skipped = step_eps(network, g, *args, Guidance(2.0, skip=0.5))[0]
         # the skip pass: [conditioned | without self-attention], no null-conditioned row
         branch_inputs = seen[-1]  # gesture, timesteps, audio, speech, expression x0, style, null, attend
         assert branch_inputs[6] is None  # no classifier-free pass in the gesture branch
@@ -233,9 +233,9 @@ def test_onnx_and_torch_backends_agree_on_every_guidance_mode(guided_bundle, mod
         idx = np.array([index])
         args = (cfg.gesture_dim, x, sched.model_timesteps(idx), mel, speech, style, sched.x0_coefs(idx, x),
                 guidance)
-        a, b = step_eps(onnx_net, *args), step_eps(torch_net, *args)
+        a, b = step_eps(onnx_net, *args)[0], step_eps(torch_net, *args)[0]
         assert a.shape == b.shape == (1, length, cfg.dim) and a.dtype == b.dtype == np.float32
         assert np.isfinite(a).all()
         assert np.abs(a - b).max() <= 1e-4, (mode, length, index, float(np.abs(a - b).max()))  # measured 2e-6
         if mode != "none":  # the guided passes do change the prediction (0.1 - 0.8 here)
-            assert np.abs(b - step_eps(torch_net, *args[:-1], Guidance())).max() > 0.05
+            assert np.abs(b - step_eps(torch_net, *args[:-1], Guidance())[0]).max() > 0.05

@@ -252,8 +252,8 @@ def test_guidance_one_is_the_conditioned_pass_alone(speech):
     mel = rng.random((1, cfg.clip_len, cfg.mel_dim), dtype=np.float32)
     coefs = (np.full((1, 1, 1), 2.0, np.float32), np.full((1, 1, 1), 1.5, np.float32))
     args = (net, cfg.gesture_dim, x, np.array([500]), mel, None, np.ones((1, 1), np.float32), coefs)
-    np.testing.assert_allclose(step_eps(*args, Guidance(1.0)), step_eps(*args, Guidance()), atol=1e-5)
-    assert not np.allclose(step_eps(*args, Guidance(2.0)), step_eps(*args, Guidance()), atol=1e-3)
+    np.testing.assert_allclose(step_eps(*args, Guidance(1.0))[0], step_eps(*args, Guidance())[0], atol=1e-5)
+    assert not np.allclose(step_eps(*args, Guidance(2.0))[0], step_eps(*args, Guidance())[0], atol=1e-3)
     motion = generate(speech, model=bundle, steps=3, device="cpu")
     assert motion.meta["guidance"] == 1.0 and np.isfinite(motion.face).all()
 
@@ -275,7 +275,7 @@ def test_later_windows_start_from_the_models_gesture_prior(speech, prior_model, 
     window is the same as without one, the rest differ; the prior is saved with the model
     and the CLI's --no-prior turns it off."""
     bundle = prior_model
-    with_prior = generate(speech, model=bundle, steps=3, device="cpu")
+    with_prior = generate(speech, model=bundle, steps=3, device="cpu", sampling="quality")
     without = generate(speech, model=bundle, steps=3, device="cpu",
                        sampling=replace(bundle.sampling, prior_start=False))
     assert with_prior.meta["prior_start"] and not without.meta["prior_start"]
@@ -286,11 +286,12 @@ def test_later_windows_start_from_the_models_gesture_prior(speech, prior_model, 
     path = save_checkpoint(bundle, tmp_path / "with_prior.safetensors")
     loaded = load_model(path)
     assert np.array_equal(loaded.prior.autocov, bundle.prior.autocov)
-    again = generate(speech, model=loaded, steps=3, device="cpu")
+    again = generate(speech, model=loaded, steps=3, device="cpu", sampling="quality")
     assert np.array_equal(again.rotations, with_prior.rotations)
     out = tmp_path / "off.npz"
     result = subprocess.run([sys.executable, "-m", "diffsheg_core", "generate", str(speech), "-o", str(out),
-                             "--checkpoint", str(path), "--steps", "3", "--device", "cpu", "--no-prior"],
+                             "--checkpoint", str(path), "--steps", "3", "--device", "cpu", "--no-prior",
+                             "--sampling", "quality"],
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
     assert Motion.load_npz(out).meta["prior_start"] is False
@@ -306,7 +307,7 @@ def test_the_refining_pass_is_kept_in_the_model_file_and_changes_the_gestures_on
     motion's meta; it changes the gestures, not the face, and the CLI's --no-refine turns
     it off."""
     bundle = replace(model, sampling=replace(model.sampling, refine=1, refine_skip=2.0), skip_guidance=0.2)
-    refined = generate(speech, model=bundle, device="cpu")
+    refined = generate(speech, model=bundle, device="cpu", sampling="quality")
     plain = generate(speech, model=bundle, device="cpu", sampling=replace(bundle.sampling, refine=None))
     assert (refined.meta["refine"], refined.meta["refine_skip"]) == (1, 2.0)
     assert (plain.meta["refine"], plain.meta["refine_skip"]) == (None, None)
@@ -318,7 +319,7 @@ def test_the_refining_pass_is_kept_in_the_model_file_and_changes_the_gestures_on
     for flags, expected in (([], 1), (["--no-refine"], None)):
         out = tmp_path / f"cli{len(flags)}.npz"
         result = subprocess.run([sys.executable, "-m", "diffsheg_core", "generate", str(speech), "-o", str(out),
-                                 "--checkpoint", str(path), "--device", "cpu", *flags],
+                                 "--checkpoint", str(path), "--device", "cpu", "--sampling", "quality", *flags],
                                 capture_output=True, text=True, timeout=300)
         assert result.returncode == 0, result.stderr
         assert Motion.load_npz(out).meta["refine"] == expected

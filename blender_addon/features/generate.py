@@ -183,14 +183,15 @@ def preset_of(settings) -> preset.Preset | None:
 
 def generate_settings(settings):
     """The panel's generation options as one `GenerateSettings` (checked there); a switched-off
-    "Set ..." toggle means the model's default, emotion Neutral none (`prepare` adds the
-    timeline markers' changes)."""
+    "Set ..." toggle means the sampling's or the model's default, emotion Neutral none
+    (`prepare` adds the timeline markers' changes)."""
     from diffsheg_core.settings import GenerateSettings
 
     return GenerateSettings(
         model=bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None,
         seed=settings.seed,
         face_seed=settings.face_seed if settings.use_face_seed else None,
+        sampling=settings.sampling.lower(),  # FAST, QUALITY: fast, quality
         steps=settings.steps if settings.set_steps else None,
         candidates=settings.candidates,
         overlap=settings.overlap if settings.set_overlap else None,

@@ -37,10 +37,10 @@ def model_label(meta: dict) -> str:
 
 
 def report_details(result, seconds: float, model: str, meta: dict, extra: list[str] = ()) -> str:
-    """The report's Text: its line, the model, the style and emotion the take was made with
-    (`meta`: what made it, a range's own record), the Actions, the sound strip, the preset's
-    notes and the warnings (`extra`: the caller's own, after keying's)."""
-    lines = [report_line(result, seconds, extra), "", f"model: {model}",
+    """The report's Text: its line, the model, the sampling, the style and emotion the take was
+    made with (`meta`: what made it, a range's own record), the Actions, the sound strip, the
+    preset's notes and the warnings (`extra`: the caller's own, after keying's)."""
+    lines = [report_line(result, seconds, extra), "", f"model: {model}", *sampling_lines(meta),
              f"style: {changes_text(meta.get('style_weights') or {}, meta.get('style_at'), 'default')}",
              f"emotion: {changes_text(meta.get('emotion') or {}, meta.get('emotion_at'), 'neutral')}",
              f"actions: {', '.join(result.actions)}",
@@ -49,6 +49,14 @@ def report_details(result, seconds: float, model: str, meta: dict, extra: list[s
     if warnings:
         lines += ["", "warnings:"] + [f"- {w}" for w in warnings]
     return "\n".join(lines) + "\n"
+
+
+def sampling_lines(meta: dict) -> list[str]:
+    """'sampling: quality, 25 steps' where `meta` records the sampling (Live's takes do not)."""
+    if not meta.get("sampling"):
+        return []
+    steps = meta.get("steps")
+    return [f"sampling: {meta['sampling']}" + (f", {steps} steps" if steps else "")]
 
 
 def changes_text(weights: dict, changes: list | None, none: str) -> str:

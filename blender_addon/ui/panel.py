@@ -199,6 +199,7 @@ class DIFFSHEG_PT_sampling(_Panel, bpy.types.Panel):
         row = _labelled(col, "Seed")
         row.prop(s, "seed", text="")
         row.operator("diffsheg.new_seed", text="", icon="FILE_REFRESH")
+        col.row().prop(s, "sampling", expand=True)
         _toggled(col, s, "set_steps", "steps", "Steps")
         col.prop(s, "candidates")
         _toggled(col, s, "set_overlap", "overlap", "Overlap")

@@ -30,7 +30,7 @@ import numpy as np
 from ..audio import MIN_SAMPLE_RATE, Audio, mel_frames, n_motion_frames, samples_for_frames
 from ..checkpoints import ModelBundle
 from ..errors import DiffshegError
-from ..foppas import Foppas, FoppasConfig
+from ..foppas import Foppas, FoppasConfig, sampling_settings
 from ..phonetic import log_mel, receptive_field, stack_posteriors
 from ..pipeline import build_sampling, check_finite, generation_meta, make_plan, to_motion
 from ..motion import Motion
@@ -131,8 +131,8 @@ class LiveEngine:
         self.bundle, self.network, self.settings, self.live = bundle, network, settings, live
         self.sample_rate = sample_rate
         self.fps = int(cfg.fps)
-        self.plan = make_plan(bundle, settings, replace(_live_sampling(bundle.sampling, live), blend=False,
-                                                        refine=None))
+        sampling = sampling_settings(bundle.sampling, settings.sampling)
+        self.plan = make_plan(bundle, settings, replace(_live_sampling(sampling, live), blend=False, refine=None))
         self.config: FoppasConfig = self.plan.config
         self.sampler: Foppas
         self.sampler, self._make_eps_fn = build_sampling(bundle, network, self.plan)
@@ -261,12 +261,12 @@ class LiveEngine:
 
 
 def _live_sampling(sampling: FoppasConfig, live: LiveConfig) -> FoppasConfig:
-    """The model's sampling settings with later windows starting at `live.later_start` (of
-    LIVE_STEPS steps, rescaled to the model's) and a lower branch's channels stepped with
-    `live.legs_eta`."""
+    """The sampling settings with later windows starting at `live.later_start` (of LIVE_STEPS
+    evenly spaced steps, rescaled to the sampling's; the fast sampling's own steps keep their
+    start) and a lower branch's channels stepped with `live.legs_eta`."""
     if live.legs_eta is not None:
         sampling = replace(sampling, branch_eta=live.legs_eta)
-    if live.later_start is None:
+    if live.later_start is None or sampling.timesteps is not None:
         return sampling
     return replace(sampling.with_steps(LIVE_STEPS), later_start=live.later_start).with_steps(sampling.steps)
 
