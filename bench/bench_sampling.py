@@ -1,85 +1,187 @@
-"""Fewer sampling steps against the bundled model's own sampling, side by side in one run.
+"""The fast sampling against the model's own 25-step sampling, side by side in one run (issue 39).
 
-On the real take 2_scott_0_1_1 (its motion capture as the reference, its TextGrid for the
-lip-sync contrast), seeds 0 and 1: the bundled model's sampling settings (25 DDIM steps,
-later windows from step 17, eta 1, the refining pass) and the same settings at N steps with
-eta 0 (deterministic DDIM) and eta 1, for each N asked. Prints, per setting, the seconds per
-take and its ratio to the shipped sampling's, and the quality figures issue 39 judges a
-few-step sampler by: wrist speed and jitter against the capture, diversity between seeds,
-the jaw's vowel/bilabial contrast, the mouth-envelope correlation and the seams'
-acceleration, each also as a ratio to the shipped sampling's.
+Both samplings of the bundled model on real speech, seeds 0 and 1:
+- the real take 2_scott_0_1_1 (64 s; its motion capture as the reference, its TextGrid for the
+  jaw's vowel/bilabial contrast), and its held-out last 20 s (the gestures the model learned
+  come from the first 44 s only);
+- speech the model never heard: 2_scott_0_3_3 (30 s) and another speaker, 12_zhao_2_3_3 (30 s),
+  without a capture: figures against the quality sampling's.
+Per sampling it prints the seconds per take (the whole take, one thread), how much faster than
+the quality sampling and than real time; then, per speech, wrist speed and jitter (against the
+capture where there is one), diversity between seeds, the window Fréchet distance to the
+capture (`window_fd`), lip-sync (mouth-envelope correlation; the jaw's vowel/bilabial
+contrast on the take), blinks a minute and the seams' acceleration, each also as a ratio to the
+quality sampling's; the joins of a regenerated range (issue 25's measure, seeds 7-9), and how
+far the styles lie apart (calm and animated wrist speed over conversational's).
 
-    python bench/bench_sampling.py [--steps 4,6,8] [--model ckpt]
+    python bench/bench_sampling.py [--steps 3,6] [--model ckpt]
 
-Timings are only comparable within one run on an otherwise idle machine.
+--steps adds the model's sampling at N evenly spaced steps (eta 0 and 1), the plain few-step
+sampling the fast one was chosen against. Timings are only comparable within one run on an
+otherwise idle machine: say which machine they came from.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import platform
 import time
 from dataclasses import replace
 from pathlib import Path
 
-from diffsheg_core.audio import load_audio
-from diffsheg_core.checkpoints import load_model
-from diffsheg_core.pipeline import generate
-from diffsheg_core.training.evaluate import EvalInputs, evaluate, load_reference
-from diffsheg_core.training.metrics.textgrid import phone_tier, read_textgrid
+import numpy as np
+
+os.environ.setdefault("DIFFSHEG_THREADS", "1")
+
+from diffsheg_core.audio import Audio, load_audio  # noqa: E402
+from diffsheg_core.checkpoints import load_model  # noqa: E402
+from diffsheg_core.foppas import sampling_settings  # noqa: E402
+from diffsheg_core.motion import Motion  # noqa: E402
+from diffsheg_core.pipeline import generate, regenerate  # noqa: E402
+from diffsheg_core.rigs import BEAT  # noqa: E402
+from diffsheg_core.training.evaluate import EvalInputs, evaluate, load_reference  # noqa: E402
+from diffsheg_core.training.metrics import frechet_distance  # noqa: E402
+from diffsheg_core.training.metrics.channels import gesture_array  # noqa: E402
+from diffsheg_core.training.metrics.posture import wrist_positions  # noqa: E402
+from diffsheg_core.training.metrics.textgrid import phone_tier, read_textgrid  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-TAKE_WAV = DATA / "beat2" / "2_scott_0_1_1.wav"
-TAKE_TEXTGRID = DATA / "beat2" / "2_scott_0_1_1.TextGrid"
+TAKE = DATA / "beat2" / "2_scott_0_1_1"
 TAKE_BVH = DATA / "beat" / "2_scott_0_1_1.bvh"
+UNSEEN = (DATA / "audio" / "2_scott_0_3_3.wav", DATA / "audio" / "12_zhao_2_3_3.wav")
+HELD_OUT_S = 20.0
+UNSEEN_S = 30.0
 SEEDS = (0, 1)
+RANGE = (300, 370)  # frames of the take regenerated (20 s to 24.7 s)
 FIGURES = (("comparison", "wrist speed / reference", "speed/cap"),
            ("comparison", "wrist jitter / reference", "jitter/cap"),
+           ("generated", "wrist speed (arm lengths/s)", "speed"),
+           ("generated", "wrist jitter (arm lengths/s^2)", "jitter"),
            ("comparison", "Div between samples (gesture, rad)", "Div"),
            ("generated", "mouth open: vowels / bilabials", "jaw v/b"),
            ("generated", "mouth-envelope r", "env r"),
+           ("generated", "blinks per minute", "blinks/min"),
            ("generated", "seam acceleration / in-clip", "seam"))
 
 
-def settings(bundle, steps: list[int]) -> dict:
-    base = bundle.sampling
-    out = {f"shipped ({base.steps} steps, eta {base.eta:g})": base}
-    for n in steps:
-        for eta in (0.0, 1.0):
-            out[f"{n} steps, eta {eta:g}"] = replace(base.with_steps(n), eta=eta)
+def window_fd(samples: list[Motion], reference: Motion, length: int = 34, stride: int = 4, dims: int = 16) -> float:
+    """Fréchet distance between the 34-frame windows of `samples` and of `reference`: each
+    window described by the mean pose, the spread and the mean speed of its upper-body
+    gesture channels, reduced to the `dims` principal axes of the reference's windows."""
+    def features(motion: Motion) -> np.ndarray:
+        x = gesture_array(motion, BEAT)
+        rows = [np.concatenate([w.mean(0), w.std(0), np.abs(np.diff(w, axis=0)).mean(0)])
+                for w in (x[s: s + length] for s in range(0, len(x) - length + 1, stride))]
+        return np.stack(rows)
+
+    real = features(reference)
+    mean, scale = real.mean(0), real.std(0) + 1e-6
+    axes = np.linalg.svd((real - mean) / scale, full_matrices=False)[2][:dims]
+    project = lambda f: ((f - mean) / scale) @ axes.T  # noqa: E731
+    return frechet_distance(np.concatenate([project(features(m)) for m in samples]), project(real))
+
+
+def cut(motion: Motion, start: int, stop: int) -> Motion:
+    root = None if motion.root_translation is None else motion.root_translation[start:stop]
+    return replace(motion, rotations=motion.rotations[start:stop], face=motion.face[start:stop], root_translation=root)
+
+
+def seconds_of(audio: Audio, start: float, stop: float) -> Audio:
+    rate = audio.sample_rate
+    return Audio(audio.samples[int(start * rate): int(stop * rate)], rate)
+
+
+def figures(samples: list[Motion], audio: Audio, clip_len: int, reference: Motion | None = None,
+            phones=None) -> dict:
+    n = min(m.n_frames for m in samples) if reference is None else min(reference.n_frames, *(m.n_frames for m in samples))
+    samples = [cut(m, 0, n) for m in samples]
+    reference = None if reference is None else cut(reference, 0, n)
+    result = evaluate(EvalInputs(samples=samples, reference=reference, audio=audio, phones=phones, features=None,
+                                 clip_len=clip_len, overlap=samples[0].meta["overlap"]), plots=False)
+    out = {short: result[section].get(name) for section, name, short in FIGURES}
+    if reference is not None:
+        out["window FD"] = window_fd(samples, reference)
     return out
+
+
+def join_ratios(take: Motion, audio: Audio, sampling: str) -> tuple[float, float]:
+    """Issue 25's measure: the joints' acceleration at the two joins of a regenerated range over
+    that inside it, averaged over seeds 7-9."""
+    start, end = RANGE
+    ratios = []
+    for seed in (7, 8, 9):
+        new = regenerate(take, audio, start=start, end=end, seed=seed, sampling=sampling)
+        acc = np.linalg.norm(np.diff(new.rotations, 2, axis=0), axis=2).mean(axis=1)
+        inside = acc[start + 1: end - 3].mean()
+        ratios.append((acc[start - 3: start + 1].mean() / inside, acc[end - 3: end + 1].mean() / inside))
+    left, right = np.mean(ratios, axis=0)
+    return float(left), float(right)
+
+
+def style_spread(audio: Audio, sampling) -> tuple[float, float]:
+    """calm's and animated's wrist speed over conversational's, seed 0."""
+    speed = {}
+    for style in ("calm", "conversational", "animated"):
+        wrists = wrist_positions(generate(audio, seed=0, style=style, sampling=sampling))
+        speed[style] = float(np.linalg.norm(np.diff(wrists, axis=0), axis=-1).mean())
+    return speed["calm"] / speed["conversational"], speed["animated"] / speed["conversational"]
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--steps", default="4,6,8", help="comma-separated step counts to try (default %(default)s)")
+    p.add_argument("--steps", default="", help="comma-separated even step counts to add (default: none)")
     p.add_argument("--model", help="checkpoint (default: the bundled model)")
     args = p.parse_args()
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, one thread; seeds {list(SEEDS)}")
     bundle = load_model(args.model)
-    audio = load_audio(TAKE_WAV)
+    samplings: dict[str, object] = {"quality": "quality", "fast": "fast"}
+    for n in filter(None, args.steps.split(",")):
+        for eta in (0.0, 1.0):
+            samplings[f"{n} even steps, eta {eta:g}"] = replace(
+                sampling_settings(bundle.sampling, "quality").with_steps(int(n)), eta=eta)
+    take_audio = load_audio(TAKE.with_suffix(".wav"))
     capture = load_reference(TAKE_BVH, fps=15.0)
-    phones = phone_tier(read_textgrid(TAKE_TEXTGRID), str(TAKE_TEXTGRID))
-    rows = []
-    for label, sampling in settings(bundle, [int(n) for n in args.steps.split(",")]).items():
+    phones = phone_tier(read_textgrid(TAKE.with_suffix(".TextGrid")), str(TAKE.with_suffix(".TextGrid")))
+    held_from = take_audio.duration - HELD_OUT_S
+    held_audio = seconds_of(take_audio, held_from, take_audio.duration)
+    held_capture = cut(capture, int(held_from * 15), capture.n_frames)
+    unseen = {path.stem: seconds_of(load_audio(path), 0.0, UNSEEN_S) for path in UNSEEN}
+    generate(seconds_of(take_audio, 0, 3), model=bundle)  # load and warm the network
+
+    rows: dict[str, dict] = {}
+    for label, sampling in samplings.items():
         started = time.perf_counter()
-        samples = [generate(audio, model=bundle, seed=s, sampling=sampling) for s in SEEDS]
+        takes = [generate(take_audio, model=bundle, seed=s, sampling=sampling) for s in SEEDS]
         seconds = (time.perf_counter() - started) / len(SEEDS)
-        n = min(capture.n_frames, *(m.n_frames for m in samples))
+        row = {"seconds": seconds, "take": figures(takes, take_audio, bundle.config.clip_len, capture, phones)}
+        held = [generate(held_audio, model=bundle, seed=s, sampling=sampling) for s in SEEDS]
+        row["held-out 20 s"] = figures(held, held_audio, bundle.config.clip_len, held_capture)
+        for name, audio in unseen.items():
+            row[name] = figures([generate(audio, model=bundle, seed=s, sampling=sampling) for s in SEEDS], audio,
+                                bundle.config.clip_len)
+        if isinstance(sampling, str):
+            row["joins"] = join_ratios(takes[0], take_audio, sampling)
+            row["styles"] = style_spread(unseen[UNSEEN[0].stem], sampling)
+        rows[label] = row
+        print(f"{label}: {seconds:.2f} s per {take_audio.duration:.0f} s take", flush=True)
 
-        def part(m):
-            root = None if m.root_translation is None else m.root_translation[:n]
-            return replace(m, rotations=m.rotations[:n], face=m.face[:n], root_translation=root)
-
-        result = evaluate(EvalInputs(samples=[part(m) for m in samples], reference=part(capture), audio=audio,
-                                     phones=phones, features=None, clip_len=bundle.config.clip_len,
-                                     overlap=samples[0].meta["overlap"]), plots=False)
-        rows.append((label, seconds, [result[section][name] for section, name, _ in FIGURES]))
-        print(f"{label}: {seconds:.1f} s per take", flush=True)
-    _, base_seconds, base = rows[0]
-    print(f"\n| setting | s/take | x faster | " + " | ".join(short for _, _, short in FIGURES) + " |")
-    print("|---|---|---|" + "---|" * len(FIGURES))
-    for label, seconds, values in rows:
-        cells = [f"{v:.3g} ({v / b:.2f}x)" for v, b in zip(values, base)]
-        print(f"| {label} | {seconds:.1f} | {base_seconds / seconds:.1f} | " + " | ".join(cells) + " |")
+    base = rows["quality"]
+    print(f"\n| sampling | s per take | x faster | x real time | regenerated joins (left, right) | calm, animated speed |")
+    print("|---|---|---|---|---|---|")
+    for label, row in rows.items():
+        joins = "" if "joins" not in row else "%.2f, %.2f (%.2fx, %.2fx)" % (*row["joins"], *(
+            a / b for a, b in zip(row["joins"], base["joins"])))
+        styles = "" if "styles" not in row else "%.2f, %.2f" % row["styles"]
+        print(f"| {label} | {row['seconds']:.2f} | {base['seconds'] / row['seconds']:.1f} | "
+              f"{take_audio.duration / row['seconds']:.0f} | {joins} | {styles} |")
+    for speech in ["take", "held-out 20 s", *unseen]:
+        names = [k for k, v in base[speech].items() if v is not None]
+        print(f"\n{speech} (ratio to quality's)\n| sampling | " + " | ".join(names) + " |")
+        print("|---|" + "---|" * len(names))
+        for label, row in rows.items():
+            cells = [f"{row[speech][k]:.3g} ({row[speech][k] / base[speech][k]:.2f}x)" for k in names]
+            print(f"| {label} | " + " | ".join(cells) + " |")
     return 0
 
 

@@ -183,7 +183,8 @@ FAST_TIMESTEPS = (50, 300, 450, 650, 900)
 """The fast sampling's steps (model timesteps), chosen with bench/bench_sampling.py on the
 bundled model: the face steps at all five (the expression branch alone above the gestures'
 start: five face steps keep its blinks, three lose nine in ten), the gestures at the lowest
-two, low enough to leave no wobble after the refining pass (docs/foppas.md, "Fast sampling")."""
+three, from the gesture prior (from the lowest two their jitter on unseen speech was 1.17x the
+25 steps'), low enough to leave no wobble after the refining pass (docs/foppas.md)."""
 
 SAMPLINGS = ("fast", "quality")
 """The named samplings: `fast` (the default) and `quality` (the model's own settings, 25 steps
@@ -192,13 +193,13 @@ for the bundled model); `sampling_settings` turns a name, or a preset's, into se
 
 def fast_sampling(config: FoppasConfig) -> FoppasConfig:
     """A model's sampling settings `config` at FAST_TIMESTEPS: the first window from the top;
-    a later window's gestures from the second step (from the gesture prior, continuing the
+    a later window's gestures from the third step (from the gesture prior, continuing the
     overlap) and its face from the top, the face's steps above the gestures' running the
     expression branch alone (`face_start`) and deterministic (`face_eta` 0: with stochastic
     steps this few, the face loses its blinks); no RePaint jumps; the refining pass, if the
-    model has one, at the lowest step. A later window costs two full network calls, three of
+    model has one, at the lowest step. A later window costs three full network calls, two of
     the expression branch and the refining pass's gesture branch, instead of 18 and the pass."""
-    return replace(config, steps=len(FAST_TIMESTEPS), timesteps=FAST_TIMESTEPS, later_start=1,
+    return replace(config, steps=len(FAST_TIMESTEPS), timesteps=FAST_TIMESTEPS, later_start=2,
                    face_start=len(FAST_TIMESTEPS) - 1, face_eta=0.0, jump_length=1, jump_n_sample=1,
                    refine=None if config.refine is None else 0)
 

@@ -472,13 +472,16 @@ class Pin:
 
 def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = None, *, start: int, end: int,
                settings: Optional[GenerateSettings] = None, hold_face: bool = False, pins: tuple[Pin, ...] = (),
-               sampling: Optional[FoppasConfig] = None, progress: Optional[ProgressCallback] = None,
+               sampling: Union[str, FoppasConfig, None] = None, progress: Optional[ProgressCallback] = None,
                cancel: Optional[threading.Event] = None, **options) -> Motion:
     """`motion` (made from `audio` by a model of its layout) with frames [start, end)
     generated anew with other `settings` or options (a seed, a style): the frames before
     and after the range are held and the sampler inpaints the range against both
     (`foppas.inpaint_range`). Every frame outside the range is returned bit for bit; with
-    `hold_face` the take's face inside it too (only the gestures change). `pins` are poses the new motion passes through."""
+    `hold_face` the take's face inside it too (only the gestures change). `pins` are poses the new
+    motion passes through. `sampling` as for `generate`: a name or a FoppasConfig."""
+    if isinstance(sampling, str):  # a named sampling is a setting
+        sampling, options = None, {**options, "sampling": sampling}
     s = replace(settings or GenerateSettings(), **options)
     bundle = s.model if isinstance(s.model, ModelBundle) else load_model(s.model)
     layout = bundle.layout

@@ -273,7 +273,7 @@ def test_gestures_move_about_as_the_capture_does(whole_take, whole_take_quality)
     1.04x, head pitch 1.1 degrees above the capture's; model card, 3 seeds: 0.93x, 1.00x,
     1.04x; v8 before the refining pass: 0.90x, 1.09x, 1.03x; v7: 0.83x, 1.06x, 0.92x; v6:
     1.09x, 1.46x, 0.86x and 4.1 degrees down). The fast sampling holds issue 39's bars against
-    it: wrist speed 0.9-1.1x, jitter at most 1.1x (these seeds: 1.05x, 1.09x)."""
+    it: wrist speed 0.9-1.1x, jitter at most 1.1x (these seeds: 1.00x, 1.03x)."""
     from diffsheg_core.training.evaluate import load_reference
     from diffsheg_core.training.metrics.posture import naturalness
 

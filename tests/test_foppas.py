@@ -598,7 +598,7 @@ def test_best_of_n_is_recorded_changes_only_later_windows_and_keeps_a_fixed_face
 
 def test_the_fast_sampling_steps_at_its_own_timesteps_and_keeps_the_models_settings():
     """`fast_sampling` of a model's settings: five steps at FAST_TIMESTEPS (the schedule's
-    model timesteps), later windows' gestures from the second step and the face from the top
+    model timesteps), later windows' gestures from the third step and the face from the top
     (deterministic), no RePaint jumps, the refining pass at the lowest step; the rest (carry,
     the prior, eta, refine_skip) as the model has them. --steps N gives N even steps."""
     from diffsheg_core.foppas import FAST_TIMESTEPS, fast_sampling, sampling_settings
@@ -606,7 +606,7 @@ def test_the_fast_sampling_steps_at_its_own_timesteps_and_keeps_the_models_setti
     model = replace(PRESETS["no-resample"], eta=1.0, carry=12, refine=1, refine_skip=3.5)
     fast = fast_sampling(model)
     assert fast.timesteps == FAST_TIMESTEPS and fast.steps == len(FAST_TIMESTEPS)
-    assert (fast.later_start, fast.face_start, fast.face_eta, fast.refine) == (1, 4, 0.0, 0)
+    assert (fast.later_start, fast.face_start, fast.face_eta, fast.refine) == (2, 4, 0.0, 0)
     assert (fast.eta, fast.carry, fast.refine_skip, fast.prior_start) == (1.0, 12, 3.5, True)
     assert list(Foppas(Schedule.linear(), fast, 34, 4).schedule.timesteps) == list(FAST_TIMESTEPS)
     assert fast_sampling(replace(model, refine=None)).refine is None
@@ -615,7 +615,7 @@ def test_the_fast_sampling_steps_at_its_own_timesteps_and_keeps_the_models_setti
     with pytest.raises(DiffshegError, match="unknown sampling 'slow': use fast, quality, official-beat"):
         sampling_settings(model, "slow")
     six = fast.with_steps(6)
-    assert six.timesteps is None and six.steps == 6 and six.later_start == 1 and six.face_start == 5
+    assert six.timesteps is None and six.steps == 6 and six.later_start == 2 and six.face_start == 5
     assert fast.with_steps(5) == fast
     # the settings survive a model file's JSON (a list comes back as the tuple)
     assert FoppasConfig(**json.loads(json.dumps(fast.__dict__))) == fast
@@ -656,8 +656,8 @@ def test_a_later_windows_face_steps_first_alone_and_the_gestures_wait_at_their_s
 
     known = np.zeros((1, 4, d), np.float32)
     sampler.sample_window(eps_fn, 34, known, sampler.noise(0))
-    assert calls == [(4, True), (3, True), (2, True), (1, False), (0, False)]
-    assert np.array_equal(seen[0], seen[1]) and np.array_equal(seen[1], seen[2]) and np.array_equal(seen[2], seen[3])
+    assert calls == [(4, True), (3, True), (2, False), (1, False), (0, False)]
+    assert np.array_equal(seen[0], seen[1]) and np.array_equal(seen[1], seen[2])
     calls.clear()
     sampler.sample_window(eps_fn, 34, None, sampler.noise(0))  # the first window: every step full
     assert calls == [(i, False) for i in range(4, -1, -1)]

@@ -193,9 +193,9 @@ def test_style_over_time_with_the_bundled_model_on_real_speech(data_dir, tmp_pat
     seeds 0 and 1; the reverse order 0.35x, 0.50x), with no jump at the switch: the
     wrists' acceleration over the second around it stays below the take's mean (measured
     0.5x, 0.7x), with the model's own sampling. The fast sampling tells the styles apart less
-    (1.79x and 1.56x; the reverse 0.72x, 0.75x: its later windows' gestures start from the
-    gesture prior two steps from the end, which the style steers less) with the switch at
-    1.00x and 0.87x the mean. The CLI's --style-at gives the same motion and the meta records it."""
+    (1.84x and 1.99x; the reverse 0.67x, 0.76x: its later windows' gestures start from the
+    gesture prior three steps from the end, which the style steers less) with the switch at
+    1.00x and 0.57x the mean. The CLI's --style-at gives the same motion and the meta records it."""
     import soundfile as sf
 
     from diffsheg_core.motion import Motion
