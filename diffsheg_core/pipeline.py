@@ -279,21 +279,28 @@ class Plan:
     style_weights: dict
     track: Optional[np.ndarray] = None   # (n_frames, style_dim); None: `style_weights` throughout
     style_at: tuple = ()                 # ((seconds, {class: weight}), ...) of the track's changes
+    sampling: str = "custom"             # the named sampling sampled with ("custom": settings given outright)
 
 
 def make_plan(bundle: ModelBundle, s: GenerateSettings, sampling: Optional[FoppasConfig] = None,
-              n_frames: int = 0) -> Plan:
+              n_frames: int = 0, holds: bool = False) -> Plan:
     """Resolve `s` against `bundle`: the sampling settings `s` asks for (its named sampling of
-    the model's, or `sampling`) with its overrides, its guidance and style (a track of `n_frames` frames for `s.style_at`). Bad
-    settings raise DiffshegError."""
-    config = with_overrides(sampling or sampling_settings(bundle.sampling, s.sampling), steps=s.steps,
+    the model's, or `sampling`) with its overrides, its guidance and style (a track of
+    `n_frames` frames for `s.style_at`). Bad settings raise DiffshegError.
+
+    `holds`: the job holds frames (a range regenerated between the take's frames, pins). The
+    fast sampling's few steps do not join held frames smoothly (a pin's neighbourhood at 2.7x
+    the range's acceleration, a range's left join 2.7x the 25 steps'), so such a job samples
+    with the model's own steps: a range is short, and that costs it a second or two."""
+    name = "quality" if holds and s.sampling == "fast" else s.sampling
+    config = with_overrides(sampling or sampling_settings(bundle.sampling, name), steps=s.steps,
                             overlap=s.overlap, candidates=s.candidates)
     scale = resolve_guidance(bundle, s.guidance)
     guidance = Guidance(scale, resolve_skip_guidance(bundle, s.skip_guidance),
                         resolve_style_guidance(bundle, s.style_guidance))
     changes = tuple((t, style_weights(bundle, spec)) for t, spec in s.style_at or ())
     return Plan(config, guidance, scale, style_weights(bundle, s.style),
-                style_track(bundle, s.style, s.style_at, n_frames), changes)
+                style_track(bundle, s.style, s.style_at, n_frames), changes, "custom" if sampling else name)
 
 
 def build_sampling(bundle: ModelBundle, network, plan: Plan) -> tuple[Foppas, Callable[[np.ndarray], EpsFn]]:
@@ -392,7 +399,7 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     network = open_network(bundle, s.backend, s.device, s.precision, s.threads)
     speech = open_speech(audio, sample_rate)
     n_frames = n_motion_frames(speech, bundle.config.fps)
-    plan, sampler, make_eps_fn = _sampling(bundle, network, s, sampling, n_frames)
+    plan, sampler, make_eps_fn = _sampling(bundle, network, s, sampling, n_frames, holds=bool(pins))
     chunks = with_style(speech_chunks(bundle, network, speech, hubert_path, hubert_quirk), plan.track)
     if pins:  # sampled as one range with the pinned poses held, from the first frame
         normalised = np.zeros((n_frames, bundle.config.dim), dtype=np.float32)
@@ -432,9 +439,9 @@ def with_legs(motion: Motion, s: GenerateSettings) -> Motion:
 
 
 def _sampling(bundle: ModelBundle, network, s: GenerateSettings, sampling: Optional[FoppasConfig],
-              n_frames: int) -> tuple[Plan, Foppas, Callable[[np.ndarray], EpsFn]]:
-    """The plan of `s` for `n_frames` frames, its sampler and eps factory."""
-    plan = make_plan(bundle, s, sampling, n_frames)
+              n_frames: int, holds: bool = False) -> tuple[Plan, Foppas, Callable[[np.ndarray], EpsFn]]:
+    """The plan of `s` for `n_frames` frames (`holds`: see make_plan), its sampler and eps factory."""
+    plan = make_plan(bundle, s, sampling, n_frames, holds)
     return (plan, *build_sampling(bundle, network, plan))
 
 
@@ -450,7 +457,7 @@ def generation_meta(bundle: ModelBundle, s: GenerateSettings, plan: Plan, networ
         "emotion": s.emotion or {}, "emotion_at": [[t, spec] for t, spec in s.emotion_at or ()],
         "guidance": plan.guidance_scale,
         "skip_guidance": plan.guidance.skip,
-        "sampling": s.sampling, "steps": config.steps,
+        "sampling": plan.sampling, "steps": config.steps,
         "timesteps": None if config.timesteps is None else list(config.timesteps), "overlap": config.overlap, "candidates": config.candidates,
         "prior_start": uses_prior(bundle, config), "carry": config.carry,
         "refine": config.refine, "refine_skip": config.refine_skip if config.refine is not None else None,
@@ -498,7 +505,7 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     if n_motion_frames(speech, bundle.config.fps) != motion.n_frames:
         raise DiffshegError(f"the audio gives {n_motion_frames(speech, bundle.config.fps)} frames of motion, the "
                             f"motion has {motion.n_frames}: regenerate with the audio it was made from")
-    plan, sampler, make_eps_fn = _sampling(bundle, network, s, sampling, motion.n_frames)
+    plan, sampler, make_eps_fn = _sampling(bundle, network, s, sampling, motion.n_frames, holds=True)
     cond = np.concatenate(list(with_style(speech_chunks(bundle, network, speech), plan.track)))
     laid = take_emotion(motion)
     base = motion if laid is None else remove_emotion(motion, laid)  # what the take's emotion was laid over

@@ -34,7 +34,10 @@ def speech(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def motion(speech):
-    return diffsheg_core.generate(str(speech), device="cpu")
+    """The take, made with the model's own 25 steps as the ranges are (make_plan's `holds`): the
+    pin's bar below was measured on it; on a take made with the fast sampling the same pin's
+    neighbourhood reached 2.47x the range's median acceleration (noted on issue 40)."""
+    return diffsheg_core.generate(str(speech), device="cpu", sampling="quality")
 
 
 def _scene(motion, speech):
@@ -194,15 +197,40 @@ def test_an_animators_key_inside_the_range_is_a_pin(motion, speech):
     assert now == set_key and now[0][3] == "KEYFRAME"
 
 
+def _unkeyed_frame(armature, bone: str, frames) -> int:
+    """The first of `frames` where the take put no key on `bone`'s rotation: keying a frame that
+    holds a generated key keeps that key's type (Blender 5.0), see the xfail below."""
+    keyed = {int(p.co[0]) for fc in fcurves_of(armature) if fc.data_path == f'pose.bones["{bone}"].rotation_euler'
+             for p in fc.keyframe_points}
+    return next(f for f in frames if f not in keyed)
+
+
 def test_keys_that_cannot_be_pins_are_named(motion, speech):
     scene, options = _scene(motion, speech)
     armature = options.armature
-    armature.pose.bones["Hips"].keyframe_insert("rotation_euler", frame=260)  # the model does not drive it
-    armature.pose.bones[ARM].keyframe_insert("rotation_euler", frame=FIRST)  # on the range's edge
+    hips = _unkeyed_frame(armature, "Hips", range(260, 290))
+    edge = _unkeyed_frame(armature, ARM, (FIRST, FIRST + 1))
+    armature.pose.bones["Hips"].keyframe_insert("rotation_euler", frame=hips)  # the model does not drive it
+    armature.pose.bones[ARM].keyframe_insert("rotation_euler", frame=edge)  # on the range's edge
     request = regenerate.prepare_range(scene, options, FIRST, LAST)
     assert request.pins == ()
-    assert any("Hips at frame 260" in n and "does not drive" in n for n in request.notes)
-    assert any(f"{ARM} at frame {FIRST}" in n and "edge" in n for n in request.notes)
+    assert any(f"Hips at frame {hips}" in n and "does not drive" in n for n in request.notes), request.notes
+    assert any(f"{ARM} at frame {edge}" in n and "edge" in n for n in request.notes), request.notes
+
+
+@pytest.mark.xfail(strict=True, reason="keying a frame that holds a generated key keeps the GENERATED type "
+                                       "(Blender 5.0), so the animator's new value there is not told from the "
+                                       "take's: not a pin yet (noticed 2026-12-05)")
+def test_a_generated_key_keyed_again_is_the_animators(motion, speech):
+    scene, options = _scene(motion, speech)
+    bone = options.armature.pose.bones[ARM]
+    frame = next(int(p.co[0]) for fc in fcurves_of(options.armature)
+                 if fc.data_path == f'pose.bones["{ARM}"].rotation_euler' for p in fc.keyframe_points
+                 if FIRST + 20 <= p.co[0] <= LAST - 20)
+    scene.frame_set(frame)
+    bone.rotation_euler = (bone.rotation_euler[0] + 0.4, bone.rotation_euler[1], bone.rotation_euler[2] - 0.3)
+    bone.keyframe_insert("rotation_euler", frame=frame)
+    assert {p.joint for p in regenerate.prepare_range(scene, options, FIRST, LAST).pins} == {ARM}
 
 
 def test_a_take_can_start_from_the_characters_pose(motion, speech):

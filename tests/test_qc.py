@@ -44,7 +44,7 @@ def test_lips_follow_the_voice_and_a_face_shuffled_in_time_does_not(generated):
     for name, motion, audio in generated:
         real = mouth_voice_correlation(motion, audio.samples, audio.sample_rate)
         controls = [mouth_voice_correlation(shuffled_face(motion, s), audio.samples, audio.sample_rate)
-                    for s in range(8)]
+                    for s in range(32)]  # enough shuffles for a steady mean (8 gave 0.16 on ru_golos_1)
         assert real > max(0.4, MOUTH_VOICE_MIN), (name, real)
         assert abs(np.mean(controls)) < 0.15 and np.mean(controls) < MOUTH_VOICE_MIN, (name, controls)
         assert real > max(controls) + 0.2, (name, real, controls)

@@ -132,7 +132,8 @@ class LiveEngine:
         self.sample_rate = sample_rate
         self.fps = int(cfg.fps)
         sampling = sampling_settings(bundle.sampling, settings.sampling)
-        self.plan = make_plan(bundle, settings, replace(_live_sampling(sampling, live), blend=False, refine=None))
+        self.plan = replace(make_plan(bundle, settings, replace(_live_sampling(sampling, live), blend=False,
+                                                                refine=None)), sampling=settings.sampling)
         self.config: FoppasConfig = self.plan.config
         self.sampler: Foppas
         self.sampler, self._make_eps_fn = build_sampling(bundle, network, self.plan)
