@@ -11,15 +11,13 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass, replace
-from functools import lru_cache
 from pathlib import Path
 from typing import Callable, Iterator, Optional, Union
 
 import numpy as np
 
 from . import __version__
-from .audio import (PIECE_SECONDS, Audio, AudioFile, SpeechEncoding, load_audio, mel_features, mel_frames,
-                    n_motion_frames, open_audio_file, require_hubert)
+from .audio import Audio, AudioFile, load_audio, n_motion_frames, open_audio_file
 from .checkpoints import ModelBundle, load_model
 from .diffusion import Schedule
 from .emotion import apply_emotion, emotion_track, remove_emotion, take_emotion
@@ -28,22 +26,13 @@ from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, inpaint_range, sa
 from .guidance import Guidance, face_eps, gesture_eps, step_eps
 from .lower_body import JOINTS as LOWER_JOINTS, add_lower_body, legs_source, lower_rotations, plant, upper_body
 from .motion import Motion
-from .phonetic import (PhoneticConfig, fingerprint, log_mel, phonetic_encoding, raw_log_mel, recogniser_frames,
-                       stack_posteriors)
 from .progress import ProgressCallback
 from .runtime.backends import open_network
 from .settings import GenerateSettings, StyleSpec
+from .speech_features import hubert_encoding, speech_chunks, speech_features  # noqa: F401 (callers' names)
 from .validate import GUIDANCE, SKIP_GUIDANCE, STYLE_GUIDANCE, check_number, parse_whole
 
 AudioInput = Union[str, Path, np.ndarray, Audio]
-
-
-@lru_cache(maxsize=1)  # the 1.2 GB model is loaded once per process
-def _hubert_encoder(hubert_path: Optional[str], device: str):
-    require_hubert(hubert_path)  # says what to install before torch comes in
-    from .torch_layer.hubert import load_hubert
-
-    return load_hubert(hubert_path, device)
 
 
 def style_weights(bundle: ModelBundle, style: Optional[StyleSpec]) -> dict[int, float]:
@@ -160,106 +149,6 @@ def resolve_skip_guidance(bundle: ModelBundle, skip_guidance: Optional[float]) -
     if scale is None:
         return None
     return check_skip_guidance(scale) or None  # 0 turns it off
-
-
-def speech_encoding(bundle: ModelBundle, network, hubert_path: Optional[str] = None,
-                    hubert_quirk: bool = False, device: str = "cpu") -> Optional[SpeechEncoding]:
-    """The model's second speech input beside the mel (None for mel-only models): HuBERT,
-    loaded once per process, or the phonetic encoder stored with the model (run by `network`)."""
-    config = bundle.config
-    if not config.has_speech_input:
-        return None
-    if config.phonetic_input:
-        if bundle.phonetic is None:
-            raise DiffshegError("this model takes phonetic features, but no phonetic encoder came with "
-                                "it: export the model again from its training run")
-        return phonetic_encoding(bundle.phonetic, network.phone_posteriors,
-                                 fingerprint(bundle.phonetic, bundle.phonetic_weights))
-    return hubert_encoding(hubert_path, hubert_quirk, device)
-
-
-def hubert_encoding(hubert_path: Optional[str] = None, hubert_quirk: bool = False,
-                    device: str = "cpu") -> SpeechEncoding:
-    """HuBERT as the second speech input (the official models'), loaded once per process."""
-    encoder = _hubert_encoder(hubert_path, device)
-    from .torch_layer.hubert import hubert_features
-
-    return SpeechEncoding(f"hubert:{hubert_path or 'cache'}:{hubert_quirk}",
-                          lambda audio, n: hubert_features(audio, n, official_quirk=hubert_quirk,
-                                                           encoder=encoder))
-
-
-def speech_features(bundle: ModelBundle, network, audio: Audio, hubert_path: Optional[str] = None,
-                    hubert_quirk: bool = False) -> np.ndarray:
-    """(T, F) float32 conditioning frames: mel, then the second speech input when the model has one."""
-    mel = mel_features(audio, fps=bundle.config.fps)
-    parts = [mel]
-    encoding = speech_encoding(bundle, network, hubert_path, hubert_quirk, str(network.device))
-    if encoding is not None:
-        parts.append(encoding.encode(audio, len(mel)))
-    return np.concatenate(parts, axis=1).astype(np.float32)
-
-
-MARGIN_SECONDS = 2  # audio read either side of a piece: far more than the resampler's and the encoder's reach
-
-
-def speech_chunks(bundle: ModelBundle, network, speech: Union[Audio, AudioFile],
-                  hubert_path: Optional[str] = None, hubert_quirk: bool = False) -> Iterator[np.ndarray]:
-    """`speech_features` of `speech` in order, PIECE_SECONDS at a time, so a long recording is
-    never held whole: each piece is read with MARGIN_SECONDS of audio either side, its
-    features computed as for the whole recording and the margins' frames dropped (equal to
-    float32 rounding; a recording that fits one piece gives exactly `speech_features`).
-    HuBERT models still read the whole recording."""
-    cfg = bundle.config
-    if (cfg.has_speech_input and not cfg.phonetic_input) or not float(cfg.fps).is_integer() \
-            or speech.duration <= PIECE_SECONDS:
-        yield speech_features(bundle, network, speech.read(0, speech.n_samples), hubert_path, hubert_quirk)
-        return
-    fps = int(cfg.fps)
-    total = n_motion_frames(speech, fps)
-    phonetic = bundle.phonetic if cfg.phonetic_input else None
-    if phonetic is not None:
-        n_post = _posterior_count(speech, phonetic)
-        level = _phonetic_level(speech, phonetic, n_post)
-    for t0, start, piece in _pieces(speech):
-        first, last = t0 * fps, min((t0 + PIECE_SECONDS) * fps, total)
-        if first >= last:
-            return
-        parts = [mel_frames(piece, fps)[first - start * fps: last - start * fps]]
-        if phonetic is not None:
-            posteriors = network.phone_posteriors(log_mel(piece, phonetic, level))
-            parts.append(stack_posteriors(posteriors, last - first, phonetic.subframes, first, n_post,
-                                          offset=round(start * phonetic.fps * phonetic.subframes)))
-        yield np.concatenate(parts, axis=1).astype(np.float32)
-
-
-def _pieces(speech: Union[Audio, AudioFile]) -> Iterator[tuple[int, int, Audio]]:
-    """(t0, start, piece) for each PIECE_SECONDS of `speech` from t0 seconds: the audio from
-    `start` = t0 - MARGIN_SECONDS (or 0) to MARGIN_SECONDS past the piece."""
-    rate = speech.sample_rate
-    for t0 in range(0, int(np.ceil(speech.duration)), PIECE_SECONDS):
-        start = max(0, t0 - MARGIN_SECONDS)
-        yield t0, start, speech.read(start * rate, (t0 + PIECE_SECONDS + MARGIN_SECONDS) * rate)
-
-
-def _posterior_count(speech, phonetic: PhoneticConfig) -> int:
-    """Recogniser frames of the whole recording (centred frames at 18 kHz)."""
-    return recogniser_frames(speech.n_samples, speech.sample_rate, phonetic)
-
-
-def _phonetic_level(speech: AudioFile, phonetic: PhoneticConfig, n_post: int) -> Optional[np.ndarray]:
-    """The whole recording's mean log-mel per band over its `n_post` recogniser frames (the
-    encoder's utterance normalisation), summed piece by piece."""
-    if phonetic.normalise != "utterance":
-        return None
-    per_second = phonetic.fps * phonetic.subframes
-    level = np.zeros((phonetic.n_mels, 1))
-    for t0, start, piece in _pieces(speech):
-        frames = raw_log_mel(piece, phonetic)
-        offset = round(start * per_second)
-        first, last = round(t0 * per_second), min(round((t0 + PIECE_SECONDS) * per_second), n_post)
-        level[:, 0] += frames[:, first - offset: last - offset].sum(axis=1, dtype=np.float64)
-    return (level / n_post).astype(np.float32)
 
 
 def uses_prior(bundle: ModelBundle, config: FoppasConfig) -> bool:

@@ -354,7 +354,7 @@ def test_the_same_speech_gives_the_same_features_at_16_22_and_44_khz(data_dir, n
     whatever the rate (phonetic.ENCODER_RATE); before that, 22.05 and 44.1 kHz speech picked the
     same phone as at 16 kHz on 5 % of frames. The official mel keeps 8-9 kHz (DESIGN.md section 5),
     a few thousandths of its peak. Also through the file path read in pieces."""
-    from diffsheg_core import pipeline
+    from diffsheg_core import pipeline, speech_features
     from diffsheg_core.audio import load_audio, resample
 
     bundle = load_model()
@@ -362,7 +362,7 @@ def test_the_same_speech_gives_the_same_features_at_16_22_and_44_khz(data_dir, n
     audio = load_audio(data_dir / name)
     features = {rate: pipeline.speech_features(bundle, network, resample(audio, rate))
                 for rate in (16000, 22050, 44100)}
-    monkeypatch.setattr(pipeline, "PIECE_SECONDS", 3)
+    monkeypatch.setattr(speech_features, "PIECE_SECONDS", 3)
     features["file"] = np.concatenate(list(pipeline.speech_chunks(bundle, network,
                                                                   pipeline.open_speech(data_dir / name))))
     mel, reference = bundle.config.mel_dim, features[16000]

@@ -327,14 +327,14 @@ def test_long_audio_is_generated_in_bounded_memory(data_dir, tmp_path):
 
 
 def test_pieces_of_a_long_recording_give_the_features_of_the_whole(data_dir, monkeypatch):
-    from diffsheg_core import pipeline
+    from diffsheg_core import pipeline, speech_features
     from diffsheg_core.runtime.backends import open_network
 
     path = data_dir / "audio" / "2_scott_0_3_3.wav"  # 68 s
     bundle = load_model()
     network = open_network(bundle)
     whole = pipeline.speech_features(bundle, network, load_audio(path))
-    monkeypatch.setattr(pipeline, "PIECE_SECONDS", 20)  # four pieces
+    monkeypatch.setattr(speech_features, "PIECE_SECONDS", 20)  # four pieces
     pieces = list(pipeline.speech_chunks(bundle, network, pipeline.open_speech(path)))
     assert [len(p) for p in pieces] == [300, 300, 300, 120]
     joined = np.concatenate(pieces)

@@ -27,14 +27,14 @@ from typing import Optional
 
 import numpy as np
 
-from ..audio import MIN_SAMPLE_RATE, Audio, mel_frames, n_motion_frames, samples_for_frames
+from ..audio import MIN_SAMPLE_RATE, Audio, n_motion_frames, samples_for_frames
 from ..checkpoints import ModelBundle
 from ..errors import DiffshegError
 from ..foppas import Foppas, FoppasConfig, sampling_settings
-from ..phonetic import log_mel, receptive_field, stack_posteriors
 from ..pipeline import build_sampling, check_finite, generation_meta, make_plan, to_motion
 from ..motion import Motion
 from ..settings import GenerateSettings
+from ..speech_features import frame_features, margin_frames
 
 HOPS = (1, 16)  # new frames per window: below 1 nothing moves, above 16 (>1 s at 15 fps) it is not live
 LOOKAHEADS = (0, 15)
@@ -138,9 +138,10 @@ class LiveEngine:
         self.sampler: Foppas
         self.sampler, self._make_eps_fn = build_sampling(bundle, network, self.plan)
         self.noise = self.sampler.noise(settings.seed, settings.face_seed)
-        self._align = _alignment(sample_rate, self.fps)
-        self._margin = _margin_frames(bundle, self.fps)
-        self._context = max(int(math.ceil(live.context * self.fps)), cfg.clip_len + self._margin)
+        # a window's features are computed over `_context` frames of audio up to its end (at
+        # least its frames and their margin): `_before` frames before its first
+        context = max(int(math.ceil(live.context * self.fps)), cfg.clip_len + margin_frames(bundle, self.fps))
+        self._before = context - cfg.clip_len
         self._buffer = np.zeros(self.sample_rate * 10, np.float32)  # every sample heard, in [: _n]
         self._n = 0
         self._frames: list[np.ndarray] = []  # emitted (k, D) normalised frames, in order
@@ -228,20 +229,12 @@ class LiveEngine:
 
     def _features(self, first: int, end: int) -> np.ndarray:
         """(end - first, F) speech features of frames [first, end), computed over the audio
-        from `_context` frames before `end` (aligned to a whole sample) to `lookahead` frames
-        after it, never more: so they do not depend on how much audio has arrived when
-        the window is sampled, and the same speech gives the same frames on any machine."""
-        cfg = self.bundle.config
-        start = max(0, end - self._context) // self._align * self._align
+        from `_before` frames before `first` (the window's `context`, back to a whole sample) to
+        `lookahead` frames after `end`, never more: so they do not depend on how much audio has
+        arrived when the window is sampled, and the same speech gives the same frames on any machine."""
         stop = samples_for_frames(end + self.live.lookahead, self.sample_rate, self.fps)  # arrived: ready()
-        audio = Audio(self._buffer[start * self.sample_rate // self.fps: min(self._n, stop)], self.sample_rate)
-        rows = slice(first - start, end - start)
-        parts = [mel_frames(audio, self.fps)[rows]]
-        if cfg.phonetic_input:
-            phonetic = self.bundle.phonetic
-            post = self.network.phone_posteriors(log_mel(audio, phonetic))
-            parts.append(stack_posteriors(post, end - first, phonetic.subframes, first - start))
-        return np.concatenate(parts, axis=1).astype(np.float32)
+        return frame_features(self.bundle, self.network, Audio(self._buffer[: self._n], self.sample_rate), first, end,
+                              before=self._before, stop=stop)
 
     # --- what was made ---------------------------------------------------------------
     def audio(self) -> Audio:
@@ -270,18 +263,3 @@ def _live_sampling(sampling: FoppasConfig, live: LiveConfig) -> FoppasConfig:
     if live.later_start is None or sampling.timesteps is not None:
         return sampling
     return replace(sampling.with_steps(LIVE_STEPS), later_start=live.later_start).with_steps(sampling.steps)
-
-
-def _alignment(sample_rate: int, fps: int) -> int:
-    """The fewest frames that span a whole number of samples (3 at 16 kHz and 15 fps)."""
-    return fps // math.gcd(sample_rate, fps)
-
-
-def _margin_frames(bundle: ModelBundle, fps: int) -> int:
-    """Frames of audio before a window that its features depend on: the mel's half window
-    and the phonetic encoder's reach, rounded up."""
-    reach_s = 2048 / 2 / 18000
-    if bundle.config.phonetic_input:
-        phonetic = bundle.phonetic
-        reach_s += (receptive_field(phonetic) + phonetic.subframes) / (phonetic.fps * phonetic.subframes)
-    return int(math.ceil(reach_s * fps)) + 1
