@@ -30,9 +30,10 @@ from diffsheg_core.checkpoints import ModelBundle, load_model
 from diffsheg_core.config import ModelConfig
 from diffsheg_core.foppas import PRESETS, sample_long
 from diffsheg_core.motion import write_arkit_json
-from diffsheg_core.pipeline import build_sampling, make_plan, speech_features, to_motion
+from diffsheg_core.pipeline import build_sampling, make_plan, to_motion
 from diffsheg_core.runtime.backends import open_network
 from diffsheg_core.settings import GenerateSettings
+from diffsheg_core.speech_features import speech_features
 from diffsheg_core.torch_layer.model import UniEG, state_arrays
 
 SPEECH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "audio" / "2_scott_0_3_3.wav"

@@ -190,6 +190,9 @@ SAMPLINGS = ("fast", "quality")
 """The named samplings: `fast` (the default) and `quality` (the model's own settings, 25 steps
 for the bundled model); `sampling_settings` turns a name, or a preset's, into settings."""
 
+SAMPLING_NAMES = SAMPLINGS + tuple(PRESETS)
+"""Every name a sampling setting takes (`--sampling`, a manifest's column, the panel)."""
+
 
 def fast_sampling(config: FoppasConfig) -> FoppasConfig:
     """A model's sampling settings `config` at FAST_TIMESTEPS: the first window from the top;
@@ -213,7 +216,7 @@ def sampling_settings(model_sampling: FoppasConfig, name: str) -> FoppasConfig:
         return model_sampling
     if name in PRESETS:
         return PRESETS[name]
-    raise DiffshegError(f"unknown sampling {name!r}: use {', '.join(SAMPLINGS + tuple(PRESETS))}")
+    raise DiffshegError(f"unknown sampling {name!r}: use {', '.join(SAMPLING_NAMES)}")
 
 
 def jump_schedule(start: int, jump_length: int = 1, jump_n_sample: int = 1) -> list[int]:
@@ -252,6 +255,11 @@ def plan_windows(n_frames: int, clip_len: int, overlap: int) -> list[tuple[int, 
         start = end - overlap
 
 
+def noised(values: np.ndarray, level: float, noise: np.ndarray) -> np.ndarray:
+    """`values` (clean) at noise level `level` (sqrt(1 - abar)), with `noise` drawn for them."""
+    return float((1 - level ** 2) ** 0.5) * values + level * noise
+
+
 @dataclass(frozen=True)
 class Fixed:
     """Values a window must pass through: `values` (1, L, D) wherever `mask` (1, L, D) is true."""
@@ -261,8 +269,7 @@ class Fixed:
 
     def paint(self, x: np.ndarray, level: float, noise: np.ndarray) -> np.ndarray:
         """`x` with the held values put in at noise level `level` (sqrt(1 - abar))."""
-        noisy = float((1 - level ** 2) ** 0.5) * self.values + level * noise
-        return np.where(self.mask, noisy, x).astype(np.float32, copy=False)
+        return np.where(self.mask, noised(self.values, level, noise), x).astype(np.float32, copy=False)
 
 
 class Foppas:
@@ -334,8 +341,7 @@ class Foppas:
             x = self.step(x, t_now, eps, randn(*x.shape) if self._steps_draw_noise else None)
             if known is not None:
                 level = sched.noise_level_prev(t_now)
-                noisy_known = float((1 - level ** 2) ** 0.5) * known + level * randn(batch, *known.shape[1:])
-                x = self.paint_overlap(x, noisy_known, level)
+                x = self.paint_overlap(x, noised(known, level, randn(batch, *known.shape[1:])), level)
             if fixed is not None:
                 x = fixed.paint(x, sched.noise_level_prev(t_now), randn(*x.shape))
             on_step(call, n_calls)
@@ -360,8 +366,8 @@ class Foppas:
         face, _ = sched.ddim_step(x[..., g:], index, eps[..., g:], self.face_eta, noise)
         level = sched.noise_level_prev(index)
         if known is not None:
-            noisy = float((1 - level ** 2) ** 0.5) * known[..., g:] + level * randn(len(x), *known.shape[1:])[..., g:]
-            face = self.paint_overlap(face, noisy, level)
+            face = self.paint_overlap(face, noised(known[..., g:], level, randn(len(x), *known.shape[1:])[..., g:]),
+                                      level)
         if fixed is not None:
             face = fixed.paint(np.concatenate([x[..., :g], face], axis=-1), level, randn(*x.shape))[..., g:]
         return np.concatenate([x[..., :g], face], axis=-1).astype(np.float32, copy=False)

@@ -464,10 +464,10 @@ def _parse(name: str, value, folder: Path):
 
 def _sampling(value) -> str:
     """A sampling's name (`--sampling`): fast, quality or an official preset, in any case."""
-    from .foppas import PRESETS, SAMPLINGS
+    from .foppas import PRESETS, SAMPLING_NAMES
 
     given = _text("sampling", value)
-    if given.lower() not in SAMPLINGS + tuple(PRESETS):
+    if given.lower() not in SAMPLING_NAMES:
         raise DiffshegError(f"unknown sampling {given!r}: use fast (the default), quality (the model's own "
                             f"sampling, 25 steps) or an official preset ({', '.join(PRESETS)})")
     return given.lower()

@@ -29,7 +29,7 @@ from .motion import Motion
 from .progress import ProgressCallback
 from .runtime.backends import open_network
 from .settings import GenerateSettings, StyleSpec
-from .speech_features import hubert_encoding, speech_chunks, speech_features  # noqa: F401 (callers' names)
+from .speech_features import speech_chunks
 from .validate import GUIDANCE, SKIP_GUIDANCE, STYLE_GUIDANCE, check_number, parse_whole
 
 AudioInput = Union[str, Path, np.ndarray, Audio]
@@ -281,9 +281,7 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     progress: called after every diffusion step; cancel: checked before every step.
     The result has one frame per 1/fps s of audio (fps of the model, 15 for BEAT).
     """
-    if isinstance(sampling, str):  # a named sampling is a setting
-        sampling, options = None, {**options, "sampling": sampling}
-    s = replace(settings or GenerateSettings(), **options)
+    s, sampling = _job_settings(settings, sampling, options)
     bundle = s.model if isinstance(s.model, ModelBundle) else load_model(s.model)
     network = open_network(bundle, s.backend, s.device, s.precision, s.threads)
     speech = open_speech(audio, sample_rate)
@@ -327,6 +325,15 @@ def with_legs(motion: Motion, s: GenerateSettings) -> Motion:
     return replace(legs, meta={**legs.meta, "lower_body": source})
 
 
+def _job_settings(settings: Optional[GenerateSettings], sampling: Union[str, FoppasConfig, None],
+                  options: dict) -> tuple[GenerateSettings, Optional[FoppasConfig]]:
+    """`settings` with `options` replacing its fields, and the sampling settings given
+    outright (None: the settings' named sampling); a `sampling` name is a setting."""
+    if isinstance(sampling, str):
+        sampling, options = None, {**options, "sampling": sampling}
+    return replace(settings or GenerateSettings(), **options), sampling
+
+
 def _sampling(bundle: ModelBundle, network, s: GenerateSettings, sampling: Optional[FoppasConfig],
               n_frames: int, holds: bool = False) -> tuple[Plan, Foppas, Callable[[np.ndarray], EpsFn]]:
     """The plan of `s` for `n_frames` frames (`holds`: see make_plan), its sampler and eps factory."""
@@ -347,7 +354,8 @@ def generation_meta(bundle: ModelBundle, s: GenerateSettings, plan: Plan, networ
         "guidance": plan.guidance_scale,
         "skip_guidance": plan.guidance.skip,
         "sampling": plan.sampling, "steps": config.steps,
-        "timesteps": None if config.timesteps is None else list(config.timesteps), "overlap": config.overlap, "candidates": config.candidates,
+        "timesteps": None if config.timesteps is None else list(config.timesteps),
+        "overlap": config.overlap, "candidates": config.candidates,
         "prior_start": uses_prior(bundle, config), "carry": config.carry,
         "refine": config.refine, "refine_skip": config.refine_skip if config.refine is not None else None,
         "clip_len": bundle.config.clip_len, "backend": network.name,
@@ -376,9 +384,7 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     (`foppas.inpaint_range`). Every frame outside the range is returned bit for bit; with
     `hold_face` the take's face inside it too (only the gestures change). `pins` are poses the new
     motion passes through. `sampling` as for `generate`: a name or a FoppasConfig."""
-    if isinstance(sampling, str):  # a named sampling is a setting
-        sampling, options = None, {**options, "sampling": sampling}
-    s = replace(settings or GenerateSettings(), **options)
+    s, sampling = _job_settings(settings, sampling, options)
     bundle = s.model if isinstance(s.model, ModelBundle) else load_model(s.model)
     layout = bundle.layout
     whole, motion = motion, upper_body(motion)  # the take's hips and legs stay as they are

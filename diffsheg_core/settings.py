@@ -121,9 +121,7 @@ class GenerateSettings:
         self._set("seed", check_seed(self.seed))
         if self.face_seed is not None:
             self._set("face_seed", check_seed(self.face_seed))
-        from .foppas import PRESETS, SAMPLINGS  # numpy: as emotions are
-
-        _check_choice("sampling", self.sampling, SAMPLINGS + tuple(PRESETS))
+        _check_choice("sampling", self.sampling, _sampling_names())
         for name, label, bounds, whole in _NUMBERS:
             if getattr(self, name) is not None:
                 self._set(name, check_number(label, getattr(self, name), bounds, whole))
@@ -197,9 +195,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _sampling_names() -> tuple[str, ...]:
-    from .foppas import PRESETS, SAMPLINGS
+    from .foppas import SAMPLING_NAMES  # numpy: only where a sampling is checked, as emotions are
 
-    return SAMPLINGS + tuple(PRESETS)
+    return SAMPLING_NAMES
 
 
 def from_arguments(args: argparse.Namespace) -> GenerateSettings:

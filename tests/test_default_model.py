@@ -182,7 +182,8 @@ def test_onnx_and_torch_backends_agree_on_the_bundled_model(bundle, speech):
     float32 rounding in the network differs (per call at most 1e-4; whole takes 1e-3)."""
     from diffsheg_core.diffusion import Schedule
     from diffsheg_core.guidance import Guidance, step_eps
-    from diffsheg_core.pipeline import speech_features, style_vector
+    from diffsheg_core.pipeline import style_vector
+    from diffsheg_core.speech_features import speech_features
 
     short = Audio(speech.samples[: 10 * speech.sample_rate], speech.sample_rate)
     onnx, torch_net = open_network(bundle, "onnx"), open_network(bundle, "torch", "cpu")

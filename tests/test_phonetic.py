@@ -17,7 +17,8 @@ from diffsheg_core.errors import CheckpointError, DiffshegError
 from diffsheg_core.foppas import PRESETS
 from diffsheg_core.phonetic import (ENCODER_RATE, PHONES, PhoneticConfig, encoder_speech, log_mel, raw_log_mel,
                                    recogniser_frames, stack_posteriors)
-from diffsheg_core.pipeline import generate, speech_features
+from diffsheg_core.pipeline import generate
+from diffsheg_core.speech_features import speech_features
 from diffsheg_core.runtime.backends import open_network
 from diffsheg_core.torch_layer.export import with_graphs
 from diffsheg_core.torch_layer.model import PhoneticEncoder, state_arrays

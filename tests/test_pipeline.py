@@ -227,7 +227,8 @@ def prior_model(model, data_dir):
 def test_streaming_foppas_in_small_pushes_matches_generate(speech, model, prior_model, with_prior):
     from diffsheg_core.audio import load_audio
     from diffsheg_core.foppas import FoppasStream
-    from diffsheg_core.pipeline import build_sampling, make_plan, speech_features, to_motion
+    from diffsheg_core.pipeline import build_sampling, make_plan, to_motion
+    from diffsheg_core.speech_features import speech_features
     from diffsheg_core.runtime.backends import open_network
 
     model = prior_model if with_prior else model
@@ -360,11 +361,11 @@ def test_the_same_speech_gives_the_same_features_at_16_22_and_44_khz(data_dir, n
     bundle = load_model()
     network = open_network(bundle)
     audio = load_audio(data_dir / name)
-    features = {rate: pipeline.speech_features(bundle, network, resample(audio, rate))
+    features = {rate: speech_features.speech_features(bundle, network, resample(audio, rate))
                 for rate in (16000, 22050, 44100)}
     monkeypatch.setattr(speech_features, "PIECE_SECONDS", 3)
-    features["file"] = np.concatenate(list(pipeline.speech_chunks(bundle, network,
-                                                                  pipeline.open_speech(data_dir / name))))
+    features["file"] = np.concatenate(list(speech_features.speech_chunks(bundle, network,
+                                                                         pipeline.open_speech(data_dir / name))))
     mel, reference = bundle.config.mel_dim, features[16000]
     for rate, found in features.items():
         assert found.shape == reference.shape, rate

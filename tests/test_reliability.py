@@ -333,9 +333,9 @@ def test_pieces_of_a_long_recording_give_the_features_of_the_whole(data_dir, mon
     path = data_dir / "audio" / "2_scott_0_3_3.wav"  # 68 s
     bundle = load_model()
     network = open_network(bundle)
-    whole = pipeline.speech_features(bundle, network, load_audio(path))
+    whole = speech_features.speech_features(bundle, network, load_audio(path))
     monkeypatch.setattr(speech_features, "PIECE_SECONDS", 20)  # four pieces
-    pieces = list(pipeline.speech_chunks(bundle, network, pipeline.open_speech(path)))
+    pieces = list(speech_features.speech_chunks(bundle, network, pipeline.open_speech(path)))
     assert [len(p) for p in pieces] == [300, 300, 300, 120]
     joined = np.concatenate(pieces)
     mel = bundle.config.mel_dim

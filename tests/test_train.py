@@ -215,7 +215,7 @@ def test_tiny_model_overfits_a_clip_and_reproduces_it(tmp_path):
 
 
 def test_training_with_hubert_features(small_root, tmp_path, tiny_hubert):
-    from diffsheg_core.pipeline import hubert_encoding
+    from diffsheg_core.speech_features import hubert_encoding
     from diffsheg_core.training.data import load_takes
 
     model = {**TINY, "speech_encoder": "hubert", "speech_dim": 32, "speech_latent": 16}
@@ -245,7 +245,7 @@ def tiny_phonetic_encoder(path: Path) -> torch.nn.Module:
 
 
 def test_training_with_the_phonetic_encoder_bundles_it(small_root, tmp_path):
-    from diffsheg_core.pipeline import speech_features
+    from diffsheg_core.speech_features import speech_features
     from diffsheg_core.runtime.backends import open_network
     from diffsheg_core.training.train_phonetic import speech_encoding
 

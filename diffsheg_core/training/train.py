@@ -40,7 +40,8 @@ from .data import ClipDataset, DataConfig, NormStats, load_takes, normalisation
 from ..diffusion import Schedule
 from ..errors import DiffshegError
 from ..foppas import PRESETS, FoppasConfig, with_overrides
-from ..pipeline import check_skip_guidance, hubert_encoding
+from ..pipeline import check_skip_guidance
+from ..speech_features import hubert_encoding
 from ..rigs import get_layout
 from ..validate import check_number
 from .train_phonetic import load_phonetic, speech_encoding as phonetic_speech
