@@ -17,7 +17,7 @@ import diffsheg_core
 from blender_addon.features import regenerate
 from blender_addon.scene import takes
 from blender_addon.scene.bake import BakeOptions, bake_motion, group_values, plan_keys
-from blender_addon.scene.keying import fcurves_of
+from blender_addon.scene.keying import VALUE_TOLERANCE, action_fcurves, animators_keys, fcurves_of
 from blender_addon.scene.preset import load_preset
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.keyframes import rotation_angle, to_quaternions
@@ -198,8 +198,8 @@ def test_an_animators_key_inside_the_range_is_a_pin(motion, speech):
 
 
 def _unkeyed_frame(armature, bone: str, frames) -> int:
-    """The first of `frames` where the take put no key on `bone`'s rotation: keying a frame that
-    holds a generated key keeps that key's type (Blender 5.0), see the xfail below."""
+    """The first of `frames` where the take put no key on `bone`'s rotation (a key of the take's
+    keyed again unchanged stays the take's: test_a_generated_key_keyed_again_unchanged_is_no_pin)."""
     keyed = {int(p.co[0]) for fc in fcurves_of(armature) if fc.data_path == f'pose.bones["{bone}"].rotation_euler'
              for p in fc.keyframe_points}
     return next(f for f in frames if f not in keyed)
@@ -218,19 +218,60 @@ def test_keys_that_cannot_be_pins_are_named(motion, speech):
     assert any(f"{ARM} at frame {edge}" in n and "edge" in n for n in request.notes), request.notes
 
 
-@pytest.mark.xfail(strict=True, reason="keying a frame that holds a generated key keeps the GENERATED type "
-                                       "(Blender 5.0), so the animator's new value there is not told from the "
-                                       "take's: not a pin yet (noticed 2026-12-05)")
-def test_a_generated_key_keyed_again_is_the_animators(motion, speech):
-    scene, options = _scene(motion, speech)
+def _key_again(scene, options, nudge: float, frame: int | None = None) -> int:
+    """Key the arm's rotation again at `frame` (default: the first frame of the range, 20 frames
+    in, where the take put a key), its pose there turned by `nudge` radians about x and z; the frame."""
+    path = f'pose.bones["{ARM}"].rotation_euler'
+    if frame is None:
+        frame = next(int(p.co[0]) for fc in fcurves_of(options.armature) if fc.data_path == path
+                     for p in fc.keyframe_points if FIRST + 20 <= p.co[0] <= LAST - 20)
     bone = options.armature.pose.bones[ARM]
-    frame = next(int(p.co[0]) for fc in fcurves_of(options.armature)
-                 if fc.data_path == f'pose.bones["{ARM}"].rotation_euler' for p in fc.keyframe_points
-                 if FIRST + 20 <= p.co[0] <= LAST - 20)
     scene.frame_set(frame)
-    bone.rotation_euler = (bone.rotation_euler[0] + 0.4, bone.rotation_euler[1], bone.rotation_euler[2] - 0.3)
+    bone.rotation_euler = (bone.rotation_euler[0] + nudge, bone.rotation_euler[1], bone.rotation_euler[2] - nudge)
     bone.keyframe_insert("rotation_euler", frame=frame)
-    assert {p.joint for p in regenerate.prepare_range(scene, options, FIRST, LAST).pins} == {ARM}
+    return frame
+
+
+def _keys_at(id_data, path: str, frame: int) -> dict:
+    """{index: (co, left handle, right handle, type)} of the keys of `path` at `frame`."""
+    return {index: key for (p, index), keys in _keys(id_data).items() if p == path for key in keys
+            if key[0][0] == frame}
+
+
+def test_a_generated_key_keyed_again_is_the_animators(motion, speech):
+    """Keying a frame that holds a generated key keeps its GENERATED type (Blender 5.0): the
+    value the animator set tells the key from the take's (issue 40). It is a pin, and in the
+    new take the bone's rotation keys at that frame stay as set, typed KEYFRAME; every other
+    key of the new take is the take's."""
+    scene, options = _scene(motion, speech)
+    path = f'pose.bones["{ARM}"].rotation_euler'
+    frame = _key_again(scene, options, 0.4)
+    set_keys = _keys_at(options.armature, path, frame)
+    assert {key[3] for key in set_keys.values()} == {"GENERATED"}  # as Blender 5.0 leaves them
+
+    request, new, result = _regenerate(scene, options, speech, seed=9)
+
+    assert {p.joint for p in request.pins} == {ARM}
+    assert _keys_at(options.armature, path, frame) == {i: (*key[:3], "KEYFRAME") for i, key in set_keys.items()}
+    action, slot = takes.playing_action(options.armature)
+    assert action.name == result.take
+    fcurves = action_fcurves(action, slot)
+    theirs = {(fc.data_path, float(fc.keyframe_points[int(i)].co[0]))
+              for fc, found in zip(fcurves, animators_keys(action, fcurves)) for i in np.flatnonzero(found)}
+    assert theirs == {(path, float(frame))}
+
+
+def test_a_generated_key_keyed_again_unchanged_is_no_pin(motion, speech):
+    """Keying the take's own pose again at a generated key, as it is or moved by float noise
+    within keying.VALUE_TOLERANCE, leaves the key the take's: no pin."""
+    scene, options = _scene(motion, speech)
+    path = f'pose.bones["{ARM}"].rotation_euler'
+    frame = _key_again(scene, options, 0.0)
+    assert regenerate.prepare_range(scene, options, FIRST, LAST).pins == ()
+    before = _keys_at(options.armature, path, frame)
+    _key_again(scene, options, VALUE_TOLERANCE / 4, frame)
+    assert _keys_at(options.armature, path, frame)[0][0] != before[0][0]  # the value did move
+    assert regenerate.prepare_range(scene, options, FIRST, LAST).pins == ()
 
 
 def test_a_take_can_start_from_the_characters_pose(motion, speech):

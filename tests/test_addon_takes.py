@@ -12,7 +12,7 @@ from addon_fixtures import exit_before_blender_teardown  # noqa: F401 (fixture)
 import diffsheg_core
 from blender_addon.scene import takes
 from blender_addon.scene.bake import BakeOptions, bake_motion
-from blender_addon.scene.keying import action_fcurves, fcurves_of
+from blender_addon.scene.keying import BAKED, action_fcurves, animators_keys, fcurves_of
 from blender_addon.scene.preset import load_preset
 
 
@@ -82,6 +82,36 @@ def test_three_generations_make_three_takes_and_the_last_plays(speech, motions, 
     assert takes.playing(ob) == "talk take 1"
     assert bpy.ops.diffsheg.use_take(take="talk take 2") == {"FINISHED"}
     assert ob.animation_data.action.name == "talk take 2"
+
+
+def _animators(target) -> set:
+    """(data path, index, frame) of the keys of the Action `target` plays that are the animator's."""
+    action, slot = takes.playing_action(target)
+    fcurves = action_fcurves(action, slot)
+    return {(fc.data_path, fc.array_index, float(fc.keyframe_points[int(i)].co[0]))
+            for fc, found in zip(fcurves, animators_keys(action, fcurves)) for i in np.flatnonzero(found)}
+
+
+def test_what_a_take_baked_is_saved_with_the_file(speech, motions, tmp_path):
+    """The record of the keys a take baked (keying.record_baked) is kept in the .blend: after
+    reopening, every key of the take is still the take's, and a generated key whose value the
+    animator changed (its type stays GENERATED) is the animator's, with the rest of that
+    rotation's keys at its frame (issue 40). A take saved before the record: by type alone."""
+    scene = reset_scene(fps=24)
+    ob, face = import_beat_armature(), append_face()
+    options = BakeOptions(armature=ob, face_meshes=[face], preset=load_preset("beat"), add_sound=False)
+    bake_motion(scene, motions[0], str(speech), options)
+    path, names = tmp_path / "baked.blend", (ob.name, face.name)
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+    ob, face = (bpy.data.objects[n] for n in names)
+    assert _animators(ob) == set() and _animators(face.data.shape_keys) == set()
+    arm = 'pose.bones["RightArm"].rotation_euler'
+    key = next(fc for fc in fcurves_of(ob) if (fc.data_path, fc.array_index) == (arm, 0)).keyframe_points[1]
+    key.co[1] += 0.3
+    assert key.type == "GENERATED" and _animators(ob) == {(arm, i, key.co[0]) for i in range(3)}
+    del ob.animation_data.action[BAKED]
+    assert _animators(ob) == set()
 
 
 def test_a_take_number_skips_names_already_used(speech, motions):

@@ -3,12 +3,13 @@
 The animator picks scene frames [first, last] (the preview range, or frames in the
 panel). `prepare_range` (main thread) finds the take playing on the character, the
 Motion it was made from (takes.source_of), the model frames whose change reaches only
-those scene frames, and the pins: every key of the animator's (any type but GENERATED, `keying.GENERATED_KEY`)
-on a driven bone inside the range, turned back through the retargeting into a pose of
-the model's joint. `diffsheg_core.regenerate` then samples the range anew off the main
-thread, and `apply_range` (main thread) makes the result a new take: a copy of the
-take's Actions in which only the keys inside the range are replaced. Each F-curve is
-cut exactly at the frames just outside the range (`_cut`), so the
+those scene frames, and the pins: every key of the animator's (`keying.animators_keys`:
+any type but GENERATED, or a generated key whose value the animator changed) on a driven
+bone inside the range, turned back through the retargeting into a pose of the model's
+joint. `diffsheg_core.regenerate` then samples the range anew off the main thread, and
+`apply_range` (main thread) makes the result a new take: a copy of the take's Actions
+(the animator's keys there typed KEYFRAME) in which only the keys inside the range are
+replaced. Each F-curve is cut exactly at the frames just outside the range (`_cut`), so the
 curves outside it, and every key there, stay as they were; the animator's keys inside
 stay as set; new GENERATED keys are fitted between them (`keyframes.fit_span`) within
 the error bound, continuing the curves at both cuts with their own slopes.
@@ -32,7 +33,8 @@ from diffsheg_core.rotations import axis_angle_to_matrix, convert
 
 from ..scene import takes
 from ..scene.bake import BakeOptions, BakeResult, Group, auto_preset, group_values, plan_keys, scene_fps
-from ..scene.keying import GENERATED_KEY, Undo, action_fcurves, fcurves_of, undone_on_error
+from ..scene.keying import (GENERATED_KEY, Undo, action_fcurves, animators_keys, fcurves_of, mark_animators,
+                            record_baked, undone_on_error)
 from ..scene.retarget import joint_rotation, map_armature, passed_rotation
 
 REACH = 2  # model frames on either side that one scene frame's value depends on (PCHIP face weights)
@@ -144,15 +146,17 @@ def _mapping(options: BakeOptions, motion: Motion):
 
 
 def _animator_keys(armature, first: int, last: int) -> list[tuple[str, float]]:
-    """(bone, frame) of every key not typed GENERATED on a bone's rotation inside [first, last]."""
+    """(bone, frame) of every key of the animator's (keying.animators_keys) on a bone's
+    rotation inside [first, last]."""
+    action, slot = takes.playing_action(armature, first)
+    fcurves = [fc for fc in (action_fcurves(action, slot) if action is not None else [])
+               if fc.data_path.startswith("pose.bones[") and ".rotation_" in fc.data_path]
     found = set()
-    for fc in fcurves_of(armature, first):
-        if not fc.data_path.startswith("pose.bones[") or ".rotation_" not in fc.data_path:
-            continue
+    for fc, theirs in zip(fcurves, animators_keys(action, fcurves)):
         bone = fc.data_path.split('"')[1].replace('\\"', '"')
-        for point in fc.keyframe_points:
-            frame = float(point.co[0])
-            if point.type != GENERATED_KEY and first <= frame <= last:
+        for i in np.flatnonzero(theirs):
+            frame = float(fc.keyframe_points[int(i)].co[0])
+            if first <= frame <= last:
                 found.add((bone, frame))
     return sorted(found, key=lambda item: (item[1], item[0]))
 
@@ -222,8 +226,11 @@ def apply_range(scene, request: RangeRequest, motion: Motion, options: BakeOptio
                 continue
             action = _copy_take(source_action, take, audio, number, id_data, undo)
             slot = action.slots[0] if len(getattr(action, "slots", ())) else None
-            n_keys += sum(splice_group(action_fcurves(action, slot), group, request, plan.options)
+            fcurves = action_fcurves(action, slot)
+            mark_animators(action, fcurves)  # from here on, GENERATED keys are the take's
+            n_keys += sum(splice_group(fcurves, group, request, plan.options)
                           for group, old_group in zip(groups, old_groups) if _changed(group, old_group, request))
+            record_baked(action, fcurves)
             actions.append(action)
             replaced.append(source_action)
         if not actions:

@@ -20,7 +20,8 @@ from diffsheg_core.keyframes import ErrorFn, Keys, fit_keys, rotation_error, val
 from diffsheg_core.motion import Motion, resample_motion, smooth_frames
 
 from . import takes
-from .keying import Channel, Undo, new_action, rotation_channels, shape_key_channel, undone_on_error, write_channels
+from .keying import (Channel, Undo, action_fcurves, new_action, record_baked, rotation_channels,
+                     shape_key_channel, undone_on_error, write_channels)
 from .feet import plant_foot, scene_spans
 from .preset import AUTO, available_presets, choose_preset, load_preset, preset_fit
 from .retarget import ArmatureMapping, Preset, ShapeKeyMapping, bone_quaternions, map_armature, map_shape_keys
@@ -321,6 +322,7 @@ def bake_motion(scene, motion: Motion, audio_path: str | None, options: BakeOpti
             takes.mark(action, take, audio_name, number, id_data)
             channels = [ch for g in groups for ch in (g.channels if options.every_frame else with_keys(g))]
             n_keys += write_channels(action, slot, channels, options.start_frame)
+            record_baked(action, action_fcurves(action, slot))
             if options.nla_strip is not None:
                 takes.play_in_sequence(id_data, options.nla_strip, undo)
             actions.append(action.name)

@@ -12,10 +12,16 @@ frame. Every key written is typed GENERATED_KEY: GENERATED, Blender's type for k
 made (4.2+); any other type is the animator's. Blender before 4.2 has no GENERATED type (the
 legacy zip's Blenders), and there the keys are JITTER, its type for "a filler or baked
 keyframe", which an animator there rarely sets by hand.
+
+Type alone does not tell the animator's keys: keying a frame that holds a generated key
+keeps its type (Blender 5.0). So a take's Action also records the frame and value of every
+key it baked (`record_baked`), and a generated key whose value is no longer the one baked
+is the animator's too (`animators_keys`).
 """
 
 from __future__ import annotations
 
+import json
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Callable, Iterator
@@ -117,6 +123,101 @@ def write_channels(action, slot, channels: list[Channel], start_frame: float) ->
 
 
 GENERATED_KEY = "GENERATED" if "GENERATED" in bpy.types.Keyframe.bl_rna.properties["type"].enum_items else "JITTER"
+
+
+BAKED = "diffsheg_baked"  # on a take's Action: the frame and value of each key it baked (record_baked)
+VALUE_TOLERANCE = 1e-4    # a key this near its baked value is the take's (float noise of keying the same pose again)
+FRAME_TOLERANCE = 1e-3    # frames: a key this near a baked key's frame is at that frame
+
+
+def record_baked(action, fcurves: list) -> None:
+    """Keep on `action` (a custom property: saved with the .blend, copied with the Action)
+    the frame and value of every generated key of `fcurves`, its F-curves, as they are now."""
+    generated = _enum("type", GENERATED_KEY)
+    curves, counts, keys = [], [], []
+    for fc in fcurves:
+        co, types = _keys_of(fc)
+        curves.append([fc.data_path, fc.array_index])
+        counts.append(int(np.count_nonzero(types == generated)))
+        keys.append(co[types == generated])
+    action[BAKED] = {"curves": json.dumps(curves), "counts": np.array(counts, dtype=np.int32),
+                     "keys": np.concatenate(keys or [np.empty((0, 2))]).astype(np.float32).ravel()}
+
+
+def animators_keys(action, fcurves: list) -> list[np.ndarray]:
+    """Per F-curve of `action` in `fcurves`, which of its keys are the animator's: those not
+    typed GENERATED, and those typed GENERATED whose frame and value are not one the take
+    baked (`record_baked`; a take made before the record: by type alone). Where one of a
+    property's keys at a frame is the animator's, all of them there are: keying keys the
+    whole property (a bone's rotation), and the animator keyed that pose."""
+    generated = _enum("type", GENERATED_KEY)
+    baked = _baked(action)
+    frames, found = [], []
+    for fc in fcurves:
+        co, types = _keys_of(fc)
+        theirs = types != generated
+        if baked is not None:
+            theirs |= ~_matches(co, baked.get((fc.data_path, fc.array_index), np.empty((0, 2), dtype=np.float32)))
+        frames.append(co[:, 0])
+        found.append(theirs)
+    edited: dict[str, np.ndarray] = {}
+    for fc, at, theirs in zip(fcurves, frames, found):
+        edited[fc.data_path] = np.union1d(edited.get(fc.data_path, np.empty(0, dtype=np.float32)), at[theirs])
+    return [theirs | _near(at, edited[fc.data_path]) for fc, at, theirs in zip(fcurves, frames, found)]
+
+
+def mark_animators(action, fcurves: list) -> None:
+    """Type KEYFRAME the keys of `fcurves` (F-curves of `action`) typed GENERATED that are
+    the animator's (`animators_keys`), so the Dope Sheet shows them as such."""
+    for fc, theirs in zip(fcurves, animators_keys(action, fcurves)):
+        for i in np.flatnonzero(theirs):
+            point = fc.keyframe_points[int(i)]
+            if point.type == GENERATED_KEY:
+                point.type = "KEYFRAME"
+
+
+def _keys_of(fc) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 2) frames and values of `fc`'s keys, and their types (enum values)."""
+    points = fc.keyframe_points
+    co, types = np.empty(2 * len(points), dtype=np.float32), np.empty(len(points), dtype=np.int32)
+    points.foreach_get("co", co)
+    points.foreach_get("type", types)
+    return co.reshape(-1, 2), types
+
+
+def _baked(action) -> dict[tuple[str, int], np.ndarray] | None:
+    """{(data path, index): (n, 2) frames and values baked} of `action`; None where it keeps no record."""
+    record = action.get(BAKED)
+    if record is None:
+        return None
+    curves = json.loads(record["curves"])
+    ends = np.cumsum(np.array(record["counts"], dtype=np.int64))
+    keys = np.array(record["keys"], dtype=np.float32).reshape(-1, 2)
+    return {(path, int(index)): keys[end - count: end]
+            for (path, index), count, end in zip(curves, np.diff(ends, prepend=0), ends)}
+
+
+def _matches(co: np.ndarray, baked: np.ndarray) -> np.ndarray:
+    """Per key of `co` ((n, 2) frames, values), whether `baked` holds a key at its frame with its value."""
+    if len(baked) == 0:
+        return np.zeros(len(co), dtype=bool)
+    baked = baked[np.argsort(baked[:, 0], kind="stable")]
+    i = _nearest(baked[:, 0], co[:, 0])
+    return (np.abs(baked[i, 0] - co[:, 0]) <= FRAME_TOLERANCE) & (np.abs(baked[i, 1] - co[:, 1]) <= VALUE_TOLERANCE)
+
+
+def _near(frames: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """Per frame of `frames`, whether one of `wanted` (sorted) lies within FRAME_TOLERANCE of it."""
+    if len(wanted) == 0:
+        return np.zeros(len(frames), dtype=bool)
+    return np.abs(wanted[_nearest(wanted, frames)] - frames) <= FRAME_TOLERANCE
+
+
+def _nearest(ordered: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Per value of `x`, the index of the nearest value of `ordered` (sorted, not empty)."""
+    right = np.minimum(np.searchsorted(ordered, x), len(ordered) - 1)
+    left = np.maximum(right - 1, 0)
+    return np.where(np.abs(ordered[left] - x) < np.abs(ordered[right] - x), left, right)
 
 
 def _enum(prop: str, item: str) -> int:
