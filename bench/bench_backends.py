@@ -77,7 +77,7 @@ def flops_per_call() -> tuple[float, int]:
     from diffsheg_core.checkpoints import load_model
     from diffsheg_core.diffusion import Schedule
     from diffsheg_core.guidance import Guidance, step_eps
-    from diffsheg_core.pipeline import style_vector, style_weights
+    from diffsheg_core.style import style_vector, style_weights
     from diffsheg_core.torch_layer.backend import TorchNetwork
 
     bundle = load_model()

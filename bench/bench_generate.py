@@ -27,6 +27,7 @@ import torch
 from diffsheg_core.audio import load_audio
 from diffsheg_core.bvh import write_bvh
 from diffsheg_core.checkpoints import ModelBundle, load_model
+from diffsheg_core.conditioning import Conditioning
 from diffsheg_core.config import ModelConfig
 from diffsheg_core.foppas import PRESETS, sample_long
 from diffsheg_core.motion import write_arkit_json
@@ -68,12 +69,13 @@ def run(bundle: ModelBundle, audio_path: Path, backend: str, device: str, hubert
     times["load"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    cond = speech_features(bundle, network, speech, hubert_path=hubert)
+    features = speech_features(bundle, network, speech, hubert_path=hubert)
     times["features"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    sampler, make = build_sampling(bundle, network, make_plan(bundle, GenerateSettings(model=bundle)))
-    out_frames = sample_long(sampler, make, cond, 0)
+    plan = make_plan(bundle, GenerateSettings(model=bundle), n_frames=len(features))
+    sampler, make = build_sampling(bundle, network, plan)
+    out_frames = sample_long(sampler, make, Conditioning(features, plan.style), 0)
     times["sampling"] = time.perf_counter() - t
 
     t = time.perf_counter()

@@ -9,9 +9,9 @@ torch backend), `norm.mean`, `norm.std`, `onnx.*` (the exported graphs as bytes,
 onnxruntime backend), optionally `phonetic.*` (the phonetic encoder) and `prior.*` (the
 gesture prior), and JSON metadata (config, sampling, guidance scales, model id, model
 card). Reading it needs numpy and safetensors only. Official checkpoints are torch pickles
-holding the state dict under `encoder` (their format, configuration and normalisation
-statistics: `official_checkpoints`); they need torch, are read with `weights_only=True`
-(in `torch_layer.official`) and loaded strictly here.
+holding the state dict under `encoder`; they need torch, are read with `weights_only=True`
+(in `torch_layer.official`) and loaded strictly by `official_checkpoints`, which knows their
+format, configuration and normalisation statistics; `load_model` tells the two apart.
 """
 
 from __future__ import annotations
@@ -24,16 +24,16 @@ from typing import Optional
 
 import numpy as np
 
-from .config import ModelConfig, style_names_fit
+from .config import ModelConfig
 from .errors import CheckpointError
 from .files import atomic_write
 from .foppas import FoppasConfig
-from .official_checkpoints import (OFFICIAL, STATS_ENV, STYLE_KEY, config_from_state, official_shapes,
-                                   official_state_dict, official_stats)
+from .official_checkpoints import OFFICIAL, STATS_ENV, STYLE_KEY, load_official, official_shapes
 from .phonetic import PhoneticConfig
 from .prior import GesturePrior
 from .rigs import Layout, get_layout
 from .runtime.graphs import read_graph
+from .style import style_names_fit
 
 FORMAT = "diffsheg-core/1"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -314,30 +314,6 @@ def _stored_prior(cfg: ModelConfig, tensors: dict, path: Path) -> Optional[Gestu
     return prior
 
 
-# ---------------------------------------------------------------- official checkpoints
-
-def _load_official(path: Path, dataset: Optional[str], stats_dir) -> ModelBundle:
-    try:
-        from .torch_layer.model import UniEG, load_state_strict
-        from .torch_layer.official import read_official_pickle
-    except ImportError:
-        raise CheckpointError(f"{path}: official DiffSHEG checkpoints are torch pickles and need torch, "
-                              f"which this installation lacks: {TORCH_HOW_TO}") from None
-    state = official_state_dict(read_official_pickle(path), path)
-    check_weights(state, str(path))
-    cfg = config_from_state(state, dataset, path)
-    name = "beat" if cfg.layout == "beat" else "show"
-    load_state_strict(UniEG(cfg), state, str(path),
-                      hint=f"the checkpoint is not the official {name.upper()} model: try --dataset "
-                           f"{'show' if name == 'beat' else 'beat'}, or the file is truncated")
-    mean, std = official_stats(name, stats_dir, beside=path.parent)
-    setup = OFFICIAL[name]
-    return ModelBundle(config=cfg, weights=state, mean=mean, std=std, sampling=setup.sampling,
-                       guidance=setup.guidance if cfg.classifier_free else None,
-                       model_id=f"official-{name}:{path.name}", trained=True,
-                       info={"source": "DiffSHEG official checkpoint", "dataset": name}, source=str(path))
-
-
 # ---------------------------------------------------------------- the default and entry point
 
 def is_ours(path: Path) -> bool:
@@ -440,4 +416,4 @@ def load_model(source: str | Path | None = None, *, dataset: Optional[str] = Non
         raise CheckpointError(f"unknown configuration '{dataset}': choose beat or show")
     if is_ours(path):
         return _load_ours(path)
-    return _load_official(path, dataset, stats_dir)
+    return load_official(path, dataset, stats_dir)

@@ -103,9 +103,3 @@ class ModelConfig:
             raise ValueError(f"unknown model configuration fields: {sorted(unknown)}")
         return cls(**values)
 
-
-def style_names_fit(names, style_dim: int) -> bool:
-    """Whether `names` can be a model's style names: none, or `style_dim` different names
-    (non-empty text), one per style class."""
-    return names == [] or (isinstance(names, list) and len(names) == style_dim
-                           and all(isinstance(n, str) and n for n in names) and len(set(names)) == len(names))

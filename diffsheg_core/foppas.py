@@ -31,7 +31,8 @@ every step like the overlap, re-noised to the step's level, and are exact at the
 before it (the known overlap) and after it (held): the animator's "regenerate this range".
 
 The sampler is model-agnostic: it calls `eps_fn(x_t, index)` for a window, where
-`index` is the step in the respaced schedule. `FoppasStream` takes conditioning
+`index` is the step in the respaced schedule, and `make_eps_fn` makes that function of a
+window's `Conditioning` (`Conditioning.frames`). `FoppasStream` takes conditioning
 frames as they arrive and returns motion frames as soon as they are final.
 
 Everything here is numpy, float32 motion: the noise comes from numpy's PCG64 generator
@@ -47,6 +48,7 @@ from typing import Callable, Optional, Protocol
 
 import numpy as np
 
+from .conditioning import Conditioning
 from .diffusion import Schedule
 from .errors import DiffshegError
 from .progress import Progress, ProgressCallback, check_cancel
@@ -563,13 +565,13 @@ class _Spliced:
 class FoppasStream:
     """Streaming FOPPAS: push conditioning frames, get back final motion frames.
 
-    `make_eps_fn(cond)` turns a window of conditioning frames (1, L, F) into an
+    `make_eps_fn(cond)` turns the `Conditioning` of a window's L frames into an
     `EpsFn`. A window is sampled as soon as its conditioning is complete; its last
     `overlap` frames are held back until the next window has re-painted them, so the
     latency is at most one window plus its compute.
     """
 
-    def __init__(self, sampler: Foppas, make_eps_fn: Callable[[np.ndarray], EpsFn], seed: int,
+    def __init__(self, sampler: Foppas, make_eps_fn: Callable[[Conditioning], EpsFn], seed: int,
                  progress: Optional[ProgressCallback] = None,
                  cancel: Optional[threading.Event] = None, expected_frames: Optional[int] = None,
                  face_seed: Optional[int] = None):
@@ -581,13 +583,13 @@ class FoppasStream:
         self.expected_windows = (
             len(plan_windows(expected_frames, sampler.clip_len, sampler.config.overlap))
             if expected_frames else 0)
-        self._cond: Optional[np.ndarray] = None   # conditioning from the current window start
+        self._cond: Optional[Conditioning] = None  # conditioning from the current window start
         self._tail: Optional[np.ndarray] = None   # held-back overlap frames (1, overlap, D)
         self._window = 0
 
-    def push(self, cond: np.ndarray) -> np.ndarray:
-        """Add (n, F) conditioning frames; return the (k, D) motion frames now final."""
-        self._cond = cond if self._cond is None else np.concatenate([self._cond, cond])
+    def push(self, cond: Conditioning) -> np.ndarray:
+        """Add n frames' conditioning; return the (k, D) motion frames now final."""
+        self._cond = cond if self._cond is None else Conditioning.join([self._cond, cond])
         out = []
         while len(self._cond) >= self.sampler.clip_len:
             out.append(self._run_window(self.sampler.clip_len))
@@ -607,7 +609,7 @@ class FoppasStream:
 
     def _run_window(self, length: int) -> np.ndarray:
         overlap = self.sampler.config.overlap
-        cond = self._cond[None, :length]
+        cond = self._cond.frames(0, length)
         known = self._tail if (self._tail is not None and overlap > 0) else None
         clip, total = self._window, max(self.expected_windows, self._window + 1)
 
@@ -624,7 +626,7 @@ class FoppasStream:
         self._window += 1
         keep = length - overlap if length == self.sampler.clip_len else length
         self._tail = window[:, keep:] if keep < length else None
-        self._cond = self._cond[keep:]
+        self._cond = self._cond.frames(keep, len(self._cond))
         return window[0, :keep]
 
     def _stack(self, parts: list[np.ndarray]) -> np.ndarray:
@@ -633,11 +635,11 @@ class FoppasStream:
         return np.concatenate(parts)
 
 
-def inpaint_range(sampler: Foppas, make_eps_fn: Callable[[np.ndarray], EpsFn], cond: np.ndarray,
+def inpaint_range(sampler: Foppas, make_eps_fn: Callable[[Conditioning], EpsFn], cond: Conditioning,
                   motion: np.ndarray, start: int, end: int, seed: int, hold: Optional[np.ndarray] = None,
                   progress: Optional[ProgressCallback] = None, cancel: Optional[threading.Event] = None,
                   face_seed: Optional[int] = None) -> np.ndarray:
-    """Frames [start, end) of the (T, D) normalised `motion` sampled anew for the (T, F)
+    """Frames [start, end) of the (T, D) normalised `motion` sampled anew for its T frames'
     conditioning `cond`, continuing the `overlap` frames before the range and joining the
     `overlap` frames after it. Windows run left to right over the range with its context;
     each continues what is final before it (FOPPAS's known overlap) and holds the frames
@@ -664,7 +666,7 @@ def inpaint_range(sampler: Foppas, make_eps_fn: Callable[[np.ndarray], EpsFn], c
             if progress is not None:
                 progress(Progress(clip=w, n_clips=len(windows), step=step, n_steps=n_steps))
 
-        window = sampler.sample_window(make_eps_fn(cond[None, s0 + a: s0 + b]), b - a,
+        window = sampler.sample_window(make_eps_fn(cond.frames(s0 + a, s0 + b)), b - a,
                                        work[None, a: a + n_known] if n_known else None, noise, on_step,
                                        Fixed(work[None, a:b], held[None, a:b]))
         stop = min(b, end - s0)
@@ -694,10 +696,10 @@ def _range_windows(span: int, done: int, length: int, overlap: int, pins: np.nda
     return windows + [last]
 
 
-def sample_long(sampler: Foppas, make_eps_fn: Callable[[np.ndarray], EpsFn], cond: np.ndarray,
+def sample_long(sampler: Foppas, make_eps_fn: Callable[[Conditioning], EpsFn], cond: Conditioning,
                 seed: int, progress: Optional[ProgressCallback] = None,
                 cancel: Optional[threading.Event] = None) -> np.ndarray:
-    """Sample (T, D) motion for (T, F) conditioning frames."""
+    """Sample (T, D) motion for the conditioning of T frames."""
     stream = FoppasStream(sampler, make_eps_fn, seed, progress, cancel, expected_frames=len(cond))
     return np.concatenate([stream.push(cond), stream.finish()])
 

@@ -48,10 +48,8 @@ from .audio import probe_audio
 from .emotion import check_emotion
 from .errors import DiffshegError
 from .files import resolve_path
-from .settings import (
-    _NUMBERS as settings_numbers, GenerateSettings, _check_emotion_at, _check_style, _check_style_at,
-    parse_emotion_at, parse_style, parse_style_at,
-)
+from .settings import _NUMBERS as settings_numbers, GenerateSettings, _check_emotion_at, parse_emotion_at
+from .style import check_style, check_style_at, parse_style, parse_style_at, unknown_styles
 from .validate import check_number, parse_whole
 
 OUTPUTS = ("blend", "fbx_unreal", "fbx_unity", "glb", "npz", "arkit_json", "csv", "mp4")
@@ -373,14 +371,7 @@ def _check_blend(path: Path, row: int, problems: list[str]) -> None:
 
 def _check_style_names(column: str, value, names: list[str], row: int, problems: list[str]) -> None:
     specs = [style for _, style in value] if column == "style_at" else [value]
-    for spec in specs:
-        for key in (spec if isinstance(spec, dict) else [spec]):
-            if isinstance(key, str) and key not in names:
-                problems.append(f"row {row}, column {column}: unknown style '{key}'; the model's styles are "
-                                f"{', '.join(names) or 'none'}")
-            elif isinstance(key, int) and not 0 <= key < len(names):
-                problems.append(f"row {row}, column {column}: style index {key} is out of range; the model "
-                                f"has {len(names)} styles (0-{len(names) - 1})")
+    problems += [f"row {row}, column {column}: {problem}" for spec in specs for problem in unknown_styles(spec, names)]
 
 
 # ------------------------------------------------------------------ cells
@@ -448,9 +439,9 @@ def _parse(name: str, value, folder: Path):
             return text in _TRUE
         raise DiffshegError(f"{name} must be 1 or 0 (true/false, yes/no), got {value!r}")
     if name == "style":
-        return _check_style(_argument(parse_style, value) if isinstance(value, str) else value)
+        return check_style(_argument(parse_style, value) if isinstance(value, str) else value)
     if name == "style_at":
-        return _check_style_at(_argument(parse_style_at, value) if isinstance(value, str) else value)
+        return check_style_at(_argument(parse_style_at, value) if isinstance(value, str) else value)
     if name == "emotion":
         return check_emotion(value)
     if name == "sampling":

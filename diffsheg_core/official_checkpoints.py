@@ -5,7 +5,8 @@ optional `module.` prefixes), the shapes of its tensors read without torch
 (`config_from_state`), and the normalisation statistics they were trained with
 (`official_stats`: plain .npy arrays for BEAT, a pickled dict for SHOW, read without running
 code). The pickle itself is read with torch, `weights_only=True`, by `torch_layer.official`;
-`checkpoints.load_model` loads such a file strictly into a ModelBundle. numpy only here.
+`load_official` loads such a file strictly into a ModelBundle (`checkpoints.load_model`
+dispatches to it). numpy only here: torch comes in with the pickle.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import re
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 from numpy.lib import format as npy_format
@@ -24,6 +25,9 @@ from numpy.lib import format as npy_format
 from .config import ModelConfig
 from .errors import CheckpointError
 from .foppas import PRESETS, FoppasConfig
+
+if TYPE_CHECKING:
+    from .checkpoints import ModelBundle
 
 STATS_ENV = "DIFFSHEG_OFFICIAL_STATS"
 STYLE_KEY = "encoder_exp.pid_embed.0.weight"  # official networks: (time embedding, style classes)
@@ -241,3 +245,30 @@ def official_stats(dataset: str, stats_dir: Optional[str | Path],
         # model was trained that way, so its output is denormalised the same way.
         std = np.concatenate([pose_std[gesture], pose_mean[:3], stats["expression_std"]])
     return mean.astype(np.float32), std.astype(np.float32)
+
+
+def load_official(path: Path, dataset: Optional[str], stats_dir: Optional[str | Path]) -> ModelBundle:
+    """An official checkpoint loaded strictly into a ModelBundle (`dataset` None: told by its
+    shapes), with the statistics of `official_stats` and the official sampling settings.
+    Needs torch to read the pickle."""
+    from .checkpoints import TORCH_HOW_TO, ModelBundle, check_weights  # checkpoints imports this module
+
+    try:
+        from .torch_layer.model import UniEG, load_state_strict
+        from .torch_layer.official import read_official_pickle
+    except ImportError:
+        raise CheckpointError(f"{path}: official DiffSHEG checkpoints are torch pickles and need torch, "
+                              f"which this installation lacks: {TORCH_HOW_TO}") from None
+    state = official_state_dict(read_official_pickle(path), path)
+    check_weights(state, str(path))
+    cfg = config_from_state(state, dataset, path)
+    name = "beat" if cfg.layout == "beat" else "show"
+    load_state_strict(UniEG(cfg), state, str(path),
+                      hint=f"the checkpoint is not the official {name.upper()} model: try --dataset "
+                           f"{'show' if name == 'beat' else 'beat'}, or the file is truncated")
+    mean, std = official_stats(name, stats_dir, beside=path.parent)
+    setup = OFFICIAL[name]
+    return ModelBundle(config=cfg, weights=state, mean=mean, std=std, sampling=setup.sampling,
+                       guidance=setup.guidance if cfg.classifier_free else None,
+                       model_id=f"official-{name}:{path.name}", trained=True,
+                       info={"source": "DiffSHEG official checkpoint", "dataset": name}, source=str(path))

@@ -8,7 +8,6 @@ are the same for both.
 
 from __future__ import annotations
 
-import math
 import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -19,6 +18,7 @@ import numpy as np
 from . import __version__
 from .audio import Audio, AudioFile, load_audio, n_motion_frames, open_audio_file
 from .checkpoints import ModelBundle, load_model
+from .conditioning import Conditioning, SpeechFeatures
 from .diffusion import Schedule
 from .emotion import apply_emotion, emotion_track, remove_emotion, take_emotion
 from .errors import DiffshegError
@@ -28,105 +28,12 @@ from .lower_body import JOINTS as LOWER_JOINTS, add_lower_body, legs_source, low
 from .motion import Motion
 from .progress import ProgressCallback
 from .runtime.backends import open_network
-from .settings import GenerateSettings, StyleSpec
+from .settings import GenerateSettings
 from .speech_features import speech_chunks
-from .validate import GUIDANCE, SKIP_GUIDANCE, STYLE_GUIDANCE, check_number, parse_whole
+from .style import StyleTrack, named_weights, resolve_style_guidance, style_meta, style_track, style_weights
+from .validate import GUIDANCE, SKIP_GUIDANCE, check_number
 
 AudioInput = Union[str, Path, np.ndarray, Audio]
-
-
-def style_weights(bundle: ModelBundle, style: Optional[StyleSpec]) -> dict[int, float]:
-    """{style class: weight}, weights summing to 1, for a style given as a class index, a
-    name, or weights over indices or names ({"calm": 0.7, "animated": 0.3}), None for the
-    model's default style; official checkpoints' speaker one-hots take indices. Bad styles
-    raise DiffshegError."""
-    n, names = bundle.config.style_dim, bundle.style_names
-    named = f" ({', '.join(names)})" if names else ""
-    if style is None:
-        style = bundle.default_style
-
-    def index(key) -> int:
-        if isinstance(key, str):
-            if key in names:
-                return names.index(key)
-            if (number := parse_whole(key)) is not None:
-                return index(number)
-            raise DiffshegError(f"model {bundle.model_id} has no style '{key}': choose one of "
-                                f"{', '.join(names) or f'the style indices 0 to {n - 1}'}")
-        if isinstance(key, bool) or not isinstance(key, (int, np.integer)) or not 0 <= key < n:
-            raise DiffshegError(f"style must be a whole number from 0 to {n - 1}{named} for this model, "
-                                f"got {key!r}")
-        return int(key)
-
-    items = [(key, check_number(f"style weight of {key!r}", weight, (0.0, math.inf)))
-             for key, weight in (style.items() if isinstance(style, dict) else [(style, 1.0)])]
-    peak = max((weight for _, weight in items), default=0.0)
-    if peak <= 0:
-        raise DiffshegError(f"style weights {style!r} do not sum to a positive number: give at least "
-                            "one style a weight above 0")
-    weights: dict[int, float] = {}
-    for key, weight in items:  # each over the largest first: weights near the float limit do not overflow
-        weights[index(key)] = weights.get(index(key), 0.0) + weight / peak
-    total = sum(weights.values())
-    return {k: w / total for k, w in sorted(weights.items())}
-
-
-def style_vector(bundle: ModelBundle, weights: dict[int, float]) -> np.ndarray:
-    """(1, style_dim) mix of style one-hots, the model's style input."""
-    vector = np.zeros((1, bundle.config.style_dim), np.float32)
-    for k, w in weights.items():
-        vector[0, k] = w
-    return vector
-
-
-def style_track(bundle: ModelBundle, style: Optional[StyleSpec], style_at, n_frames: int) -> Optional[np.ndarray]:
-    """(n_frames, style_dim) style input of every frame: `style` until the first change of
-    `style_at` ((seconds, style), ...), then each change's style from its frame on (a change
-    after the speech's end: never). None when nothing changes over time. A window is sampled
-    with the mean over its frames (`make_eps_fn_factory`), so a change is blended in over
-    about one window."""
-    if not style_at:
-        return None
-    track = np.repeat(style_vector(bundle, style_weights(bundle, style)), n_frames, axis=0)
-    for seconds, spec in style_at:  # min first: seconds * fps may be inf (1e308 s), which round() refuses
-        frame = round(min(seconds * bundle.config.fps, n_frames))
-        track[frame:] = style_vector(bundle, style_weights(bundle, spec))
-    return track
-
-
-def with_style(chunks: Iterator[np.ndarray], track: Optional[np.ndarray]) -> Iterator[np.ndarray]:
-    """Speech-feature chunks with the style track's frames as their last columns."""
-    done = 0
-    for chunk in chunks:
-        if track is None:
-            yield chunk
-        else:
-            yield np.concatenate([chunk, track[done: done + len(chunk)]], axis=1)
-        done += len(chunk)
-
-
-def named_weights(bundle: ModelBundle, weights: dict[int, float]) -> dict[str, float]:
-    """Style weights by name (by index for a model without style names)."""
-    names = bundle.style_names
-    return {(names[k] if names else str(k)): w for k, w in weights.items()}
-
-
-def style_meta(bundle: ModelBundle, weights: dict[int, float], style_guidance: Optional[float]) -> dict:
-    """What a Motion records of its style: the class (single styles), the weights by name
-    (or index), the names of the model's styles and the style-guidance scale used (None: off)."""
-    return {"style": next(iter(weights)) if len(weights) == 1 else None,
-            "style_weights": named_weights(bundle, weights),
-            "style_names": bundle.style_names, "style_guidance": style_guidance or 1.0}
-
-
-def resolve_style_guidance(bundle: ModelBundle, scale: Optional[float]) -> Optional[float]:
-    """The style-guidance scale (None or 1: off); it needs a model trained with a null style."""
-    if scale is None or float(scale) == 1.0:
-        return None
-    if not bundle.null_style:
-        raise DiffshegError(f"model {bundle.model_id} was trained without a null style, so style guidance "
-                            "cannot work with it: leave the style strength at 1")
-    return float(check_number("style_guidance", scale, STYLE_GUIDANCE))
 
 
 def resolve_guidance(bundle: ModelBundle, guidance: Optional[float]) -> Optional[float]:
@@ -160,13 +67,13 @@ def uses_prior(bundle: ModelBundle, config: FoppasConfig) -> bool:
 class Plan:
     """A `GenerateSettings` resolved against a model once, for sampling and for the metadata
     alike: the sampler's settings, the guidance scales (None: off), the style's class
-    weights, and the style track when the style changes over time."""
+    weights and the style of every frame."""
 
     config: FoppasConfig
     guidance: Guidance
     guidance_scale: Optional[float]      # the classifier-free scale as chosen, for the record (1: off)
     style_weights: dict
-    track: Optional[np.ndarray] = None   # (n_frames, style_dim); None: `style_weights` throughout
+    style: StyleTrack                    # the style of each frame (of the take; live, of a window)
     style_at: tuple = ()                 # ((seconds, {class: weight}), ...) of the track's changes
     sampling: str = "custom"             # the named sampling sampled with ("custom": settings given outright)
 
@@ -174,8 +81,8 @@ class Plan:
 def make_plan(bundle: ModelBundle, s: GenerateSettings, sampling: Optional[FoppasConfig] = None,
               n_frames: int = 0, holds: bool = False) -> Plan:
     """Resolve `s` against `bundle`: the sampling settings `s` asks for (its named sampling of
-    the model's, or `sampling`) with its overrides, its guidance and style (a track of
-    `n_frames` frames for `s.style_at`). Bad settings raise DiffshegError.
+    the model's, or `sampling`) with its overrides, its guidance, and its style over
+    `n_frames` frames (`s.style` changed at `s.style_at`). Bad settings raise DiffshegError.
 
     `holds`: the job holds frames (a range regenerated between the take's frames, pins). The
     fast sampling's few steps do not join held frames smoothly (a pin's neighbourhood at 2.7x
@@ -192,10 +99,9 @@ def make_plan(bundle: ModelBundle, s: GenerateSettings, sampling: Optional[Foppa
                 style_track(bundle, s.style, s.style_at, n_frames), changes, "custom" if sampling else name)
 
 
-def build_sampling(bundle: ModelBundle, network, plan: Plan) -> tuple[Foppas, Callable[[np.ndarray], EpsFn]]:
-    """The FOPPAS sampler of `plan`, and the factory that binds the network, style and guidance
-    scales to one window's speech features (with a style track, the features end in it,
-    `with_style`, which gives each window its style). Bad settings raise DiffshegError."""
+def build_sampling(bundle: ModelBundle, network, plan: Plan) -> tuple[Foppas, Callable[[Conditioning], EpsFn]]:
+    """The FOPPAS sampler of `plan`, and the factory that binds the network and guidance
+    scales to one window's conditioning. Bad settings raise DiffshegError."""
     config = plan.config
     try:
         sampler = Foppas(Schedule.linear(), config, bundle.config.clip_len, bundle.config.dim,
@@ -203,29 +109,27 @@ def build_sampling(bundle: ModelBundle, network, plan: Plan) -> tuple[Foppas, Ca
                          gestures=bundle.config.gesture_dim, branch=bundle.config.lower_dim)
     except ValueError as exc:
         raise DiffshegError(str(exc)) from None
-    vector = None if plan.track is not None else style_vector(bundle, plan.style_weights)
-    return sampler, make_eps_fn_factory(bundle, network, sampler, vector, plan.guidance)
+    return sampler, make_eps_fn_factory(bundle, network, sampler, plan.guidance)
 
 
 def _repeat(values: Optional[np.ndarray], rows: int) -> Optional[np.ndarray]:
     return values if values is None or len(values) == rows else np.repeat(values, rows, axis=0)
 
 
-def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas, style: Optional[np.ndarray],
-                        guidance: Guidance) -> Callable[[np.ndarray], EpsFn]:
-    """Bind network, style and guidance scales; the result binds one window's speech features.
-    `style` None: the features end in a style track (`with_style`) and each window takes
-    the mean of its frames'. The sampler's refining pass steers the gestures with the
+def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas,
+                        guidance: Guidance) -> Callable[[Conditioning], EpsFn]:
+    """Bind network and guidance scales; the result binds one window's conditioning, which
+    it hands to the network as a batch of one: its speech features, and its style
+    (`StyleTrack.window`). The sampler's refining pass steers the gestures with the
     skip-guidance scale times `refine_skip` of the sampling settings."""
     cfg, sched = bundle.config, sampler.schedule
     refining = guidance if guidance.skip is None else \
         replace(guidance, skip=guidance.skip * sampler.config.refine_skip)
-    end = -cfg.style_dim if style is None else None
 
-    def make(cond: np.ndarray) -> EpsFn:
-        mel = cond[..., : cfg.mel_dim]
-        speech = cond[..., cfg.mel_dim: end] if cfg.has_speech_input else None
-        window_style = style if style is not None else cond[:, :, end:].mean(axis=1)
+    def make(cond: Conditioning) -> EpsFn:
+        mel = cond.features.mel[None]
+        speech = None if cond.features.speech is None else cond.features.speech[None]
+        window_style = cond.style.window()
         fused: dict[int, np.ndarray] = {}  # the window's speech features at a step, (1, L, A)
         g = cfg.gesture_dim
 
@@ -248,6 +152,15 @@ def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas, style: Op
         return eps_fn
 
     return make
+
+
+def conditioned(pieces: Iterator[SpeechFeatures], style: StyleTrack) -> Iterator[Conditioning]:
+    """The conditioning of consecutive pieces of a take's speech features, each with the
+    style of its frames."""
+    done = 0
+    for features in pieces:
+        yield Conditioning(features, style.frames(done, done + len(features)))
+        done += len(features)
 
 
 def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
@@ -287,12 +200,12 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     speech = open_speech(audio, sample_rate)
     n_frames = n_motion_frames(speech, bundle.config.fps)
     plan, sampler, make_eps_fn = _sampling(bundle, network, s, sampling, n_frames, holds=bool(pins))
-    chunks = with_style(speech_chunks(bundle, network, speech, hubert_path, hubert_quirk), plan.track)
+    chunks = conditioned(speech_chunks(bundle, network, speech, hubert_path, hubert_quirk), plan.style)
     if pins:  # sampled as one range with the pinned poses held, from the first frame
         normalised = np.zeros((n_frames, bundle.config.dim), dtype=np.float32)
         hold = np.zeros(normalised.shape, dtype=bool)
         _hold_pins(bundle, normalised, hold, pins, 0, n_frames)
-        normalised = inpaint_range(sampler, make_eps_fn, np.concatenate(list(chunks)), normalised, 0, n_frames,
+        normalised = inpaint_range(sampler, make_eps_fn, Conditioning.join(chunks), normalised, 0, n_frames,
                                    s.seed, hold, progress, cancel, face_seed=s.face_seed)
     else:
         stream = FoppasStream(sampler, make_eps_fn, s.seed, progress, cancel, expected_frames=n_frames,
@@ -401,7 +314,7 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
         raise DiffshegError(f"the audio gives {n_motion_frames(speech, bundle.config.fps)} frames of motion, the "
                             f"motion has {motion.n_frames}: regenerate with the audio it was made from")
     plan, sampler, make_eps_fn = _sampling(bundle, network, s, sampling, motion.n_frames, holds=True)
-    cond = np.concatenate(list(with_style(speech_chunks(bundle, network, speech), plan.track)))
+    cond = Conditioning.join(conditioned(speech_chunks(bundle, network, speech), plan.style))
     laid = take_emotion(motion)
     base = motion if laid is None else remove_emotion(motion, laid)  # what the take's emotion was laid over
     normalised, hold = _known(bundle, base, whole)

@@ -9,17 +9,15 @@ spelling of "off": guidance 1, skip_guidance (gesture energy) 0, candidates 1.
 from __future__ import annotations
 
 import argparse
-import math
-import numbers
 from dataclasses import dataclass, fields
-from typing import Union
+from typing import TYPE_CHECKING
 
 from .errors import DiffshegError
 from .validate import (BACKENDS, CANDIDATES, DEVICES, GUIDANCE, OVERLAP, PRECISIONS, SKIP_GUIDANCE, STEPS,
-                       STYLE_GUIDANCE, THREADS, _plain_number, check_number, check_seed, parse_whole)
+                       STYLE_GUIDANCE, THREADS, check_changes, check_number, check_seed, parse_changes)
 
-StyleSpec = Union[int, str, dict]
-"""A style: a class index, a style name, or weights over indices or names."""
+if TYPE_CHECKING:
+    from .style import StyleSpec
 
 
 def _check_choice(name: str, value, choices: tuple) -> str:
@@ -36,61 +34,10 @@ _NUMBERS = (("steps", "steps", STEPS, True), ("overlap", "overlap", OVERLAP, Tru
 """The numeric settings: field, the name messages give it, bounds, whether whole."""
 
 
-def _check_style(style) -> StyleSpec:
-    """`style` if it has the form of a style (a numpy integer as an int), its weights finite
-    numbers >= 0; which styles a model has is checked against the model (pipeline.style_weights)."""
-    if isinstance(style, numbers.Integral) and not isinstance(style, bool):
-        return int(style)
-    if isinstance(style, bool) or not isinstance(style, (int, str, dict)):
-        raise DiffshegError(f"style must be a style index, a style name or weights over styles "
-                            f"(e.g. {{'calm': 0.7, 'animated': 0.3}}), got {style!r}")
-    if isinstance(style, dict):
-        for name, weight in style.items():
-            if _plain_number(weight, whole=False) is None or weight < 0:
-                raise DiffshegError(f"the weight of style {name!r} must be a finite number >= 0, got {weight!r}: "
-                                    "give weights such as calm=0.7,animated=0.3 (only their ratio counts)")
-    return style
-
-
-def _check_changes(changes, name: str, check, example: str) -> tuple | None:
-    """Changes of `name` over time as ((seconds, check(value)), ...) sorted by time, each time
-    a finite number >= 0 given once (one after the speech's end never takes effect); None for none."""
-    try:
-        items = [(_check_change_time(name, t, example), check(value))
-                 for t, value in (changes.items() if isinstance(changes, dict) else changes)]
-    except (TypeError, ValueError):
-        raise DiffshegError(f"{name}_at must be (seconds, {name}) pairs, e.g. {example}, got {changes!r}") from None
-    times = [t for t, _ in items]
-    if len(set(times)) != len(times):
-        raise DiffshegError(f"{name}_at gives {'an' if name[0] in 'aeiou' else 'a'} {name} twice for the same "
-                            f"time: {sorted(times)}")
-    return tuple(sorted(items, key=lambda item: item[0])) or None
-
-
-def _check_change_time(name: str, seconds, example: str) -> float:
-    """`seconds` as a float if it is a finite number >= 0; else a DiffshegError (inf and nan named)."""
-    if isinstance(seconds, numbers.Real) and not isinstance(seconds, bool) and not _finite(seconds):
-        raise DiffshegError(f"{name}_at: the {name} change time {seconds!r} is not a finite number of seconds: "
-                            f"give the seconds from the start of the speech, e.g. {example}")
-    return check_number(f"{name} change time (seconds)", seconds, (0.0, math.inf))
-
-
-def _finite(number: numbers.Real) -> bool:
-    """Whether `number` is finite (an int beyond the floats is)."""
-    try:
-        return math.isfinite(number)
-    except OverflowError:
-        return True
-
-
-def _check_style_at(changes) -> tuple[tuple[float, StyleSpec], ...] | None:
-    return _check_changes(changes, "style", _check_style, "((0, 'calm'), (12.5, 'animated'))")
-
-
 def _check_emotion_at(changes) -> tuple[tuple[float, dict], ...] | None:
     from .emotion import check_emotion  # numpy: only where an emotion is asked for
 
-    return _check_changes(changes, "emotion", check_emotion, "((0, 'happy'), (12.5, 'sad'))")
+    return check_changes(changes, "emotion", check_emotion, "((0, 'happy'), (12.5, 'sad'))")
 
 
 @dataclass(frozen=True)
@@ -125,10 +72,13 @@ class GenerateSettings:
         for name, label, bounds, whole in _NUMBERS:
             if getattr(self, name) is not None:
                 self._set(name, check_number(label, getattr(self, name), bounds, whole))
-        if self.style is not None:
-            self._set("style", _check_style(self.style))
-        if self.style_at is not None:
-            self._set("style_at", _check_style_at(self.style_at))
+        if self.style is not None or self.style_at is not None:
+            from .style import check_style, check_style_at  # numpy: only where a style is asked for
+
+            if self.style is not None:
+                self._set("style", check_style(self.style))
+            if self.style_at is not None:
+                self._set("style_at", check_style_at(self.style_at))
         if self.emotion is not None:
             from .emotion import check_emotion  # numpy: only where an emotion is asked for
 
@@ -150,6 +100,8 @@ class GenerateSettings:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The generation options, for every command line that generates (CLI and batch_render.py)."""
+    from .style import parse_style, parse_style_at  # numpy: only where a command line generates
+
     g = parser.add_argument_group("generation")
     g.add_argument("--model", "--checkpoint", dest="model",
                    help="model file (ours, .safetensors, or an official DiffSHEG .pth); default: the bundled one")
@@ -205,58 +157,6 @@ def from_arguments(args: argparse.Namespace) -> GenerateSettings:
     return GenerateSettings(**{f.name: getattr(args, f.name) for f in fields(GenerateSettings)})
 
 
-def parse_style(text: str) -> StyleSpec:
-    """'2' -> 2, 'calm' -> 'calm', 'calm=0.7,animated=0.3' -> {'calm': 0.7, 'animated': 0.3}."""
-    text = text.strip()
-    if "=" not in text:
-        index = parse_whole(text)
-        return text if index is None else index
-    weights: dict = {}
-    for part in text.split(","):
-        name, _, value = part.partition("=")
-        name = name.strip()
-        if name in weights:
-            raise argparse.ArgumentTypeError(f"style {name!r} is given twice in {text!r}: give each style "
-                                             "one weight")
-        try:
-            weights[name] = float(value)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"style weight {part!r} is not name=number (e.g. calm=0.7)") from None
-        if not math.isfinite(weights[name]) or weights[name] < 0:
-            raise argparse.ArgumentTypeError(f"style weight {part.strip()!r} must be a finite number >= 0 "
-                                             "(e.g. calm=0.7,animated=0.3)")
-    return weights
-
-
-def parse_style_at(text: str) -> tuple[tuple[float, StyleSpec], ...]:
-    """'0=calm,12.5=animated' -> ((0.0, 'calm'), (12.5, 'animated')); an item whose key is a
-    name adds to the mix of the time before it: '0=calm,12.5=calm=0.3,animated=0.7'."""
-    return _parse_changes(text, "SECONDS=STYLE", "--style-at 0=calm,12.5=animated", parse_style)
-
-
-def _parse_changes(text: str, form: str, example: str, parse) -> tuple[tuple[float, StyleSpec], ...]:
-    """Changes over time, SECONDS=NAME[=WEIGHT], an item without seconds joining the mix before
-    it; each time's mix read by `parse` (which raises ArgumentTypeError)."""
-    entries: list[list] = []
-    for part in text.split(","):
-        key, _, rest = part.strip().partition("=")
-        try:
-            seconds = float(key)
-        except ValueError:
-            seconds = None
-        if seconds is not None and not math.isfinite(seconds):
-            raise argparse.ArgumentTypeError(f"{part.strip()!r} in {text!r}: {key.strip()} is not a finite number "
-                                             f"of seconds; give the seconds from the start of the speech (e.g. "
-                                             f"{example})")
-        if seconds is not None and rest:
-            entries.append([seconds, [rest]])
-        elif entries and rest:
-            entries[-1][1].append(part.strip())
-        else:
-            raise argparse.ArgumentTypeError(f"{part.strip()!r} in {text!r} is not {form} (e.g. {example})")
-    return tuple((seconds, parse(",".join(parts))) for seconds, parts in entries)
-
-
 def _emotion_argument(text: str) -> dict:
     from .emotion import check_emotion
 
@@ -269,4 +169,4 @@ def _emotion_argument(text: str) -> dict:
 def parse_emotion_at(text: str) -> tuple[tuple[float, dict], ...]:
     """'0=happy,12.5=sad=0.6' -> ((0.0, {'happy': 1.0}), (12.5, {'sad': 0.6})); a mix as for
     styles: '12.5=happy=0.5,surprised=0.3'. Each emotion checked as --emotion checks it."""
-    return _parse_changes(text, "SECONDS=EMOTION", "--emotion-at 0=happy,12.5=sad=0.6", _emotion_argument)
+    return parse_changes(text, "SECONDS=EMOTION", "--emotion-at 0=happy,12.5=sad=0.6", _emotion_argument)

@@ -1,11 +1,12 @@
 """The speech features a model is conditioned on, one recipe for a whole take, a long take
 read in pieces and a live window: `frame_features`.
 
-The features of motion frame i are the mel frame centred at i / fps, then the model's second
-speech input when it has one: the phonetic encoder's posteriors, four recogniser frames
-stacked per motion frame (`phonetic.stack_posteriors`), or HuBERT (official models; whole
-recordings only). A piece or a window is computed over its audio and some context before it
-(and, live, a lookahead after), read from a frame that starts on a whole sample.
+The features of motion frame i (`conditioning.SpeechFeatures`) are the mel frame centred at
+i / fps and the model's second speech input when it has one: the phonetic encoder's
+posteriors, four recogniser frames stacked per motion frame (`phonetic.stack_posteriors`), or
+HuBERT (official models; whole recordings only). A piece or a window is computed over its
+audio and some context before it (and, live, a lookahead after), read from a frame that
+starts on a whole sample.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 
 from .audio import PIECE_SECONDS, Audio, AudioFile, SpeechEncoding, mel_frames, n_motion_frames, require_hubert
 from .checkpoints import ModelBundle
+from .conditioning import SpeechFeatures
 from .errors import DiffshegError
 from .phonetic import PhoneticConfig, log_mel, raw_log_mel, receptive_field, recogniser_frames, stack_posteriors
 
@@ -35,10 +37,10 @@ class Recording:
 
 def frame_features(bundle: ModelBundle, network, speech: Union[Audio, AudioFile], first: int, end: int, *,
                    before: int = 0, stop: Optional[int] = None, recording: Optional[Recording] = None,
-                   hubert_path: Optional[str] = None, hubert_quirk: bool = False) -> np.ndarray:
-    """(end - first, F) float32 features of motion frames [first, end) of `speech`, computed
-    over its audio from `before` frames before `first` (earlier, to a frame on a whole sample)
-    to sample `stop` (None: the end; a lookahead past `end`).
+                   hubert_path: Optional[str] = None, hubert_quirk: bool = False) -> SpeechFeatures:
+    """The float32 features of motion frames [first, end) of `speech`, computed over its
+    audio from `before` frames before `first` (earlier, to a frame on a whole sample) to
+    sample `stop` (None: the end; a lookahead past `end`).
 
     `recording`: the whole recording's recogniser frames and level, for a piece of a long
     one; None: the audio read stands for the recording (a whole take, or a live window,
@@ -51,34 +53,33 @@ def frame_features(bundle: ModelBundle, network, speech: Union[Audio, AudioFile]
         start = start // whole_sample_frames(rate, fps) * whole_sample_frames(rate, fps)
         sample = start * rate // fps
     audio = speech.read(sample, speech.n_samples if stop is None else stop)
-    parts = [mel_frames(audio, cfg.fps)[first - start: end - start]]
+    mel, second = mel_frames(audio, cfg.fps)[first - start: end - start], None
     if cfg.phonetic_input:
         phonetic = _phonetic(bundle)
         posteriors = network.phone_posteriors(log_mel(audio, phonetic, None if recording is None else recording.level))
         if recording is None:
-            parts.append(stack_posteriors(posteriors, end - first, phonetic.subframes, first - start))
+            second = stack_posteriors(posteriors, end - first, phonetic.subframes, first - start)
         else:
             offset = round(start / cfg.fps * phonetic.fps * phonetic.subframes)
-            parts.append(stack_posteriors(posteriors, end - first, phonetic.subframes, first,
-                                          recording.n_posteriors, offset=offset))
+            second = stack_posteriors(posteriors, end - first, phonetic.subframes, first,
+                                      recording.n_posteriors, offset=offset)
     elif cfg.has_speech_input:
         if start or first or recording is not None or end != n_motion_frames(audio, cfg.fps):
             raise DiffshegError(f"model {bundle.model_id} takes HuBERT features, which are computed over "
                                 "the whole recording only")
-        parts.append(hubert_encoding(hubert_path, hubert_quirk, str(network.device)).encode(audio, end))
-    return np.concatenate(parts, axis=1).astype(np.float32)
+        second = hubert_encoding(hubert_path, hubert_quirk, str(network.device)).encode(audio, end)
+    return SpeechFeatures(mel.astype(np.float32), None if second is None else second.astype(np.float32))
 
 
 def speech_features(bundle: ModelBundle, network, audio: Audio, hubert_path: Optional[str] = None,
-                    hubert_quirk: bool = False) -> np.ndarray:
-    """(T, F) float32 conditioning frames of a whole recording: mel, then the second speech
-    input when the model has one."""
+                    hubert_quirk: bool = False) -> SpeechFeatures:
+    """The speech features of a whole recording's motion frames."""
     return frame_features(bundle, network, audio, 0, n_motion_frames(audio, bundle.config.fps),
                           hubert_path=hubert_path, hubert_quirk=hubert_quirk)
 
 
 def speech_chunks(bundle: ModelBundle, network, speech: Union[Audio, AudioFile],
-                  hubert_path: Optional[str] = None, hubert_quirk: bool = False) -> Iterator[np.ndarray]:
+                  hubert_path: Optional[str] = None, hubert_quirk: bool = False) -> Iterator[SpeechFeatures]:
     """`speech_features` of `speech` in order, PIECE_SECONDS at a time, so a long recording is
     never held whole: each piece is read with MARGIN_SECONDS of audio either side, its
     features computed as for the whole recording and the margins' frames dropped (equal to

@@ -182,17 +182,18 @@ def test_onnx_and_torch_backends_agree_on_the_bundled_model(bundle, speech):
     float32 rounding in the network differs (per call at most 1e-4; whole takes 1e-3)."""
     from diffsheg_core.diffusion import Schedule
     from diffsheg_core.guidance import Guidance, step_eps
-    from diffsheg_core.pipeline import style_vector
     from diffsheg_core.speech_features import speech_features
+    from diffsheg_core.style import style_vector
 
     short = Audio(speech.samples[: 10 * speech.sample_rate], speech.sample_rate)
     onnx, torch_net = open_network(bundle, "onnx"), open_network(bundle, "torch", "cpu")
-    cond = speech_features(bundle, onnx, short)
-    np.testing.assert_allclose(cond, speech_features(bundle, torch_net, short), atol=1e-5)
+    features, on_torch = speech_features(bundle, onnx, short), speech_features(bundle, torch_net, short)
+    np.testing.assert_allclose(features.mel, on_torch.mel, atol=1e-5)
+    np.testing.assert_allclose(features.speech, on_torch.speech, atol=1e-5)
     cfg, sched, rng = bundle.config, Schedule.linear().respaced(25), np.random.default_rng(0)
     x = rng.standard_normal((1, cfg.clip_len, cfg.dim), dtype=np.float32)
-    window = cond[None, 40:40 + cfg.clip_len]
-    mel, extra = window[..., :cfg.mel_dim], window[..., cfg.mel_dim:]
+    window = features.frames(40, 40 + cfg.clip_len)
+    mel, extra = window.mel[None], window.speech[None]
     for index in (24, 12, 0):
         i = np.array([index])
         args = (cfg.gesture_dim, x, sched.model_timesteps(i), mel, extra, style_vector(bundle, {1: 1.0}),

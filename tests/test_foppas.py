@@ -9,15 +9,25 @@ import soundfile as sf
 
 from conftest import random_bundle
 from diffsheg_core.audio import load_audio, n_motion_frames
+from diffsheg_core.conditioning import Conditioning, SpeechFeatures
 from diffsheg_core.diffusion import Schedule
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.foppas import (PROPOSAL_STREAM, Foppas, FoppasConfig, FoppasStream, PRESETS,
                                   carry_overlap, inpaint_range, jump_schedule, model_calls, plan_windows, sample_long)
 from diffsheg_core.guidance import Guidance
-from diffsheg_core.pipeline import generate, make_eps_fn_factory, style_vector
+from diffsheg_core.pipeline import generate, make_eps_fn_factory
 from diffsheg_core.prior import GesturePrior
 from diffsheg_core.runtime.backends import open_network
+from diffsheg_core.style import StyleTrack, style_track, style_vector
 from diffsheg_core.validate import check_seed
+
+
+def conditioning(mel: np.ndarray, model=None) -> Conditioning:
+    """(T, F) `mel` as the conditioning of T frames: a mel-only model's speech features, with
+    `model`'s default style throughout (toy models, without a model, read the mel alone)."""
+    if model is None:
+        return Conditioning(SpeechFeatures(mel), StyleTrack(np.zeros((len(mel), 1), np.float32)))
+    return Conditioning(SpeechFeatures(mel), style_track(model, None, None, len(mel)))
 
 
 def test_official_schedules_match_golden(golden_dir):
@@ -33,7 +43,7 @@ def test_official_preset_makes_27_model_calls_per_later_clip():
     sampler = Foppas(Schedule.linear(), PRESETS["official-beat"], 34, 4)
     counts = []
     stream = FoppasStream(sampler, lambda cond: lambda x, i: counts.append(i) or np.zeros_like(x), 0)
-    stream.push(np.zeros((34 + 30 + 30, 1), np.float32))
+    stream.push(conditioning(np.zeros((34 + 30 + 30, 1), np.float32)))
     stream.finish()
     per_clip = [counts[:25], counts[25:52], counts[52:79]]
     assert [len(c) for c in per_clip] == [25, 27, 27] and len(counts) == 79
@@ -87,7 +97,7 @@ def window_outputs(sampler, make_eps_fn, n_frames, seed=0):
         return out
 
     sampler.sample_window = recording
-    motion = sample_long(sampler, make_eps_fn, np.zeros((n_frames, 1), np.float32), seed)
+    motion = sample_long(sampler, make_eps_fn, conditioning(np.zeros((n_frames, 1), np.float32)), seed)
     return motion, windows
 
 
@@ -97,8 +107,8 @@ def test_overlap_equals_previous_tail_exactly_without_blending(model, backend):
     sampler = Foppas(Schedule.linear(), FoppasConfig(steps=10, overlap=4, later_start=6, blend=False),
                      cfg.clip_len, cfg.dim)
     network = open_network(model, backend=backend, device="cpu")
-    make = make_eps_fn_factory(model, network, sampler, style_vector(model, {0: 1.0}), Guidance())
-    cond = np.random.default_rng(0).random((100, cfg.mel_dim), dtype=np.float32)
+    make = make_eps_fn_factory(model, network, sampler, Guidance())
+    cond = conditioning(np.random.default_rng(0).random((100, cfg.mel_dim), dtype=np.float32), model)
     windows = []
     original = sampler.sample_window
     sampler.sample_window = lambda *a, **k: windows.append(original(*a, **k)[0].copy()) or windows[-1][None]
@@ -115,7 +125,7 @@ def smooth_model():
     sched = Schedule.linear().respaced(25)
 
     def make(cond):
-        t = cond[0, :, 0].astype(np.float64)
+        t = cond.features.mel[:, 0].astype(np.float64)
         k = np.exp(-0.5 * ((t[:, None] - t[None, :]) / 4.0) ** 2)
         eye = np.eye(len(t))
 
@@ -136,7 +146,7 @@ def seam_and_inside_steps(blend, carry=0, order=1):
     (from a frame before a window to two past its overlap) and everywhere else."""
     sampler = Foppas(Schedule.linear(), FoppasConfig(overlap=4, blend=blend, carry=carry), 34, 2)
     frames = np.arange(300, dtype=np.float32).reshape(-1, 1)
-    motion = sample_long(sampler, smooth_model(), frames, 0)
+    motion = sample_long(sampler, smooth_model(), conditioning(frames), 0)
     steps = np.abs(np.diff(motion[:, 0], n=order))
     seams = {s for start, _ in plan_windows(300, 34, 4)[1:] for s in range(start - 1, start + 4 + order)}
     inside = [i for i in range(len(steps)) if i not in seams]
@@ -210,7 +220,7 @@ def sampled_with_leak(leak: float, refine=None) -> np.ndarray:
     """300 frames of 2 channels (the second the face) at eta 1, as the bundled model samples."""
     config = FoppasConfig(overlap=4, carry=12, eta=1.0, refine=refine)
     sampler = Foppas(Schedule.linear(), config, 34, 2, gestures=1)
-    return sample_long(sampler, leaky_model(leak), np.arange(300, dtype=np.float32).reshape(-1, 1), 0)
+    return sample_long(sampler, leaky_model(leak), conditioning(np.arange(300, dtype=np.float32).reshape(-1, 1)), 0)
 
 
 def test_refining_takes_the_leftover_wobble_out_of_the_gestures_and_keeps_the_face():
@@ -266,13 +276,13 @@ def test_the_refining_pass_steers_with_the_skip_scale_times_refine_skip(model):
     network = open_network(model, backend="onnx", device="cpu")
     style = style_vector(model, {0: 1.0})
     rng = np.random.default_rng(0)
-    cond = rng.random((1, cfg.clip_len, cfg.mel_dim), dtype=np.float32)
+    mel = rng.random((1, cfg.clip_len, cfg.mel_dim), dtype=np.float32)
     x = rng.standard_normal((1, cfg.clip_len, cfg.dim)).astype(np.float32)
     g, t = cfg.gesture_dim, sampler.schedule.model_timesteps(np.array([1]))
-    audio = face_eps(network, x[..., g:], t, cond, None, style)[1]
+    audio = face_eps(network, x[..., g:], t, mel, None, style)[1]
 
     def eps(guidance, refine):
-        return make_eps_fn_factory(model, network, sampler, style, guidance)(cond)(x, 1, refine=refine)
+        return make_eps_fn_factory(model, network, sampler, guidance)(conditioning(mel[0], model))(x, 1, refine=refine)
 
     for given, steered in ((Guidance(skip=0.1), Guidance(skip=0.1 * 3.5)), (Guidance(), Guidance())):
         refined = eps(given, True)
@@ -300,7 +310,7 @@ def test_bad_refine_settings_are_refused(setting):
 @pytest.mark.parametrize("backend", ["onnx", "torch"])
 def test_stream_equals_offline_and_emits_early(model, backend):
     cfg = model.config
-    cond = np.random.default_rng(0).random((150, cfg.mel_dim), dtype=np.float32)
+    cond = conditioning(np.random.default_rng(0).random((150, cfg.mel_dim), dtype=np.float32), model)
     conf = FoppasConfig(steps=4, later_start=2)
 
     def sampler():
@@ -308,12 +318,12 @@ def test_stream_equals_offline_and_emits_early(model, backend):
 
     s = sampler()
     network = open_network(model, backend=backend, device="cpu")
-    make = make_eps_fn_factory(model, network, s, style_vector(model, {0: 1.0}), Guidance())
+    make = make_eps_fn_factory(model, network, s, Guidance())
     offline = sample_long(s, make, cond, 3)
     stream = FoppasStream(sampler(), make, 3)
     parts, emitted_after = [], []
     for start in range(0, 150, 10):
-        parts.append(stream.push(cond[start:start + 10]))
+        parts.append(stream.push(cond.frames(start, start + 10)))
         emitted_after.append(sum(len(p) for p in parts))
     parts.append(stream.finish())
     streamed = np.concatenate(parts)
@@ -351,7 +361,7 @@ def test_later_windows_start_from_the_proposal_noised_to_the_start_level():
                     means.append(float(x[0, config.overlap:].mean()))
                 return np.zeros_like(x)
             return eps_fn
-        sample_long(sampler, make, np.zeros((34 + 30 + 20, 1), np.float32), 0)
+        sample_long(sampler, make, conditioning(np.zeros((34 + 30 + 20, 1), np.float32)), 0)
         return means
 
     with_draw = first_inputs(Foppas(Schedule.linear(), config, 34, 4, proposal=proposal))
@@ -377,7 +387,7 @@ def test_a_proposal_of_some_channels_leaves_the_others_noise_unchanged():
     def run(proposal) -> np.ndarray:
         sampler = Foppas(Schedule.linear(), config, 34, 4, proposal=proposal)
         make = lambda cond: lambda x, i: 0.1 * x  # any model that treats the channels apart
-        return sample_long(sampler, make, np.zeros((80, 1), np.float32), 3)
+        return sample_long(sampler, make, conditioning(np.zeros((80, 1), np.float32)), 3)
 
     plain, proposed = run(None), run(two_channels)
     assert np.array_equal(plain[:, 2:], proposed[:, 2:])
@@ -417,7 +427,7 @@ def test_a_lower_branch_leaves_the_other_channels_as_the_model_without_it_sample
     def run(g: int, with_branch: int, proposal) -> tuple[np.ndarray, np.ndarray]:
         sampler = Foppas(Schedule.linear(), config, 34, g + face, proposal=proposal.propose, gestures=g,
                          branch=with_branch)
-        cond = np.zeros((frames, 1), np.float32)
+        cond = conditioning(np.zeros((frames, 1), np.float32))
         make = widened(upper, with_branch, face)
         stream = FoppasStream(sampler, make, 4, face_seed=options.get("face_seed"), expected_frames=frames)
         whole = np.concatenate([stream.push(cond), stream.finish()])
@@ -442,7 +452,7 @@ def test_a_lower_branch_can_be_stepped_with_an_eta_of_its_own():
         config = replace(PRESETS["official-beat"], eta=1.0, **change)
         sampler = Foppas(Schedule.linear(), config, 34, g + face, gestures=g, branch=branch)
         stream = FoppasStream(sampler, widened(upper, branch, face), 4, expected_frames=frames)
-        cond = np.zeros((frames, 1), np.float32)
+        cond = conditioning(np.zeros((frames, 1), np.float32))
         return np.concatenate([stream.push(cond), stream.finish()])
 
     model, same, legs_still = run(), run(branch_eta=1.0), run(branch_eta=0.0)
@@ -471,7 +481,7 @@ def first_model_inputs(seed, n_frames=80, proposal=None, dim=4):
         return eps_fn
 
     made = []
-    out = sample_long(sampler, make, np.zeros((n_frames, 1), np.float32), seed)
+    out = sample_long(sampler, make, conditioning(np.zeros((n_frames, 1), np.float32)), seed)
     return firsts, out
 
 
@@ -516,7 +526,7 @@ def test_bad_seeds_are_refused(model, seed):
     sampler = Foppas(Schedule.linear(), PRESETS["official-beat"], 34, 4)
     make = lambda cond: lambda x, i: np.zeros_like(x)
     with pytest.raises(DiffshegError, match="seed"):
-        sample_long(sampler, make, np.zeros((40, 1), np.float32), seed)
+        sample_long(sampler, make, conditioning(np.zeros((40, 1), np.float32)), seed)
     with pytest.raises(DiffshegError, match="seed"):
         FoppasStream(sampler, make, seed)
     with pytest.raises(DiffshegError, match="seed"):

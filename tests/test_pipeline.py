@@ -227,6 +227,7 @@ def prior_model(model, data_dir):
 def test_streaming_foppas_in_small_pushes_matches_generate(speech, model, prior_model, with_prior):
     from diffsheg_core.audio import load_audio
     from diffsheg_core.foppas import FoppasStream
+    from diffsheg_core.conditioning import Conditioning
     from diffsheg_core.pipeline import build_sampling, make_plan, to_motion
     from diffsheg_core.speech_features import speech_features
     from diffsheg_core.runtime.backends import open_network
@@ -234,8 +235,10 @@ def test_streaming_foppas_in_small_pushes_matches_generate(speech, model, prior_
     model = prior_model if with_prior else model
     network = open_network(model)
     features = speech_features(model, network, load_audio(speech))
-    stream = FoppasStream(*build_sampling(model, network, make_plan(model, GenerateSettings(model=model))), seed=5)
-    frames = [stream.push(features[i:i + 15]) for i in range(0, len(features), 15)] + [stream.finish()]
+    plan = make_plan(model, GenerateSettings(model=model), n_frames=len(features))
+    cond = Conditioning(features, plan.style)
+    stream = FoppasStream(*build_sampling(model, network, plan), seed=5)
+    frames = [stream.push(cond.frames(i, i + 15)) for i in range(0, len(cond), 15)] + [stream.finish()]
     streamed = to_motion(model, np.concatenate(frames), meta={})
     offline = generate(speech, model=model, seed=5, device="cpu", upper_body_only=True)
     assert streamed.n_frames == offline.n_frames == 60
@@ -357,6 +360,7 @@ def test_the_same_speech_gives_the_same_features_at_16_22_and_44_khz(data_dir, n
     a few thousandths of its peak. Also through the file path read in pieces."""
     from diffsheg_core import pipeline, speech_features
     from diffsheg_core.audio import load_audio, resample
+    from diffsheg_core.conditioning import SpeechFeatures
 
     bundle = load_model()
     network = open_network(bundle)
@@ -364,13 +368,13 @@ def test_the_same_speech_gives_the_same_features_at_16_22_and_44_khz(data_dir, n
     features = {rate: speech_features.speech_features(bundle, network, resample(audio, rate))
                 for rate in (16000, 22050, 44100)}
     monkeypatch.setattr(speech_features, "PIECE_SECONDS", 3)
-    features["file"] = np.concatenate(list(speech_features.speech_chunks(bundle, network,
-                                                                         pipeline.open_speech(data_dir / name))))
-    mel, reference = bundle.config.mel_dim, features[16000]
+    features["file"] = SpeechFeatures.join(speech_features.speech_chunks(bundle, network,
+                                                                         pipeline.open_speech(data_dir / name)))
+    reference = features[16000]
     for rate, found in features.items():
-        assert found.shape == reference.shape, rate
-        assert np.abs(found[:, mel:] - reference[:, mel:]).max() < (2e-3 if rate == "file" else 1e-4), rate
-        assert np.abs(found[:, :mel] - reference[:, :mel]).max() < 1e-2 * reference[:, :mel].max(), rate
+        assert found.mel.shape == reference.mel.shape and found.speech.shape == reference.speech.shape, rate
+        assert np.abs(found.speech - reference.speech).max() < (2e-3 if rate == "file" else 1e-4), rate
+        assert np.abs(found.mel - reference.mel).max() < 1e-2 * reference.mel.max(), rate
 
 
 @pytest.mark.parametrize("name", OTHER_RATES, ids=["44k1_mp3", "22k05_wav"])

@@ -16,9 +16,10 @@ from conftest import random_bundle
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.foppas import PRESETS
 from diffsheg_core.guidance import Guidance, step_eps
-from diffsheg_core.pipeline import generate, style_vector, style_weights
+from diffsheg_core.pipeline import generate
 from diffsheg_core.runtime.backends import open_network
-from diffsheg_core.settings import GenerateSettings, parse_style
+from diffsheg_core.settings import GenerateSettings
+from diffsheg_core.style import parse_style, style_vector, style_weights
 from test_pipeline import speech  # noqa: F401 (fixture: four seconds of real speech)
 
 NAMES = ["calm", "conversational", "animated"]
@@ -199,7 +200,7 @@ def test_style_over_time_with_the_bundled_model_on_real_speech(data_dir, tmp_pat
     import soundfile as sf
 
     from diffsheg_core.motion import Motion
-    from diffsheg_core.settings import parse_style_at
+    from diffsheg_core.style import parse_style_at
     from diffsheg_core.training.metrics.posture import wrist_positions
 
     audio, rate = sf.read(str(data_dir / "audio" / "2_scott_0_3_3.wav"), dtype="float32")
@@ -243,10 +244,10 @@ def test_a_change_after_the_speech_never_takes_effect(speech, styled, tmp_path):
     the speech never takes effect: the motion is that of the style or emotion before it."""
     from diffsheg_core.emotion import emotion_track
     from diffsheg_core.motion import Motion
-    from diffsheg_core.pipeline import style_track
+    from diffsheg_core.style import style_track
 
     for seconds in (1e308, 1.7976931348623157e308, 60.0):
-        assert (style_track(styled, "animated", ((0, "calm"), (seconds, "animated")), 30) == [[1, 0, 0]]).all()
+        assert (style_track(styled, "animated", ((0, "calm"), (seconds, "animated")), 30).rows == [[1, 0, 0]]).all()
         np.testing.assert_array_equal(emotion_track({"happy": 1.0}, ((seconds, {"sad": 1.0}),), 30, 15.0),
                                       emotion_track({"happy": 1.0}, None, 30, 15.0))
     settings = GenerateSettings(steps=2, style_at=((0, "calm"), (1e308, "animated")),

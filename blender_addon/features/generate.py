@@ -327,7 +327,7 @@ def marker_styles(scene, start_frame: int) -> tuple | None:
     """The style changes the scene's timeline markers name ('style:calm',
     'style:calm=0.7,animated=0.3'), as (seconds from `start_frame`, style). None where
     there are none."""
-    from diffsheg_core.settings import parse_style
+    from diffsheg_core.style import parse_style
 
     return marker_changes(scene, start_frame, STYLE_MARKER, parse_style,
                           "style:calm or style:calm=0.7,animated=0.3")

@@ -29,6 +29,7 @@ import numpy as np
 
 from ..audio import MIN_SAMPLE_RATE, Audio, n_motion_frames, samples_for_frames
 from ..checkpoints import ModelBundle
+from ..conditioning import Conditioning, SpeechFeatures
 from ..errors import DiffshegError
 from ..foppas import Foppas, FoppasConfig, sampling_settings
 from ..pipeline import build_sampling, check_finite, generation_meta, make_plan, to_motion
@@ -132,8 +133,10 @@ class LiveEngine:
         self.sample_rate = sample_rate
         self.fps = int(cfg.fps)
         sampling = sampling_settings(bundle.sampling, settings.sampling)
+        # the plan's style covers one window's frames: live, one style holds throughout (style_at is refused above)
         self.plan = replace(make_plan(bundle, settings, replace(_live_sampling(sampling, live), blend=False,
-                                                                refine=None)), sampling=settings.sampling)
+                                                                refine=None), n_frames=cfg.clip_len),
+                            sampling=settings.sampling)
         self.config: FoppasConfig = self.plan.config
         self.sampler: Foppas
         self.sampler, self._make_eps_fn = build_sampling(bundle, network, self.plan)
@@ -207,9 +210,9 @@ class LiveEngine:
         """Sample the window ending at frame `end`, holding the emitted frames before the new ones."""
         first = max(0, end - self.bundle.config.clip_len)
         n_known = self.emitted - first
-        cond = self._features(first, end)
+        cond = Conditioning(self._features(first, end), self.plan.style.frames(0, end - first))
         known = self._known(first) if n_known else None
-        window = self.sampler.sample_window(self._make_eps_fn(cond[None]), end - first, known, self.noise)
+        window = self.sampler.sample_window(self._make_eps_fn(cond), end - first, known, self.noise)
         new = window[0, n_known:]
         check_finite(self.bundle, new)
         self._frames.append(new)
@@ -227,8 +230,8 @@ class LiveEngine:
                 break
         return np.concatenate(parts)[None, -(self.emitted - first):]
 
-    def _features(self, first: int, end: int) -> np.ndarray:
-        """(end - first, F) speech features of frames [first, end), computed over the audio
+    def _features(self, first: int, end: int) -> SpeechFeatures:
+        """The speech features of frames [first, end), computed over the audio
         from `_before` frames before `first` (the window's `context`, back to a whole sample) to
         `lookahead` frames after `end`, never more: so they do not depend on how much audio has
         arrived when the window is sampled, and the same speech gives the same frames on any machine."""

@@ -35,7 +35,8 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..checkpoints import ModelBundle, load_model, save_checkpoint
-from ..config import ModelConfig, style_names_fit
+from ..config import ModelConfig
+from ..style import style_names_fit
 from .data import ClipDataset, DataConfig, NormStats, load_takes, normalisation
 from ..diffusion import Schedule
 from ..errors import DiffshegError
