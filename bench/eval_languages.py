@@ -15,8 +15,11 @@ it holds), per take:
               voice's level (qc.voiced_level_correlation: the loudness figure below)
   voiced share, items  share of voiced frames; voiced runs (gaps under 0.3 s merged) and
               their median length: the takes are single syllables and words with pauses
-and a second table of the other mapped mouth channels' agreement (whole / voiced, means
-over seeds). 1114_2_05 is the take the tests hold out. --facegood-only stops there.
+each take also joined into running speech (metrics.facegood.joined: silences cut to 0.1 s,
+audio and face together, so the words follow one another; its own mean row): the takes hold
+no running speech, and this is the closest to it they give. Then a second table of the other
+mapped mouth channels' agreement (whole / voiced, means over seeds). 1114_2_05 is the take
+the tests and the fine-tune (weights/default_face_zh.toml) hold out. --facegood-only stops there.
 
 Then runs the bundled model with its default settings (seeds 0 and 1) on every recording in
 ../shared/data/audio/lang/ and on the real English recordings of ../shared/data (the take
@@ -76,8 +79,9 @@ from diffsheg_core.qc import (lip_closures, mouth_voice_correlation, speech_leve
                               voiced_frames, voiced_level_correlation, voiced_mouth_voice_correlation)
 from diffsheg_core.training.evaluate import load_reference
 from diffsheg_core.training.metrics import face_channel, mouth_opening, phone_tier, phoneme_contrast, read_textgrid
-from diffsheg_core.training.metrics.facegood import (ARKIT_FROM_RIG, HELD_OUT, agreement, arkit_curves,
-                                                     measure_take, read_names, read_take, take_names)
+from diffsheg_core.training.metrics.facegood import (ARKIT_FROM_RIG, HELD_OUT, FacegoodTake, agreement,
+                                                     arkit_curves, joined, measure_take, read_names, read_take,
+                                                     take_names)
 from diffsheg_core.training.metrics.lipsync import (BILABIALS, OPEN_VOWELS, base_phone, phone_following,
                                                      phone_middles, values_at, viseme_jaw,
                                                      voiced_reference_correlation)
@@ -216,8 +220,14 @@ def _seeds(values: list[float]) -> str:
     return f"{np.mean(values):.2f} ({', '.join(f'{x:.2f}' for x in values)})"
 
 
-def facegood_tables(takes: dict[str, list[Motion]], english: list[Motion]) -> str:
-    """The captured-face figures of the FACEGOOD Mandarin takes against English's (issue 42)."""
+JOIN_PAUSE = 0.1
+"""Seconds the joined takes' silences are cut to (metrics.facegood.joined)."""
+
+
+def facegood_tables(takes: dict[str, tuple[FacegoodTake, list[Motion]]], english: list[Motion]) -> str:
+    """The captured-face figures of the FACEGOOD Mandarin takes against English's (issue 42):
+    label -> (take, the model's motions on its audio); labels ending in 'joined' are the
+    takes with their pauses cut (a mean row each for the takes as read and as joined)."""
     audio = load_audio(TAKE_WAV)
     real = captured_jaw(english[0].fps)
     en = [agreement(mouth_opening(m), real, m.fps, audio) for m in english]
@@ -228,39 +238,44 @@ def facegood_tables(takes: dict[str, list[Motion]], english: list[Motion]) -> st
     others = [name for name in ARKIT_FROM_RIG if name != "jawOpen"]
     head2 = ["take", *others]
     lines2 = ["| " + " | ".join(head2) + " |", "|" + "---|" * len(head2)]
-    names = read_names(FACEGOOD / "bs_names.json")
-    whole_all, voiced_all, shares, items, per_channel = [], [], [], [], {n: [] for n in others}
-    for name, motions in takes.items():
-        take = read_take(FACEGOOD, name, names)
-        a, fps, n = take.audio, motions[0].fps, motions[0].n_frames
-        figures = [measure_take(m, take) for m in motions]
-        whole = [f["jawOpen"][0] for f in figures]
-        voiced = [f["jawOpen"][1] for f in figures]
-        whole_all.append(np.mean(whole))
-        voiced_all.append(np.mean(voiced))
-        marks = voiced_frames(a.samples, a.sample_rate, fps, n)
-        runs = voiced_runs(marks, fps)
-        shares.append(marks.mean())
-        items.extend(runs)
-        jaw = arkit_curves(take, fps, n)["jawOpen"]
-        label = f"{name} (held out)" if name == HELD_OUT else name
-        lines.append(
-            f"| {label} | {a.duration:.1f} | {marks.mean():.2f} | {len(runs)} ({np.median(runs):.2f}) | "
-            f"{_seeds(whole)} | {np.mean(whole) / en_whole:.2f} | {_seeds(voiced)} | "
-            f"{np.mean(voiced) / en_voiced:.2f} | "
-            f"{voiced_level_correlation(jaw, fps, a.samples, a.sample_rate):.2f} | "
-            f"{np.mean([voiced_mouth_voice_correlation(m, a.samples, a.sample_rate) for m in motions]):.2f} |")
-        cells = []
-        for channel in others:
-            pair = np.array([f[channel] for f in figures])
-            per_channel[channel].append(pair.mean(0))
-            still = np.isnan(pair).all()  # the take never uses the channel's rig shapes
-            cells.append("n/a (still)" if still else f"{pair[:, 0].mean():.2f} / {pair[:, 1].mean():.2f}")
-        lines2.append(f"| {label} | " + " | ".join(cells) + " |")
-    whole_mean, voiced_mean = float(np.mean(whole_all)), float(np.mean(voiced_all))
-    lines.append(f"| **zh mean of {len(takes)}** | | {np.mean(shares):.2f} | {len(items)} ({np.median(items):.2f}) | "
-                 f"**{whole_mean:.2f}** | **{whole_mean / en_whole:.2f}** | **{voiced_mean:.2f}** | "
-                 f"**{voiced_mean / en_voiced:.2f}** | | |")
+    for group in ("read", "joined"):
+        whole_all, voiced_all, shares, items, per_channel = [], [], [], [], {n: [] for n in others}
+        chosen = {label: v for label, v in takes.items() if label.endswith("joined") == (group == "joined")}
+        for label, (take, motions) in chosen.items():
+            a, fps, n = take.audio, motions[0].fps, motions[0].n_frames
+            figures = [measure_take(m, take) for m in motions]
+            whole = [f["jawOpen"][0] for f in figures]
+            voiced = [f["jawOpen"][1] for f in figures]
+            whole_all.append(np.mean(whole))
+            voiced_all.append(np.mean(voiced))
+            marks = voiced_frames(a.samples, a.sample_rate, fps, n)
+            runs = voiced_runs(marks, fps)
+            shares.append(marks.mean())
+            items.extend(runs)
+            jaw = arkit_curves(take, fps, n)["jawOpen"]
+            label = f"{label} (held out)" if label.startswith(HELD_OUT) else label
+            lines.append(
+                f"| {label} | {a.duration:.1f} | {marks.mean():.2f} | {len(runs)} ({np.median(runs):.2f}) | "
+                f"{_seeds(whole)} | {np.mean(whole) / en_whole:.2f} | {_seeds(voiced)} | "
+                f"{np.mean(voiced) / en_voiced:.2f} | "
+                f"{voiced_level_correlation(jaw, fps, a.samples, a.sample_rate):.2f} | "
+                f"{np.mean([voiced_mouth_voice_correlation(m, a.samples, a.sample_rate) for m in motions]):.2f} |")
+            cells = []
+            for channel in others:
+                pair = np.array([f[channel] for f in figures])
+                per_channel[channel].append(pair.mean(0))
+                still = np.isnan(pair).all()  # the take never uses the channel's rig shapes
+                cells.append("n/a (still)" if still else f"{pair[:, 0].mean():.2f} / {pair[:, 1].mean():.2f}")
+            lines2.append(f"| {label} | " + " | ".join(cells) + " |")
+        if not chosen:
+            continue
+        whole_mean, voiced_mean = float(np.mean(whole_all)), float(np.mean(voiced_all))
+        lines.append(f"| **zh mean of {len(chosen)} {group}** | | {np.mean(shares):.2f} | {len(items)} "
+                     f"({np.median(items):.2f}) | **{whole_mean:.2f}** | **{whole_mean / en_whole:.2f}** | "
+                     f"**{voiced_mean:.2f}** | **{voiced_mean / en_voiced:.2f}** | | |")
+        means = [np.nanmean(per_channel[c], 0) for c in others]
+        lines2.append(f"| **zh mean of {len(chosen)} {group}** | "
+                      + " | ".join(f"**{w:.2f} / {v:.2f}**" for w, v in means) + " |")
     fps = english[0].fps
     en_marks = voiced_frames(audio.samples, audio.sample_rate, fps, english[0].n_frames)
     en_runs = voiced_runs(en_marks, fps)
@@ -270,12 +285,21 @@ def facegood_tables(takes: dict[str, list[Motion]], english: list[Motion]) -> st
         f"{_seeds([v for _, v in en])} | 1 | "
         f"{voiced_level_correlation(real, fps, audio.samples, audio.sample_rate):.2f} | "
         f"{np.mean([voiced_mouth_voice_correlation(m, audio.samples, audio.sample_rate) for m in english]):.2f} |")
-    means = [np.nanmean(per_channel[c], 0) for c in others]
-    lines2.append(f"| **zh mean of {len(takes)}** | "
-                  + " | ".join(f"**{w:.2f} / {v:.2f}**" for w, v in means) + " |")
-    return ("Captured Mandarin face (FACEGOOD zh_facegood, mapped onto ARKit), jawOpen against the captured jaw:\n"
+    return ("Captured Mandarin face (FACEGOOD zh_facegood, mapped onto ARKit), jawOpen against the captured jaw "
+            f"(as read, and joined: silences cut to {JOIN_PAUSE:g} s, words following one another):\n"
             + "\n".join(lines) + "\n\nThe other mapped mouth channels, r whole / r voiced (means over seeds):\n"
             + "\n".join(lines2))
+
+
+def facegood_takes(model, seeds: list[int], options: dict) -> dict[str, tuple[FacegoodTake, list[Motion]]]:
+    """Every FACEGOOD take as read and joined, with the model's motions on its audio."""
+    names = read_names(FACEGOOD / "bs_names.json")
+    found = {}
+    for name in take_names(FACEGOOD):
+        take = read_take(FACEGOOD, name, names)
+        for label, version in ((name, take), (f"{name} joined", joined(take, JOIN_PAUSE))):
+            found[label] = (version, [generate(version.audio, model=model, seed=s, **options) for s in seeds])
+    return found
 
 
 def with_loudness_gain(motion: Motion, audio, k: float) -> Motion:
@@ -359,8 +383,7 @@ def main() -> None:
     options = {} if args.steps is None else {"steps": args.steps}
     started = time.perf_counter()
     generated = {TAKE_WAV: [generate(TAKE_WAV, model=bundle, seed=s, **options) for s in args.seeds]}
-    facegood = {name: [generate(FACEGOOD / f"{name}.wav", model=bundle, seed=s, **options) for s in args.seeds]
-                for name in take_names(FACEGOOD)}
+    facegood = facegood_takes(bundle, args.seeds, options)
     print(facegood_tables(facegood, generated[TAKE_WAV]))
     print()
     if args.facegood_only:

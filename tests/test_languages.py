@@ -360,6 +360,61 @@ def test_the_facegood_mapping_reads_every_take(tmp_path):
         read_take(bad, "t")
 
 
+def test_a_take_joined_into_running_speech_keeps_every_word_and_its_face():
+    """metrics.facegood.joined: the held-out take's pauses (about 0.6 s between words) cut to
+    0.1 s, audio and face at the same frames: every sounding frame is kept with its face, no
+    silence longer than the pause is left, and the voice sounds most of the time, as running
+    speech does (English's take 0.74 voiced; the take as read 0.40)."""
+    from diffsheg_core.qc import speech_level
+    from diffsheg_core.training.metrics.facegood import HELD_OUT, JAW, SILENCE_DB, joined, read_take
+
+    take = read_take(FACEGOOD, HELD_OUT)
+    cut = joined(take, 0.1)
+    assert 0.5 * take.audio.duration < cut.audio.duration < 0.7 * take.audio.duration
+    assert abs(cut.audio.duration - cut.n_frames / cut.fps) < 1 / cut.fps
+    level = speech_level(take.audio.samples, take.audio.sample_rate, take.fps, take.n_frames)
+    sounding = level >= np.percentile(level, 95) - SILENCE_DB
+    cut_level = speech_level(cut.audio.samples, cut.audio.sample_rate, cut.fps, cut.n_frames)
+    cut_sounding = cut_level >= np.percentile(level, 95) - SILENCE_DB
+    # the frames where the jaw opens are kept (all but 10 of 1497, opening in silence before a word)
+    jaw, cut_jaw = take.channel(JAW), cut.channel(JAW)
+    assert np.count_nonzero(cut_jaw > 0.02) >= 0.99 * np.count_nonzero(jaw > 0.02)
+    assert abs(cut_jaw.sum() - jaw.sum()) < 0.01 * jaw.sum() and sounding.sum() > 0.4 * take.n_frames
+    runs = np.diff(np.flatnonzero(np.diff(np.concatenate([[1], cut_sounding.astype(np.int8), [1]]))))[::2]
+    assert runs.max() <= 4, runs.max()  # silences of 0.1 s (3 frames) at most, give or take the level's window
+    voiced = voiced_frames(cut.audio.samples, cut.audio.sample_rate, 15.0, int(cut.audio.duration * 15))
+    assert voiced.mean() > 0.6
+    with pytest.raises(DiffshegError, match="above 0 s"):
+        joined(take, 0)
+
+
+def test_the_facegood_takes_train_the_mouth_alone():
+    """training.data.facegood: four takes train and the held-out one is the test split; a take
+    fits the whole-body layout with only the jaw and the lips' rounding unmasked (the gestures,
+    legs and every other face channel out of the loss), its jaw the captured one; with `pause`
+    the take is the one joined into running speech."""
+    from diffsheg_core.rigs import BEAT_BODY
+    from diffsheg_core.training.data import DataConfig, find_sources
+    from diffsheg_core.training.data.facegood import ROUNDING_GAIN, TRAINED, read_take as read_training_take
+    from diffsheg_core.training.metrics.facegood import HELD_OUT, arkit_curves, joined, read_take
+
+    config = DataConfig(kind="facegood", root=str(FACEGOOD), whole_body=True, style=1)
+    assert config.layout is BEAT_BODY
+    assert [s.name for s in find_sources(config, "test")] == [HELD_OUT]
+    sources = find_sources(config, "train")
+    assert len(sources) == 4 and HELD_OUT not in [s.name for s in sources]
+    take = read_training_take(sources[0], config)
+    face = [BEAT_BODY.gesture_dim + BEAT_BODY.face_names.index(n) for n in TRAINED]
+    assert sorted(np.flatnonzero(take.mask)) == sorted(face) and take.style == 1
+    capture = read_take(FACEGOOD, sources[0].name)
+    curves = arkit_curves(capture, 15.0, take.n_frames)
+    np.testing.assert_allclose(take.motion[:, face[0]], curves["jawOpen"], atol=1e-6)
+    np.testing.assert_allclose(take.motion[:, face[1]], np.clip(ROUNDING_GAIN * curves["mouthFunnel"], 0, 1), atol=1e-6)
+    assert not take.motion[:, ~take.mask].any()
+    running = read_training_take(sources[0], DataConfig(kind="facegood", root=str(FACEGOOD), pause=0.1))
+    assert abs(running.n_frames - joined(capture, 0.1).audio.duration * 15) <= 1
+
+
 def test_the_held_out_mandarin_take_s_mouth_agrees_with_its_captured_face():
     """The bundled model's mouth on real read Mandarin against the speaker's captured face
     (FACEGOOD, mapped onto ARKit), and its jaw's agreement as a share of English's with

@@ -468,7 +468,8 @@ def test_settings_no_run_can_use_are_refused_before_anything_is_written(small_ro
 
 def test_the_bundled_models_training_recipes_read():
     """Every stage's settings in diffsheg_core/weights (base, guided, temporal, acceleration, the
-    multilingual retraining and the whole body) read with their `extends` chain resolved."""
+    multilingual retraining, the whole body and the fine-tune on a captured Mandarin face) read
+    with their `extends` chain resolved."""
     from pathlib import Path
 
     recipes = sorted((Path(__file__).resolve().parents[1] / "diffsheg_core" / "weights").glob("*.toml"))
@@ -483,6 +484,36 @@ def test_the_bundled_models_training_recipes_read():
     assert languages.stats_tolerance == 0.3 and not languages.freeze_expression and languages.data.root.endswith("v5")
     body = TrainConfig.from_dict(read_config_file(recipes[0].with_name("default_body.toml")))
     assert body.freeze_gesture and body.freeze_expression and body.data.whole_body and body.model["lower_dim"] == 30
+    face = TrainConfig.from_dict(read_config_file(recipes[0].with_name("default_face_zh.toml")))
+    assert face.freeze_body and not face.freeze_gesture and not face.freeze_expression
+    assert [(d.kind, d.pause, d.whole_body) for d in face.datasets] == [("facegood", 0.0, True), ("facegood", 0.1, True)]
+
+
+def test_the_face_alone_fine_tunes_on_captured_faces_beside_the_data(small_root, tmp_path):
+    """freeze_body with the FACEGOOD takes (real Mandarin, a captured face and no body) as a
+    [[datasets]] table beside [data]: the run reads both, and only the expression branch
+    trains; the speech layer both branches read, the gesture branch and the gesture prior stay
+    the source's to the bit. freeze_body beside another freeze, without a model to keep, and a
+    dataset that sets its own clip length are refused."""
+    base = tmp_path / "base"
+    train(TrainConfig.from_dict(config(small_root, base, steps=5, checkpoint_every=5)))
+    facegood = {"kind": "facegood", "root": str(DATA / "lang_capture" / "zh_facegood"), "stride": 34, "pause": 0.1}
+    settings = config(small_root, tmp_path / "face", steps=4, checkpoint_every=100, freeze_body=True,
+                      init_from=str(base / MODEL_FILE), stats_tolerance=100.0, datasets=[facegood])
+    trainer = Trainer(TrainConfig.from_dict(settings), Dist())
+    names = [t.name for t in trainer.train_set.takes]
+    assert names[0] == "talk" and len(names) == 5  # the recording, and four FACEGOOD takes (one held out)
+    train(TrainConfig.from_dict(settings))
+    source, tuned = load_model(base / MODEL_FILE), load_model(tmp_path / "face" / MODEL_FILE)
+    changed = {k for k, v in source.weights.items() if not np.array_equal(tuned.weights[k], v)}
+    assert changed and all(k.startswith("encoder_exp.") for k in changed)
+    np.testing.assert_array_equal(tuned.prior.axes, source.prior.axes)
+    for over, match in (({"freeze_expression": True}, "leave freeze_expression and freeze_gesture off"),
+                        ({"init_from": ""}, "set init_from to that model")):
+        with pytest.raises(DiffshegError, match=match):
+            Trainer(TrainConfig.from_dict({**settings, **over}), Dist())
+    with pytest.raises(DiffshegError, match="sets clip_len apart from"):
+        TrainConfig.from_dict({**settings, "datasets": [{**facegood, "clip_len": 20}]})
 
 
 def test_a_beat_model_widens_into_a_whole_body_one_that_keeps_its_upper_body(tmp_path):

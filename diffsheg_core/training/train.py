@@ -37,7 +37,7 @@ from tqdm import tqdm
 from ..checkpoints import ModelBundle, load_model, save_checkpoint
 from ..config import ModelConfig
 from ..style import style_names_fit
-from .data import ClipDataset, DataConfig, NormStats, load_takes, normalisation
+from .data import ClipDataset, DataConfig, NormStats, TakeSet, load_takes, normalisation
 from ..diffusion import Schedule
 from ..errors import DiffshegError
 from ..foppas import PRESETS, FoppasConfig, with_overrides
@@ -64,6 +64,9 @@ class TrainConfig:
     layout, its sizes, the clip length and fps come from the data)."""
 
     data: DataConfig = field(default_factory=DataConfig)
+    # further datasets trained on beside `data` ([[datasets]] tables): each names what differs
+    # from [data] (kind, root, stride, style, ...); its layout, fps and clip length are [data]'s
+    datasets: list = field(default_factory=list)
     model: dict = field(default_factory=dict)
     out_dir: str = "runs/diffsheg"
     steps: int = 100_000
@@ -95,6 +98,10 @@ class TrainConfig:
     # weights it starts with, so a whole-body model widened from one without legs keeps its
     # source's upper body (with freeze_expression, its face too)
     freeze_gesture: bool = False
+    # train the expression branch alone: the speech layer both branches read, the gesture
+    # and lower-body branches and the gesture prior stay as they start (the gestures change
+    # only through the face they are fed)
+    freeze_body: bool = False
     # how far the data's normalisation statistics may lie from those of the model a run is
     # fine-tuned from, as a share of each channel's spread: a rebuild of the same corpus moves
     # them by up to 2 %, other data by far more; raise it only for data widened on purpose
@@ -124,10 +131,22 @@ class TrainConfig:
                                 f"(known: {', '.join(sorted(known))})")
         values = dict(values)
         data = values.pop("data", {})
+        datasets = values.pop("datasets", [])
+        if not isinstance(datasets, list) or not all(isinstance(d, dict) for d in datasets):
+            raise DiffshegError("datasets must be a list of tables ([[datasets]] in TOML), each naming what "
+                                "differs from [data]")
         data_known = {f.name for f in fields(DataConfig)}
-        if set(data) - data_known:
-            raise DiffshegError(f"unknown data settings: {', '.join(sorted(set(data) - data_known))}")
-        return cls(data=DataConfig(**data), **values)
+        for table in (data, *datasets):
+            if set(table) - data_known:
+                raise DiffshegError(f"unknown data settings: {', '.join(sorted(set(table) - data_known))}")
+        shared = ("fps", "clip_len", "whole_body")
+        for table in datasets:
+            differ = [k for k in shared if k in table and table[k] != data.get(k, getattr(DataConfig, k))]
+            if differ:
+                raise DiffshegError(f"a dataset in [[datasets]] sets {', '.join(differ)} apart from [data]; "
+                                    "every dataset trains one model: leave them to [data]")
+        return cls(data=DataConfig(**data), datasets=[DataConfig(**{**data, **table}) for table in datasets],
+                   **values)
 
     # numeric settings: (bounds, whole); the rest are checked where they are used
     NUMBERS = {"steps": ((1, math.inf), True), "batch_size": ((1, math.inf), True),
@@ -448,8 +467,17 @@ class Trainer:
         speech = (phonetic_speech(self.phonetic) if self.phonetic is not None
                   else hubert_encoding(cfg.hubert or None, device=str(env.device))
                   if self.model_cfg.has_speech_input else None)
-        train = load_takes(cfg.data, "train", speech)
-        val = load_takes(cfg.data, "val", speech)
+        train, val = (TakeSet(cfg.data.layout, []), TakeSet(cfg.data.layout, []))
+        strides = []
+        for data in (cfg.data, *cfg.datasets):
+            if data.layout != cfg.data.layout:
+                raise DiffshegError(f"the {data.kind} dataset {data.root} holds the {data.layout.name} layout, "
+                                    f"[data] the {cfg.data.layout.name} one: every dataset must fit one model")
+            for split, found in (("train", train), ("val", val)):
+                taken = load_takes(data, split, speech)
+                found.takes += taken.takes
+                found.skipped += taken.skipped
+            strides += [data.stride] * (len(train.takes) - len(strides))
         self.skipped = train.skipped + val.skipped
         self.stats: NormStats = normalisation(cfg.data, train)
         # the model a new run is fine-tuned from (a resumed run has its weights and statistics)
@@ -457,7 +485,7 @@ class Trainer:
         if self.source is not None:
             self.stats = fine_tuning_statistics(cfg.init_from, NormStats(self.source.mean, self.source.std),
                                                 self.stats, cfg.stats_tolerance, self.widened_channels())
-        self.train_set = ClipDataset(train.takes, cfg.data.clip_len, cfg.data.stride, self.stats)
+        self.train_set = ClipDataset(train.takes, cfg.data.clip_len, strides, self.stats)
         self.val_set = ClipDataset(val.takes, cfg.data.clip_len, cfg.data.clip_len, self.stats) \
             if val.takes and any(t.n_frames >= cfg.data.clip_len for t in val.takes) else None
         styles = max(t.style for t in train.takes)
@@ -476,13 +504,21 @@ class Trainer:
         # the gesture prior of the model whose gesture branch the run keeps as it is (read once;
         # a resumed run reads init_from again for it)
         self.kept_prior = ((self.source or load_model(cfg.init_from)).prior
-                           if cfg.freeze_gesture and cfg.init_from else None)
-        if self.kept_prior is not None and self.kept_prior.dims != self.model_cfg.upper_dim:
+                           if (cfg.freeze_gesture or cfg.freeze_body) and cfg.init_from else None)
+        if cfg.freeze_gesture and self.kept_prior is not None and self.kept_prior.dims != self.model_cfg.upper_dim:
             raise DiffshegError(f"init_from {cfg.init_from}: its gesture prior covers {self.kept_prior.dims} channels, "
                                 f"but the gesture branch makes {self.model_cfg.upper_dim}: start a lower-body branch "
                                 "from a model without one (v9's recipe starts from v8)")
-        self.frozen = ([self.model.time_embed, self.model.encoder_aud, self.model.encoder_exp]
-                       if cfg.freeze_expression else []) + ([self.model.encoder_ges] if cfg.freeze_gesture else [])
+        if cfg.freeze_body and (cfg.freeze_expression or cfg.freeze_gesture):
+            raise DiffshegError("freeze_body trains the expression branch alone: leave freeze_expression and "
+                                "freeze_gesture off with it")
+        if cfg.freeze_body and not cfg.init_from:
+            raise DiffshegError("freeze_body keeps a model's body as it is: set init_from to that model")
+        body = [self.model.time_embed, self.model.encoder_aud, self.model.encoder_ges] + (
+            [self.model.encoder_low] if self.model_cfg.lower_dim else [])
+        self.frozen = (body if cfg.freeze_body else
+                       ([self.model.time_embed, self.model.encoder_aud, self.model.encoder_exp]
+                        if cfg.freeze_expression else []) + ([self.model.encoder_ges] if cfg.freeze_gesture else []))
         for part in self.frozen:
             part.requires_grad_(False)
         # a rank whose batch drew no null rows leaves the null condition without a gradient
@@ -579,9 +615,10 @@ class Trainer:
     def bundle(self, dtype: torch.dtype = torch.float32) -> ModelBundle:
         """The EMA model as a generation checkpoint, with its ONNX graphs exported from the
         weights as stored (float16 weights run in float32 on both backends)."""
-        training = {k: v for k, v in asdict(self.cfg).items() if k not in ("data", "card")}
+        training = {k: v for k, v in asdict(self.cfg).items() if k not in ("data", "datasets", "card")}
         if self._prior is None:
-            self._prior = fit_prior(self.train_set.takes, self.stats, self.model_cfg, self.kept_prior)
+            self._prior = (self.kept_prior if self.cfg.freeze_body else
+                           fit_prior(self.train_set.takes, self.stats, self.model_cfg, self.kept_prior))
         return with_graphs(ModelBundle(
             config=self.model_cfg, weights=state_arrays(self.ema, dtype), mean=self.stats.mean,
             std=self.stats.std,
@@ -589,6 +626,7 @@ class Trainer:
             model_id=self.cfg.model_id, phonetic=self.phonetic.cfg if self.phonetic else None,
             phonetic_weights=state_arrays(self.phonetic, dtype) if self.phonetic else {}, prior=self._prior,
             info={**self.cfg.card, "trained_steps": self.step, "data": asdict(self.cfg.data),
+                  "datasets": [asdict(d) for d in self.cfg.datasets],
                   "training": training, "style_names": list(self.cfg.style_names),
                   "default_style": self.cfg.default_style,
                   "null_style": self.cfg.style_drop > 0}, source=f"run {self.out}"))

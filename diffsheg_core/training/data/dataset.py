@@ -1,6 +1,6 @@
 """Datasets for training and evaluation: configuration, reading every take of a split
-(through the BEAT, BEAT2 or folder reader) with broken takes reported and skipped, and
-the normalisation statistics."""
+(through the BEAT, BEAT2, folder, corpus or FACEGOOD reader) with broken takes reported
+and skipped, and the normalisation statistics."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from tqdm import tqdm
 from ...audio import SpeechEncoding, load_audio
 from ...errors import DiffshegError
 from ...rigs import BEAT_BODY, Layout
-from . import beat, beat2, corpus, folder
+from . import beat, beat2, corpus, facegood, folder
 from .cache import cached_take
 from .normalise import NormStats, compute_stats, official_stats
 from .sources import SPLITS, TakeSource, hashed_split
@@ -22,18 +22,24 @@ from .take import MAX_LENGTH_MISMATCH_S, Take
 
 log = logging.getLogger(__name__)
 
-READERS: dict[str, ModuleType] = {"beat": beat, "beat2": beat2, "folder": folder, "corpus": corpus}
+READERS: dict[str, ModuleType] = {"beat": beat, "beat2": beat2, "folder": folder, "corpus": corpus,
+                                  "facegood": facegood}
 
 
 @dataclass
 class DataConfig:
     """Where the data is and how it is cut into clips.
 
-    kind: 'beat', 'beat2', 'folder' or 'corpus' (the project's synthetic speech corpus).
+    kind: 'beat', 'beat2', 'folder', 'corpus' (the project's synthetic speech corpus) or
+    'facegood' (real speech with a captured face and no body: training/data/facegood.py).
     stats: 'train' computes normalisation statistics from the training split; otherwise a
     folder with the official statistics files. style: the style class of every take of a
     'folder' or 'corpus' dataset (BEAT names carry theirs). whole_body: a corpus's hips,
-    legs and hips' translation too (layout `beat_body`; teacher v4 and later makes them).
+    legs and hips' translation too (layout `beat_body`; teacher v4 and later makes them); a
+    face-only dataset ('facegood') fits that layout too, its body masked out. pause
+    ('facegood'): silences longer than this many seconds are cut to it, audio and face
+    together, so words read one by one follow one another as in running speech (0: as
+    recorded).
     """
 
     kind: str = "beat"
@@ -47,6 +53,7 @@ class DataConfig:
     style: int = 0
     max_length_mismatch: float = MAX_LENGTH_MISMATCH_S
     whole_body: bool = False
+    pause: float = 0.0
 
     def reader(self) -> ModuleType:
         if self.kind not in READERS:
@@ -57,7 +64,7 @@ class DataConfig:
     def layout(self) -> Layout:
         if not self.whole_body:
             return self.reader().LAYOUT
-        if self.kind != "corpus":
+        if self.kind != "corpus" and not getattr(self.reader(), "FACE_ONLY", False):
             raise DiffshegError(f"whole_body needs the project's corpus (kind = \"corpus\"): a '{self.kind}' "
                                 "dataset holds no lower body in the beat layout")
         return BEAT_BODY
@@ -93,6 +100,8 @@ def load_takes(config: DataConfig, split: str = "train", speech: SpeechEncoding 
     settings = f"{config.kind}|{config.fps}|{config.style}|{config.max_length_mismatch}|{config.layout.name}"
     if speech is not None:
         settings += f"|{speech.key}"
+    if config.pause:
+        settings += f"|pause {config.pause}"
     for source in tqdm(find_sources(config, split), desc=f"reading {split} takes", unit="take",
                        disable=None, leave=False):
         try:

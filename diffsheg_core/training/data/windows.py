@@ -23,11 +23,15 @@ class ClipDataset(Dataset):
     style (int), mask (D,) float (1 where the take holds the channel), and extra (L, E)
     when the takes carry a second speech input."""
 
-    def __init__(self, takes: list[Take], clip_len: int, stride: int, stats: NormStats):
+    def __init__(self, takes: list[Take], clip_len: int, stride: int | list[int], stats: NormStats):
+        """stride: frames between windows, for every take or one per take (datasets of
+        different sizes trained together)."""
         self.takes = takes
         self.clip_len = clip_len
         self.stats = stats
-        self.index = [(i, s) for i, t in enumerate(takes) for s in window_starts(t.n_frames, clip_len, stride)]
+        strides = stride if isinstance(stride, list) else [stride] * len(takes)
+        self.index = [(i, s) for i, (t, step) in enumerate(zip(takes, strides, strict=True))
+                      for s in window_starts(t.n_frames, clip_len, step)]
         if not self.index:
             longest = max((t.n_frames for t in takes), default=0)
             raise DiffshegError(
