@@ -367,28 +367,36 @@ def _known(bundle: ModelBundle, upper: Motion, whole: Motion) -> tuple[np.ndarra
     return values.astype(np.float32), hold
 
 
-PIN_EASE = 12        # frames either side of a pin over which its joint is eased through it
-PIN_SMOOTH = 2.5    # frames: the Gaussian sigma that takes the sampler's kink at a pin out
+PIN_EASE = 12       # frames either side of a joint's pins over which its curve is eased through them
+PIN_SMOOTH = 4.0    # frames: the smoothing length; the jerk weighs PIN_SMOOTH ** 6 against the pull to the sample
 
 
 def ease_into_pins(rotations: np.ndarray, joint_names: list[str], pins, start: int, end: int) -> None:
-    """Ease each pinned joint's rotations (T, J, 3, in place) through its pin: over PIN_EASE
-    frames either side (within the range [start, end)) the sampled curve is low-passed and
-    lifted by a raised cosine onto the pin, and blended back into the curve as sampled
-    towards the edges. The pin is met exactly; the sampler's own held value, painted into
-    a curve that had not quite reached it, would leave a kink the eye reads as a pop."""
-    for pin in pins:
-        j = joint_names.index(pin.joint)
-        a, b = max(start, pin.frame - PIN_EASE), min(end, pin.frame + PIN_EASE + 1)
+    """Ease each pinned joint's rotations (T, J, 3, in place) through its pins: over PIN_EASE
+    frames either side (within the range [start, end)) the curve becomes the one of least jerk
+    that passes through every pin of the joint exactly and stays near the sampled curve as far
+    as the pins allow, a pull that fades in by a raised cosine from nothing at a pin to full at
+    the ease's ends, where the curve joins the sample with its value, velocity and acceleration.
+    The sampler holds a pin's value but not the motion into it: its kink there, and the
+    velocity two pins on neighbouring frames set, are spread over the ease, not left as a pop."""
+    for j in sorted({joint_names.index(pin.joint) for pin in pins}):
+        frames = np.array(sorted({pin.frame for pin in pins if joint_names.index(pin.joint) == j}))
+        a, b = max(0, frames[0] - PIN_EASE - 3), min(len(rotations), frames[-1] + PIN_EASE + 4)
         t = np.arange(a, b)
+        gap = np.abs(t[:, None] - frames[None, :]).min(axis=1)
+        # as sampled: beyond the ease (three frames each side make the join) and outside the range
+        held = (gap > PIN_EASE) | (t < start) | (t >= end) | (gap == 0)
+        pull = 0.5 * (1.0 - np.cos(np.pi * np.clip(gap / (PIN_EASE + 1), 0.0, 1.0)))
+        jerk = np.diff(np.eye(b - a), 3, axis=0)
+        system = np.diag(pull) + PIN_SMOOTH ** 6 * jerk.T @ jerk
         curve = rotations[a:b, j].astype(np.float64)
-        weights = np.exp(-0.5 * ((t[:, None] - t[None, :]) / PIN_SMOOTH) ** 2)
-        smooth = weights @ curve / weights.sum(axis=1, keepdims=True)
-        bump = 0.5 * (1.0 + np.cos(np.pi * np.clip((t - pin.frame) / (PIN_EASE + 1), -1.0, 1.0)))[:, None]
-        smooth += bump * (np.asarray(pin.rotation, np.float64) - smooth[pin.frame - a])
-        rotations[a:b, j] = curve + bump * (smooth - curve)
-    for pin in pins:  # exact, also where two pins' eases overlap
-        rotations[pin.frame, joint_names.index(pin.joint)] = pin.rotation
+        for pin in pins:
+            if joint_names.index(pin.joint) == j:
+                curve[pin.frame - a] = pin.rotation
+        free = ~held
+        curve[free] = np.linalg.solve(system[np.ix_(free, free)],
+                                      pull[free, None] * curve[free] - system[np.ix_(free, held)] @ curve[held])
+        rotations[a:b, j] = curve
 
 
 def _hold_pins(bundle: ModelBundle, normalised: np.ndarray, hold: np.ndarray, pins, start: int, end: int) -> None:
