@@ -168,7 +168,7 @@ def _contact_cells(lower, trans, spans: dict, fps: float) -> str:
 
 
 def live_config(args, hop: int, lookahead: int = LiveConfig.lookahead) -> LiveConfig:
-    return LiveConfig(hop=hop, lookahead=lookahead, legs_eta=args.legs_eta)
+    return LiveConfig(hop=hop, lookahead=lookahead, legs_eta=args.legs_eta, skip_scale=args.skip_scale)
 
 
 def settings_tried(args) -> list[tuple]:
@@ -229,7 +229,9 @@ def main() -> int:
     p.add_argument("--no-legs", action="store_true")
     p.add_argument("--model", help="checkpoint (default: the bundled model)")
     p.add_argument("--legs-eta", type=float, default=LiveConfig.legs_eta,
-                   help="DDIM eta of a whole-body model's legs live (LiveConfig.legs_eta; default: the model's eta)")
+                   help="DDIM eta of a whole-body model's legs live (LiveConfig.legs_eta)")
+    p.add_argument("--skip-scale", type=float, default=LiveConfig.skip_scale,
+                   help="live gesture skip guidance, times the settings' (LiveConfig.skip_scale)")
     p.add_argument("--out", default="/tmp")
     args = p.parse_args()
     args.steps = [s or None for s in args.steps]

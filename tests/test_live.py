@@ -123,7 +123,7 @@ def test_live_cli_on_a_real_file_at_real_time_records_logs_and_streams_vmc(tmp_p
     assert take.joint_names[-len(LEG_JOINTS):] == list(LEG_JOINTS) and take.root_translation.shape == (take.n_frames, 3)
     assert take.meta["hips_height"] > 0 and sum(len(v) for v in take.meta["contacts"].values()) > 0
     assert take.meta["lower_body"] == "model"  # the bundled model's own, planted as they come
-    assert take.meta["live"]["legs_eta"] == 1.0  # the model's eta (LiveConfig.legs_eta)
+    assert take.meta["live"]["legs_eta"] == LiveConfig().legs_eta
     soles = foot_positions(lower_rotations(take), take.root_translation.astype(np.float64))
     for side, spans in take.meta["contacts"].items():  # a contact foot does not slide
         for a, b in spans:
@@ -276,6 +276,18 @@ def test_a_machine_too_slow_for_the_hop_widens_it_and_never_drifts(tmp_path, spe
     assert growth(held_latencies) > growth(latencies) + 0.5  # held, it drifts
 
 
+def test_live_fast_sampling_scales_the_settings_skip_guidance(model):
+    bundle, network = model
+    engine = LiveEngine(bundle, network, GenerateSettings(skip_guidance=0.2), 16000, LiveConfig(skip_scale=2.5))
+    assert engine.plan.guidance.skip == pytest.approx(0.5)
+    assert engine.meta()["skip_guidance"] == pytest.approx(0.5) and engine.meta()["live"]["skip_scale"] == 2.5
+    default = LiveEngine(bundle, network, GenerateSettings(), 16000)
+    assert default.plan.guidance.skip == pytest.approx(bundle.skip_guidance * LiveConfig().skip_scale)
+    assert LiveEngine(bundle, network, GenerateSettings(skip_guidance=0), 16000).plan.guidance.skip is None  # off stays off
+    quality = LiveEngine(bundle, network, GenerateSettings(sampling="quality"), 16000)
+    assert quality.plan.guidance.skip == pytest.approx(bundle.skip_guidance)  # the 25 steps keep the settings'
+
+
 def test_the_engine_refuses_what_live_cannot_do(model):
     bundle, network = model
     with pytest.raises(DiffshegError, match="style over time"):
@@ -288,6 +300,9 @@ def test_the_engine_refuses_what_live_cannot_do(model):
         LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(later_start=25))
     with pytest.raises(DiffshegError, match="legs_eta"):
         LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(legs_eta=-0.5))
+    for skip_scale in (-1.0, 11, True):
+        with pytest.raises(DiffshegError, match="skip_scale"):
+            LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(skip_scale=skip_scale))
     for max_hop in (2, 17, 3.5):
         with pytest.raises(DiffshegError, match="max_hop must be a whole number of frames from the hop"):
             LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(max_hop=max_hop))

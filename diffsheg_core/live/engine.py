@@ -57,11 +57,22 @@ class LiveConfig:
       bundled model's 17: 15 network calls a window instead of 18, with the same figures
       against offline (wrist speed 0.74x / 0.76x, jitter 0.96x / 1.03x, lip-sync 0.98x both);
       at 12 the jaw contrast fell to 0.92x.
-    - A whole-body model's legs are stepped with the model's eta (1: fresh noise at every
-      step). `legs_eta` 0 makes the hips sway at 0.66-0.74x offline's speed instead of
-      0.49-0.59x, with the upper body and face the same to the bit, but then neither foot
-      settled in the first 3 s of a session on real speech, so it is not the default
+    - A whole-body model's legs are stepped with eta 0.75 (`legs_eta`; the bundled model's is
+      1: fresh noise at every step), the upper body and face the same to the bit. With 3x skip
+      guidance (below), 2026-12-05, seeds 0 / 1: hips sway 1.00x / 0.83x offline's (0.85x /
+      0.72x at the model's eta), a foot down from 0.3 s / 0.0 s (0.1 s / 0.0 s), in contact
+      94 % / 97 % (98 % / 95 %), no skating, a contact foot moving at most 0.18 cm; at 0.5 the
+      first foot came down at 1.5 s, and at 0 neither settled in the first 3 s of a session
       (README, Live; bench_live --legs-eta).
+    - With the fast sampling, live steps the gestures with 3x the settings' skip guidance
+      (`skip_scale`; offline's refining pass, which live does without, uses 3.5x): 0.3 for the
+      bundled model. (The 25 steps keep the settings': at 3x their jitter was 2.3x.) Measured
+      (2026-12-05, 2 seeds, 64 s, H 3, L 2, fast sampling, against offline fast) at 1x, 2x,
+      2.5x, 3x, 3.5x: wrist speed 0.73x, 0.84x, 0.89x, 0.95x, 1.00x; jitter 0.96x, 1.06x,
+      1.12x, 1.17x, 1.24x; hips sway 0.56x, 0.67x, 0.73x, 0.78x, 0.83x; lip-sync 1.02x /
+      0.97x and joins 1.26-1.29x at all; compute the same (0.31-0.35 s a second of speech).
+      Deterministic gesture steps (eta 0) instead: 0.84x wrist speed at 1.11x jitter, with 2x
+      skip 0.94x at 1.21x; later windows' gestures from one step higher: 0.64x, for more compute.
     - A machine too slow for the hop does not fall behind: when more than a hop of audio
       waits, the next window takes it all, up to `max_hop` frames (a window costs about the
       same for any hop), so the latency stays bounded and no audio is dropped; the status
@@ -72,7 +83,8 @@ class LiveConfig:
     lookahead: int = 2                 # frames of audio a window waits for past its new frames
     context: float = 3.0               # seconds of audio the speech features of a window are computed over
     later_start: Optional[int] = 14    # schedule index later windows start from, at 25 steps (None: the model's)
-    legs_eta: Optional[float] = None   # eta of a whole-body model's legs (None: the model's eta)
+    legs_eta: Optional[float] = 0.75   # eta of a whole-body model's legs (None: the model's eta)
+    skip_scale: float = 3.0            # the fast sampling's gesture skip guidance live, times the settings'
 
     def check(self, clip_len: int) -> None:
         for name, value, (lo, hi) in (("hop", self.hop, HOPS), ("lookahead", self.lookahead, LOOKAHEADS)):
@@ -95,6 +107,9 @@ class LiveConfig:
                                           or not 0 <= self.legs_eta <= 1):
             raise DiffshegError(f"live legs_eta must be None (the model's eta) or a number from 0 to 1, "
                                 f"got {self.legs_eta!r}")
+        if isinstance(self.skip_scale, bool) or not isinstance(self.skip_scale, (int, float)) \
+                or not 0 <= self.skip_scale <= 10:
+            raise DiffshegError(f"live skip_scale must be a number from 0 to 10, got {self.skip_scale!r}")
         if not isinstance(self.context, (int, float)) or not 0 < self.context <= 60:
             raise DiffshegError(f"live context must be a number of seconds above 0 and at most 60, "
                                 f"got {self.context!r}")
@@ -134,9 +149,11 @@ class LiveEngine:
         self.fps = int(cfg.fps)
         sampling = sampling_settings(bundle.sampling, settings.sampling)
         # the plan's style covers one window's frames: live, one style holds throughout (style_at is refused above)
-        self.plan = replace(make_plan(bundle, settings, replace(_live_sampling(sampling, live), blend=False,
-                                                                refine=None), n_frames=cfg.clip_len),
-                            sampling=settings.sampling)
+        plan = make_plan(bundle, settings, replace(_live_sampling(sampling, live), blend=False, refine=None),
+                         n_frames=cfg.clip_len)
+        guidance = plan.guidance if plan.guidance.skip is None or settings.sampling != "fast" else \
+            replace(plan.guidance, skip=plan.guidance.skip * live.skip_scale)
+        self.plan = replace(plan, sampling=settings.sampling, guidance=guidance)
         self.config: FoppasConfig = self.plan.config
         self.sampler: Foppas
         self.sampler, self._make_eps_fn = build_sampling(bundle, network, self.plan)
@@ -252,7 +269,7 @@ class LiveEngine:
         """What a recording records of how it was made (as `generate`, plus the live settings)."""
         meta = generation_meta(self.bundle, self.settings, self.plan, self.network, self.audio())
         meta["live"] = {"hop": self.live.hop, "max_hop": self.live.max_hop, "widest_hop": self.widest_hop,
-                        "lookahead": self.live.lookahead, "context": self.live.context,
+                        "lookahead": self.live.lookahead, "context": self.live.context, "skip_scale": self.live.skip_scale,
                         "legs_eta": self.sampler.branch_eta if self.sampler.branch else None}
         return meta
 
