@@ -332,7 +332,10 @@ class LiveSession:
                     if engine.waiting < engine.live.max_hop:
                         continue  # what is queued, up to the widest window, is taken before sampling (the rest
                         # stays in the bounded feed)
-                if played is not None and not self._stopping.is_set() and now - played > self.underrun_after:
+                # an underrun is a feed with nothing in it: audio waiting behind a busy sampler is not
+                # one (filling that gap with silence gave the sampler more to make, a runaway)
+                if chunk is None and played is not None and not self._stopping.is_set() \
+                        and now - played > self.underrun_after:
                     gap = int((now - played) * rate)
                     self._hear(np.zeros(gap, np.float32), now)
                     self.underrun_seconds += gap / rate
