@@ -123,7 +123,7 @@ def test_live_cli_on_a_real_file_at_real_time_records_logs_and_streams_vmc(tmp_p
     assert take.joint_names[-len(LEG_JOINTS):] == list(LEG_JOINTS) and take.root_translation.shape == (take.n_frames, 3)
     assert take.meta["hips_height"] > 0 and sum(len(v) for v in take.meta["contacts"].values()) > 0
     assert take.meta["lower_body"] == "model"  # the bundled model's own, planted as they come
-    assert take.meta["live"]["legs_eta"] == LiveConfig().legs_eta
+    assert take.meta["live"]["legs_eta"] == 1.0  # the model's eta (LiveConfig.legs_eta)
     soles = foot_positions(lower_rotations(take), take.root_translation.astype(np.float64))
     for side, spans in take.meta["contacts"].items():  # a contact foot does not slide
         for a, b in spans:

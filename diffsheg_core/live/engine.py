@@ -57,13 +57,13 @@ class LiveConfig:
       bundled model's 17: 15 network calls a window instead of 18, with the same figures
       against offline (wrist speed 0.74x / 0.76x, jitter 0.96x / 1.03x, lip-sync 0.98x both);
       at 12 the jaw contrast fell to 0.92x.
-    - A whole-body model's legs are stepped with eta 0.75 (`legs_eta`; the bundled model's is
-      1: fresh noise at every step), the upper body and face the same to the bit. With 3x skip
-      guidance (below), 2026-12-05, seeds 0 / 1: hips sway 1.00x / 0.83x offline's (0.85x /
-      0.72x at the model's eta), a foot down from 0.3 s / 0.0 s (0.1 s / 0.0 s), in contact
-      94 % / 97 % (98 % / 95 %), no skating, a contact foot moving at most 0.18 cm; at 0.5 the
-      first foot came down at 1.5 s, and at 0 neither settled in the first 3 s of a session
-      (README, Live; bench_live --legs-eta).
+    - A whole-body model's legs are stepped with the model's eta (`legs_eta` None; the bundled
+      model's is 1: fresh noise at every step). With 3x skip guidance (below), 2026-12-05,
+      seeds 0 / 1: hips sway 0.85x / 0.72x offline's, a foot down from 0.1 s / 0.0 s, in contact
+      98 % / 95 %. At eta 0.75 the hips sway 1.00x / 0.83x, but on the Ready Player Me avatar
+      in Blender a planted foot moved 3.1 mm from where it landed (at the model's eta under
+      2 mm), so it is not the default; at 0.5 the first foot came down at 1.5 s, and at 0
+      neither settled in the first 3 s of a session (README, Live; bench_live --legs-eta).
     - With the fast sampling, live steps the gestures with 3x the settings' skip guidance
       (`skip_scale`; offline's refining pass, which live does without, uses 3.5x): 0.3 for the
       bundled model. (The 25 steps keep the settings': at 3x their jitter was 2.3x.) Measured
@@ -83,7 +83,7 @@ class LiveConfig:
     lookahead: int = 2                 # frames of audio a window waits for past its new frames
     context: float = 3.0               # seconds of audio the speech features of a window are computed over
     later_start: Optional[int] = 14    # schedule index later windows start from, at 25 steps (None: the model's)
-    legs_eta: Optional[float] = 0.75   # eta of a whole-body model's legs (None: the model's eta)
+    legs_eta: Optional[float] = None   # eta of a whole-body model's legs (None: the model's eta)
     skip_scale: float = 3.0            # the fast sampling's gesture skip guidance live, times the settings'
 
     def check(self, clip_len: int) -> None:
