@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Iterable, Optional, Union
 import numpy as np
 
 from .errors import DiffshegError
-from .validate import STYLE_GUIDANCE, _plain_number, check_changes, check_number, parse_changes, parse_whole
+from .validate import STYLE_GUIDANCE, check_changes, check_number, parse_changes, parse_whole, plain_number
 
 if TYPE_CHECKING:  # checkpoints imports this module (style_names_fit)
     from .checkpoints import ModelBundle
@@ -44,7 +44,7 @@ def check_style(style) -> StyleSpec:
                             f"(e.g. {{'calm': 0.7, 'animated': 0.3}}), got {style!r}")
     if isinstance(style, dict):
         for name, weight in style.items():
-            if _plain_number(weight, whole=False) is None or weight < 0:
+            if plain_number(weight, whole=False) is None or weight < 0:
                 raise DiffshegError(f"the weight of style {name!r} must be a finite number >= 0, got {weight!r}: "
                                     "give weights such as calm=0.7,animated=0.3 (only their ratio counts)")
     return style

@@ -32,7 +32,7 @@ def check_number(name: str, value, bounds: tuple, whole: bool = False) -> int | 
     """`value` as a plain int (`whole`) or float if it is a finite number within `bounds`
     (an upper bound of math.inf: none), else a DiffshegError. numpy numbers count as numbers."""
     lo, hi = bounds
-    number = _plain_number(value, whole)
+    number = plain_number(value, whole)
     if number is None or not lo <= number <= hi:
         kind = "a whole number" if whole else "a number"
         span = f">= {lo:g}" if hi == math.inf else f"from {lo:g} to {hi:g}"
@@ -40,7 +40,7 @@ def check_number(name: str, value, bounds: tuple, whole: bool = False) -> int | 
     return number
 
 
-def _plain_number(value, whole: bool) -> int | float | None:
+def plain_number(value, whole: bool) -> int | float | None:
     """`value` as a Python int (`whole`) or finite float; None if it is no such number (a bool is not)."""
     # numbers' ABCs take numpy's scalars too, without importing numpy (the add-on registers without it)
     if isinstance(value, bool) or not isinstance(value, numbers.Integral if whole else numbers.Real):

@@ -389,7 +389,7 @@ def test_named_styles_a_null_style_and_the_acceleration_term(small_root, tmp_pat
 def test_fine_tuning_adds_temporal_convolutions_to_the_gestures_and_keeps_the_face(small_root, tmp_path):
     """init_from a model without temporal convolutions: the new blocks (gesture branch only)
     start as the identity (the same motion from the same seed) and training moves them; with
-    freeze_expression the expression branch and the speech layer keep the source's weights
+    trains = "gestures" the expression branch and the speech layer keep the source's weights
     to the bit, so the face is the source's; the file records the kernel; a model that already
     has convolutions must match them."""
     tiny_phonetic_encoder(tmp_path / "phonetic.safetensors")  # its batch norm must keep its statistics too
@@ -397,7 +397,7 @@ def test_fine_tuning_adds_temporal_convolutions_to_the_gestures_and_keeps_the_fa
     speech = {"phonetic": str(tmp_path / "phonetic.safetensors")}
     base = tmp_path / "base"
     train(TrainConfig.from_dict(config(small_root, base, steps=5, checkpoint_every=5, model=model, **speech)))
-    settings = config(small_root, tmp_path / "conv", steps=8, checkpoint_every=100, freeze_expression=True,
+    settings = config(small_root, tmp_path / "conv", steps=8, checkpoint_every=100, trains="gestures",
                       init_from=str(base / MODEL_FILE), model={**model, "temporal_kernel": 5}, **speech)
     start = Trainer(TrainConfig.from_dict(settings), Dist())
     assert not start.begin()
@@ -481,24 +481,24 @@ def test_the_bundled_models_training_recipes_read():
         ids.add(cfg.model_id)
     assert len(ids) == len(recipes)
     languages = TrainConfig.from_dict(read_config_file(recipes[0].with_name("default_languages.toml")))
-    assert languages.stats_tolerance == 0.3 and not languages.freeze_expression and languages.data.root.endswith("v5")
+    assert languages.stats_tolerance == 0.3 and languages.trains == "all" and languages.data.root.endswith("v5")
     body = TrainConfig.from_dict(read_config_file(recipes[0].with_name("default_body.toml")))
-    assert body.freeze_gesture and body.freeze_expression and body.data.whole_body and body.model["lower_dim"] == 30
+    assert body.trains == "legs" and body.data.whole_body and body.model["lower_dim"] == 30
     face = TrainConfig.from_dict(read_config_file(recipes[0].with_name("default_face_zh.toml")))
-    assert face.freeze_body and not face.freeze_gesture and not face.freeze_expression
+    assert face.trains == "face"
     assert [(d.kind, d.pause, d.whole_body) for d in face.datasets] == [("facegood", 0.0, True), ("facegood", 0.1, True)]
 
 
 def test_the_face_alone_fine_tunes_on_captured_faces_beside_the_data(small_root, tmp_path):
-    """freeze_body with the FACEGOOD takes (real Mandarin, a captured face and no body) as a
+    """trains = "face" with the FACEGOOD takes (real Mandarin, a captured face and no body) as a
     [[datasets]] table beside [data]: the run reads both, and only the expression branch
     trains; the speech layer both branches read, the gesture branch and the gesture prior stay
-    the source's to the bit. freeze_body beside another freeze, without a model to keep, and a
+    the source's to the bit. A part no network has, the face without a model to keep, and a
     dataset that sets its own clip length are refused."""
     base = tmp_path / "base"
     train(TrainConfig.from_dict(config(small_root, base, steps=5, checkpoint_every=5)))
     facegood = {"kind": "facegood", "root": str(DATA / "lang_capture" / "zh_facegood"), "stride": 34, "pause": 0.1}
-    settings = config(small_root, tmp_path / "face", steps=4, checkpoint_every=100, freeze_body=True,
+    settings = config(small_root, tmp_path / "face", steps=4, checkpoint_every=100, trains="face",
                       init_from=str(base / MODEL_FILE), stats_tolerance=100.0, datasets=[facegood])
     trainer = Trainer(TrainConfig.from_dict(settings), Dist())
     names = [t.name for t in trainer.train_set.takes]
@@ -508,7 +508,7 @@ def test_the_face_alone_fine_tunes_on_captured_faces_beside_the_data(small_root,
     changed = {k for k, v in source.weights.items() if not np.array_equal(tuned.weights[k], v)}
     assert changed and all(k.startswith("encoder_exp.") for k in changed)
     np.testing.assert_array_equal(tuned.prior.axes, source.prior.axes)
-    for over, match in (({"freeze_expression": True}, "leave freeze_expression and freeze_gesture off"),
+    for over, match in (({"trains": "body"}, "trains must be one of all, gestures, legs, face"),
                         ({"init_from": ""}, "set init_from to that model")):
         with pytest.raises(DiffshegError, match=match):
             Trainer(TrainConfig.from_dict({**settings, **over}), Dist())
@@ -521,7 +521,7 @@ def test_a_beat_model_widens_into_a_whole_body_one_that_keeps_its_upper_body(tmp
     channels, the hips, legs and hips' translation, made by a lower-body branch of their
     own): the widened network predicts the old channels exactly as the source does, the run
     keeps the source's normalisation for the old channels and takes the data's for the new
-    ones, and with freeze_gesture and freeze_expression only the lower-body branch trains.
+    ones, and with trains = "legs" only the lower-body branch trains.
     The teacher's corpus (v4) holds the legs; any other dataset is refused, and so is a
     widening without the branch."""
     from diffsheg_core.rigs import BEAT, BEAT_BODY
@@ -536,11 +536,13 @@ def test_a_beat_model_widens_into_a_whole_body_one_that_keeps_its_upper_body(tmp
     model = {**TINY, "style_dim": 3}
     base = tmp_path / "base"
     train(TrainConfig.from_dict(config(tmp_path, base, steps=5, checkpoint_every=5, model=model, data=data)))
-    settings = config(tmp_path, tmp_path / "body", steps=6, checkpoint_every=100, freeze_expression=True,
-                      freeze_gesture=True, init_from=str(base / MODEL_FILE),
+    settings = config(tmp_path, tmp_path / "body", steps=6, checkpoint_every=100, trains="legs",
+                      init_from=str(base / MODEL_FILE),
                       model={**model, "lower_dim": 30, "lower_layers": 1}, data={**data, "whole_body": True})
     with pytest.raises(DiffshegError, match="which a branch of their own makes: set lower_dim = 30"):
-        Trainer(TrainConfig.from_dict({**settings, "model": model, "freeze_gesture": False}), Dist()).begin()
+        Trainer(TrainConfig.from_dict({**settings, "model": model, "trains": "gestures"}), Dist()).begin()
+    with pytest.raises(DiffshegError, match="trains the lower-body branch alone, and this model has none"):
+        Trainer(TrainConfig.from_dict({**settings, "model": model}), Dist())
     start = Trainer(TrainConfig.from_dict(settings), Dist())
     assert not start.begin() and start.model_cfg.layout == "beat_body" and start.model_cfg.gesture_dim == 171
     source = load_model(base / MODEL_FILE)

@@ -52,6 +52,7 @@ from ..torch_layer.export import with_graphs
 from ..torch_layer.model import PhoneticEncoder, UniEG, load_state_strict, state_arrays
 
 EXPORT_DTYPES = {"float32": torch.float32, "float16": torch.float16}
+TRAINS = ("all", "gestures", "legs", "face")  # the parts of the network a run may train (TrainConfig.trains)
 STATE_FILE = "train_state.pt"
 MODEL_FILE = "model.safetensors"
 LOG_FILE = "log.jsonl"
@@ -91,17 +92,14 @@ class TrainConfig:
     guidance: float | None = None   # default guidance scale stored in the checkpoints (guided models)
     skip_guidance: float | None = None  # default gesture skip-guidance scale stored in the checkpoints
     init_from: str = ""             # start from this checkpoint's weights (fine-tuning; see init_weights)
-    # train the gesture branch alone: the expression branch and the speech layer both branches
-    # read keep the weights they start with, so a fine-tuned model keeps its source's face
-    freeze_expression: bool = False
-    # train the lower-body branch alone (models with lower_dim): the gesture branch keeps the
-    # weights it starts with, so a whole-body model widened from one without legs keeps its
-    # source's upper body (with freeze_expression, its face too)
-    freeze_gesture: bool = False
-    # train the expression branch alone: the speech layer both branches read, the gesture
-    # and lower-body branches and the gesture prior stay as they start (the gestures change
-    # only through the face they are fed)
-    freeze_body: bool = False
+    # which part of the network trains; the rest keeps the weights it starts with:
+    # all; gestures (the gesture branch, and a whole-body model's lower-body branch: the face
+    # and the speech layer both branches read stay, so a fine-tuned model keeps its source's
+    # face); legs (the lower-body branch alone: a whole-body model widened from one without
+    # legs keeps its source's upper body and face); face (the expression branch alone: the
+    # speech layer, the gesture and lower-body branches and the gesture prior stay, and the
+    # gestures change only through the face they are fed)
+    trains: str = "all"
     # how far the data's normalisation statistics may lie from those of the model a run is
     # fine-tuned from, as a share of each channel's spread: a rebuild of the same corpus moves
     # them by up to 2 %, other data by far more; raise it only for data widened on purpose
@@ -159,11 +157,14 @@ class TrainConfig:
 
     def check(self) -> None:
         """Refuse settings no run can use (DiffshegError naming the setting), before anything
-        is loaded or written: numbers out of range, an out_dir that is a file."""
+        is loaded or written: numbers out of range, an unknown part to train, an out_dir that is a file."""
         for name, (bounds, whole) in self.NUMBERS.items():
             setattr(self, name, check_number(f"training setting {name}", getattr(self, name), bounds, whole))
         if not isinstance(self.out_dir, str) or not self.out_dir:
             raise DiffshegError(f"training setting out_dir must name a folder, got {self.out_dir!r}")
+        if self.trains not in TRAINS:
+            raise DiffshegError(f"training setting trains must be one of {', '.join(TRAINS)} (the part of the "
+                                f"network that trains), got {self.trains!r}")
         if Path(self.out_dir).exists() and not Path(self.out_dir).is_dir():
             raise DiffshegError(f"training setting out_dir {self.out_dir} is a file, not a folder: name a "
                                 "folder for the run (it is created if missing)")
@@ -498,27 +499,26 @@ class Trainer:
         self.ema = UniEG(self.model_cfg).to(env.device).eval()
         self.ema.load_state_dict(self.model.state_dict())
         self.ema.requires_grad_(False)
-        if cfg.freeze_gesture and not self.model_cfg.lower_dim:
-            raise DiffshegError("freeze_gesture trains the lower-body branch alone, and this model has none: "
-                                "set lower_dim in [model], or leave freeze_gesture off")
+        if cfg.trains == "legs" and not self.model_cfg.lower_dim:
+            raise DiffshegError("trains = \"legs\" trains the lower-body branch alone, and this model has none: "
+                                "set lower_dim in [model], or train another part")
+        if cfg.trains == "face" and not cfg.init_from:
+            raise DiffshegError("trains = \"face\" keeps a model's body as it is: set init_from to that model")
         # the gesture prior of the model whose gesture branch the run keeps as it is (read once;
         # a resumed run reads init_from again for it)
         self.kept_prior = ((self.source or load_model(cfg.init_from)).prior
-                           if (cfg.freeze_gesture or cfg.freeze_body) and cfg.init_from else None)
-        if cfg.freeze_gesture and self.kept_prior is not None and self.kept_prior.dims != self.model_cfg.upper_dim:
+                           if cfg.trains in ("legs", "face") and cfg.init_from else None)
+        if cfg.trains == "legs" and self.kept_prior is not None and self.kept_prior.dims != self.model_cfg.upper_dim:
             raise DiffshegError(f"init_from {cfg.init_from}: its gesture prior covers {self.kept_prior.dims} channels, "
                                 f"but the gesture branch makes {self.model_cfg.upper_dim}: start a lower-body branch "
                                 "from a model without one (v9's recipe starts from v8)")
-        if cfg.freeze_body and (cfg.freeze_expression or cfg.freeze_gesture):
-            raise DiffshegError("freeze_body trains the expression branch alone: leave freeze_expression and "
-                                "freeze_gesture off with it")
-        if cfg.freeze_body and not cfg.init_from:
-            raise DiffshegError("freeze_body keeps a model's body as it is: set init_from to that model")
-        body = [self.model.time_embed, self.model.encoder_aud, self.model.encoder_ges] + (
-            [self.model.encoder_low] if self.model_cfg.lower_dim else [])
-        self.frozen = (body if cfg.freeze_body else
-                       ([self.model.time_embed, self.model.encoder_aud, self.model.encoder_exp]
-                        if cfg.freeze_expression else []) + ([self.model.encoder_ges] if cfg.freeze_gesture else []))
+        m = self.model
+        shared = [m.time_embed, m.encoder_aud]
+        self.frozen = {"all": [],
+                       "gestures": shared + [m.encoder_exp],
+                       "legs": shared + [m.encoder_exp, m.encoder_ges],
+                       "face": shared + [m.encoder_ges] + ([m.encoder_low] if self.model_cfg.lower_dim else []),
+                       }[cfg.trains]
         for part in self.frozen:
             part.requires_grad_(False)
         # a rank whose batch drew no null rows leaves the null condition without a gradient
@@ -617,7 +617,7 @@ class Trainer:
         weights as stored (float16 weights run in float32 on both backends)."""
         training = {k: v for k, v in asdict(self.cfg).items() if k not in ("data", "datasets", "card")}
         if self._prior is None:
-            self._prior = (self.kept_prior if self.cfg.freeze_body else
+            self._prior = (self.kept_prior if self.cfg.trains == "face" else
                            fit_prior(self.train_set.takes, self.stats, self.model_cfg, self.kept_prior))
         return with_graphs(ModelBundle(
             config=self.model_cfg, weights=state_arrays(self.ema, dtype), mean=self.stats.mean,

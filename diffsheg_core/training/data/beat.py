@@ -21,6 +21,8 @@ if TYPE_CHECKING:
     from .dataset import DataConfig
 
 LAYOUT = BEAT
+WHOLE_BODY = False
+"""whole_body data: none (the takes' lower body is not in the beat layout)."""
 
 
 def find_takes(root: Path) -> list[TakeSource]:

@@ -18,6 +18,8 @@ if TYPE_CHECKING:
     from .dataset import DataConfig
 
 LAYOUT = SMPLX
+WHOLE_BODY = False
+"""whole_body data: none (SMPL-X takes, not in the beat layout)."""
 _JOINT_IDS = [SMPLX_JOINTS.index(j) for j in SMPLX.joint_names]
 
 

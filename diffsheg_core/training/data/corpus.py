@@ -25,6 +25,8 @@ if TYPE_CHECKING:
     from .dataset import DataConfig
 
 LAYOUT = BEAT
+WHOLE_BODY = True
+"""whole_body data: the corpus holds the hips, legs and hips' translation (teacher v4 and later)."""
 
 
 def find_takes(root: Path) -> list[TakeSource]:

@@ -64,7 +64,7 @@ class DataConfig:
     def layout(self) -> Layout:
         if not self.whole_body:
             return self.reader().LAYOUT
-        if self.kind != "corpus" and not getattr(self.reader(), "FACE_ONLY", False):
+        if not self.reader().WHOLE_BODY:
             raise DiffshegError(f"whole_body needs the project's corpus (kind = \"corpus\"): a '{self.kind}' "
                                 "dataset holds no lower body in the beat layout")
         return BEAT_BODY

@@ -32,8 +32,8 @@ if TYPE_CHECKING:
     from .dataset import DataConfig
 
 LAYOUT = BEAT
-FACE_ONLY = True
-"""The takes hold no body: they fit a model of any layout with the ARKit face."""
+WHOLE_BODY = True
+"""whole_body data: the takes hold no body, so they fit a whole-body model too (its body masked)."""
 
 ROUNDING_GAIN = 0.65
 """The mapped rounding (a sum of the rig's funnel, oh, oo and pucker shapes) over the

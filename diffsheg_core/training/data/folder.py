@@ -21,6 +21,8 @@ if TYPE_CHECKING:
     from .dataset import DataConfig
 
 LAYOUT = BEAT
+WHOLE_BODY = False
+"""whole_body data: none (the takes hold no lower body in the beat layout)."""
 FACE_SUFFIXES = (".csv", ".json")
 
 
