@@ -54,6 +54,8 @@ WHEELS: dict[str, str] = {
     "typing-extensions": "4.16.0",
     "soxr": "1.1.0",
     "safetensors": "0.8.0",
+    # numpy's BLAS held to the generation's threads (runtime.backends.cpu_threads; pure Python)
+    "threadpoolctl": "3.8.0",
     # live generation (diffsheg_core.live): the microphone (sounddevice: its Windows and macOS
     # wheels carry PortAudio, Linux needs the system's libportaudio2; it uses cffi, above) and
     # the VMC protocol over OSC (python-osc, pure Python)
@@ -64,7 +66,7 @@ WHEELS: dict[str, str] = {
 PLATFORM_PINS: dict[str, dict[str, str]] = {
     "macos-x64": {"onnxruntime": "1.23.2"},  # the last onnxruntime with Intel macOS wheels
 }
-PURE_PYTHON = {"typing-extensions", "python-osc"}  # one py3-none-any wheel serves every platform
+PURE_PYTHON = {"typing-extensions", "python-osc", "threadpoolctl"}  # one py3-none-any wheel serves every platform
 
 # Blender platform -> pip --platform tags, the preferred (oldest OS) first. Blender itself
 # runs on glibc 2.28+ and macOS 11.2+; a wheel may ask for a newer OS (wheels.json says).

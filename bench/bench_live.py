@@ -20,6 +20,7 @@ For each hop H tried (and the diffusion steps), on one real take with its phone 
     python bench/bench_live.py                         # quality and compute, hops 3 4 6, lookahead 0 2
     python bench/bench_live.py --sampling fast quality --hops 3 --lookaheads 2   # both samplings
     python bench/bench_live.py --realtime --seconds 20 --busy
+    python bench/bench_live.py --realtime --seconds 600 --hops 3 --lookaheads 2 --no-quality --no-legs   # 10 minutes
     python bench/bench_live.py --model ../runs/default-v8.safetensors   # another model
 
 One thread (DIFFSHEG_THREADS=1, the default). Say which machine the figures came from.
@@ -189,13 +190,14 @@ def bench_latency(args, audio_path: Path) -> None:
     from diffsheg_core.live.session import LiveSession, latency_summary
     from diffsheg_core.live.sources import FileSource
 
-    print(f"\nreal time: the first {args.seconds:g} s of {audio_path.name} played at 1x, latency from the "
-          "audio arriving to the frame being shown (s)")
+    print(f"\nreal time: the first {args.seconds:g} s of {audio_path.name} (played again from its start "
+          "as often as that needs) at 1x, latency from the audio arriving to the frame being shown (s)")
     print(f"{'setting':<36}{'p50':>8}{'p95':>8}{'max':>8}{'compute/s':>11}{'underrun s':>12}")
     clip = Path(args.out) / "live_clip.wav"
     import soundfile as sf
     full = read_audio_file(audio_path)
-    sf.write(clip, full.samples[: int(args.seconds * full.sample_rate)], full.sample_rate)
+    n = int(args.seconds * full.sample_rate)
+    sf.write(clip, np.tile(full.samples, -(-n // len(full.samples)))[:n], full.sample_rate)
     for load in (["idle", "busy"] if args.busy else ["idle"]):
         hog = None
         if load == "busy":
@@ -209,6 +211,11 @@ def bench_latency(args, audio_path: Path) -> None:
                 s = latency_summary(result.latencies)
                 print(f"{label(sampling, steps, hop, lookahead) + ' ' + load:<36}{s['p50']:>8.3f}{s['p95']:>8.3f}{s['max']:>8.3f}"
                       f"{result.compute / result.audio.duration:>10.3f}s{result.underrun_seconds:>12.2f}", flush=True)
+                if args.seconds >= 120:  # flat over a long session: each minute's latency
+                    for minute in range(int(args.seconds // 60)):
+                        m = latency_summary([(t, lat) for t, lat in result.latencies if minute * 60 <= t < minute * 60 + 60])
+                        print(f"  minute {minute + 1:>2}: p50 {m['p50']:.3f}, p95 {m['p95']:.3f}, max {m['max']:.3f}",
+                              flush=True)
         finally:
             if hog is not None:
                 hog.terminate()
@@ -222,7 +229,9 @@ def main() -> int:
     p.add_argument("--steps", type=int, nargs="+", default=[0], help="diffusion steps (0: the sampling's)")
     p.add_argument("--lookaheads", type=int, nargs="+", default=[0, 2], help="frames of lookahead tried")
     p.add_argument("--seeds", type=int, default=2)
-    p.add_argument("--seconds", type=float, default=20.0, help="audio played in the real-time runs")
+    p.add_argument("--seconds", type=float, default=20.0,
+                   help="audio played in the real-time runs (the take again from its start past its end; "
+                        "120 and more: each minute's latency too)")
     p.add_argument("--realtime", action="store_true", help="also measure latency at real time")
     p.add_argument("--busy", action="store_true", help="real time also with one core kept busy")
     p.add_argument("--no-quality", action="store_true")

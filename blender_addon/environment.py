@@ -25,6 +25,7 @@ RUNTIME: dict[str, str] = {
     "soundfile": "soundfile>=0.12",
     "soxr": "soxr>=0.3",
     "safetensors": "safetensors>=0.4",
+    "threadpoolctl": "threadpoolctl>=3.1",
 }
 # import name -> pip requirement: what Live uses besides those (the microphone, VMC out); the
 # extension zips bring them, the legacy add-on's "Install dependencies" installs them too

@@ -27,7 +27,7 @@ from .guidance import Guidance, face_eps, gesture_eps, step_eps
 from .lower_body import JOINTS as LOWER_JOINTS, add_lower_body, legs_source, lower_rotations, plant, upper_body
 from .motion import Motion
 from .progress import ProgressCallback
-from .runtime.backends import open_network
+from .runtime.backends import cpu_threads, open_network
 from .settings import GenerateSettings
 from .speech_features import speech_chunks
 from .style import StyleTrack, named_weights, resolve_style_guidance, style_meta, style_track, style_weights
@@ -195,6 +195,13 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
     The result has one frame per 1/fps s of audio (fps of the model, 15 for BEAT).
     """
     s, sampling = _job_settings(settings, sampling, options)
+    with cpu_threads(s.threads):
+        return _generate(audio, sample_rate, s, sampling, hubert_path, hubert_quirk, pins, progress, cancel)
+
+
+def _generate(audio: AudioInput, sample_rate: Optional[int], s: GenerateSettings, sampling: Optional[FoppasConfig],
+              hubert_path: Optional[str], hubert_quirk: bool, pins: tuple["Pin", ...],
+              progress: Optional[ProgressCallback], cancel: Optional[threading.Event]) -> Motion:
     bundle = s.model if isinstance(s.model, ModelBundle) else load_model(s.model)
     network = open_network(bundle, s.backend, s.device, s.precision, s.threads)
     speech = open_speech(audio, sample_rate)
@@ -298,6 +305,13 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     `hold_face` the take's face inside it too (only the gestures change). `pins` are poses the new
     motion passes through. `sampling` as for `generate`: a name or a FoppasConfig."""
     s, sampling = _job_settings(settings, sampling, options)
+    with cpu_threads(s.threads):
+        return _regenerate(motion, audio, sample_rate, start, end, s, hold_face, pins, sampling, progress, cancel)
+
+
+def _regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int], start: int, end: int,
+                s: GenerateSettings, hold_face: bool, pins: tuple[Pin, ...], sampling: Optional[FoppasConfig],
+                progress: Optional[ProgressCallback], cancel: Optional[threading.Event]) -> Motion:
     bundle = s.model if isinstance(s.model, ModelBundle) else load_model(s.model)
     layout = bundle.layout
     whole, motion = motion, upper_body(motion)  # the take's hips and legs stay as they are

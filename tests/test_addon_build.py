@@ -85,7 +85,7 @@ def test_extension_zip_holds_the_addon_the_runtime_and_its_wheels(built, platfor
     assert record["platform"] == platform and record["pins"] == build_addon.pins(platform)
     dists = {Path(w).name.split("-")[0].lower() for w in wheels}
     assert dists == {"onnxruntime", "soundfile", "cffi", "typing_extensions", "soxr", "safetensors",
-                     "sounddevice", "python_osc"}
+                     "sounddevice", "python_osc", "threadpoolctl"}
     for w in wheels:
         name, version = Path(w).name.split("-")[:2]
         assert build_addon.pins(platform)[name.replace("_", "-")] == version

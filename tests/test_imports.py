@@ -21,7 +21,7 @@ TORCH_LAYER = "torch_layer"  # the modules that import torch (the tooling aside)
 TOOLING = "training"
 TORCH_PACKAGES = ("torch", "transformers")  # imported by the torch layer and the tooling alone
 HEAVY = ("torch", "scipy", "librosa", "numba", "transformers", "onnx", "matplotlib", "tqdm")
-BUNDLED = ("onnxruntime", "soundfile", "soxr", "safetensors")
+BUNDLED = ("onnxruntime", "soundfile", "soxr", "safetensors", "threadpoolctl")
 RUNTIME_ENTRY_POINTS = ("pipeline", "live.session", "runtime.backends", "checkpoints", "audio")
 
 

@@ -310,13 +310,27 @@ def test_the_engine_refuses_what_live_cannot_do(model):
         LiveEngine(bundle, network, GenerateSettings(), 100)
 
 
+def blas_threads() -> frozenset[int]:
+    """The threads numpy's BLAS libraries run on now (threadpoolctl)."""
+    from threadpoolctl import threadpool_info
+
+    return frozenset(info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas")
+
+
 def test_upper_body_only_streams_no_legs(tmp_path, speech, model):
+    """A session without legs streams the upper body alone, numpy on the session's threads."""
     clip = tmp_path / "speech.wav"
     sf.write(clip, speech.samples[: 2 * speech.sample_rate], speech.sample_rate)
     shown = []
     session = LiveSession(FileSource(clip, speed=4.0), GenerateSettings(upper_body_only=True),
                           bundle=model[0], network=model[1])
-    result = session.run_to_end(shown.append)
+    before = blas_threads()  # OpenBLAS's own: a thread per core
+    result = session.run_to_end(lambda frame: shown.append((frame, blas_threads())))
+    # numpy's BLAS on the session's threads (the default, 1) while it samples (the first half of
+    # the frames: the last may be shown after it ended), as generate holds it; given back after
+    assert {threads for _, threads in shown[: len(shown) // 2]} <= {frozenset({1})}
+    assert blas_threads() == before
+    shown = [frame for frame, _ in shown]
     assert session.legs is None and session.joint_names == list(model[0].rig_layout.joint_names)  # 47, no legs
     assert shown and all(f.root_translation is None and f.rotations.shape == (len(session.joint_names), 3)
                          for f in shown)

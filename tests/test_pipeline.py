@@ -130,6 +130,34 @@ def test_the_threads_option_has_the_bounds_of_the_environment_variable(model):
         open_network(model, threads=2000)
 
 
+def blas_threads() -> set[int]:
+    """The threads numpy's BLAS libraries run on now (threadpoolctl)."""
+    from threadpoolctl import threadpool_info
+
+    return {info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas"}
+
+
+def test_numpy_runs_on_the_generation_threads_while_it_generates(speech, model):
+    """numpy's BLAS is held to the `threads` setting while generate and regenerate run, and
+    given back after (runtime.backends.cpu_threads): on OpenBLAS's own two threads, with the
+    other core of a 2-core machine busy, one solve of the gesture prior took up to 1.4 s
+    instead of 3-5 ms."""
+    from threadpoolctl import threadpool_limits
+
+    from diffsheg_core.pipeline import regenerate
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        if blas_threads() != {2}:
+            pytest.skip("numpy here has no BLAS whose threads can be set")
+        seen = []
+        motion = generate(speech, model=model, device="cpu", steps=2, threads=1,
+                          progress=lambda p: seen.append(blas_threads()))
+        regenerate(motion, speech, start=10, end=30, model=model, device="cpu", steps=2, threads=1,
+                   progress=lambda p: seen.append(blas_threads()))
+        assert len(seen) > 4 and all(threads == {1} for threads in seen), seen
+        assert blas_threads() == {2}
+
+
 def test_cuda_request_without_gpu_explains(speech, model):
     torch = pytest.importorskip("torch")
     if torch.cuda.is_available():

@@ -37,7 +37,7 @@ from ..lower_body import (JOINTS as LEG_JOINTS, LowerBodyStream, PlantStream, le
                           with_lower_body)
 from ..motion import Motion
 from ..pipeline import to_motion
-from ..runtime.backends import open_network
+from ..runtime.backends import cpu_threads, open_network
 from ..settings import GenerateSettings
 from .engine import LiveConfig, LiveEngine
 from .feed import AudioFeed, FeedClosed
@@ -161,6 +161,7 @@ class LiveSession:
         self.network = network or open_network(self.bundle, settings.backend, settings.device,
                                                settings.precision, settings.threads)
         self.engine = LiveEngine(self.bundle, self.network, settings, source.sample_rate, live)
+        self._threads = settings.threads  # numpy's too, while the generation thread runs (cpu_threads)
         # the emotion and the hips and legs laid over what the model makes, as `generate` lays them
         self.emotion = EmotionStream(settings.emotion, self.bundle.config.fps)  # set_emotion changes it
         self._emotional: list[Motion] = []  # the frames made, with the emotion (the recording's)
@@ -317,6 +318,10 @@ class LiveSession:
 
     # --- the generation thread ---------------------------------------------------------
     def _generate(self) -> None:
+        with cpu_threads(self._threads):
+            self._sample_until_done()
+
+    def _sample_until_done(self) -> None:
         engine, rate = self.engine, self.engine.sample_rate
         played = None  # when the audio heard so far has played out at real time (None: nothing heard yet)
         try:

@@ -14,11 +14,12 @@ so a seed gives the same motion on either (within float32 rounding).
 
 from __future__ import annotations
 
+import contextlib
 import importlib.metadata
 import importlib.util
 import os
 import sys
-from typing import Optional
+from typing import Iterator, Optional
 
 import numpy as np
 
@@ -42,6 +43,24 @@ def default_threads() -> int:
         return 1
     threads = parse_whole(value)
     return check_number(f"${THREADS_ENV}", value if threads is None else threads, THREADS, whole=True)
+
+
+def resolve_threads(threads: Optional[int]) -> int:
+    """A generation's CPU threads: `threads` checked, or `default_threads()` for None."""
+    return default_threads() if threads is None else check_number("threads", threads, THREADS, whole=True)
+
+
+@contextlib.contextmanager
+def cpu_threads(threads: Optional[int] = None) -> Iterator[None]:
+    """numpy's BLAS (OpenBLAS, MKL; through threadpoolctl) held to a generation's CPU threads
+    while it runs, as the network's are. The sampler's numpy work is small (the gesture
+    prior's solves, the legs): on more threads than it has cores to itself it collapses. With
+    the other core of a 2-core machine busy, the prior's solve for a new overlap took 0.06-1.4 s
+    on OpenBLAS's 2 threads and 3-5 ms on one, and a live session fell 1.5 s behind from it."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=resolve_threads(threads), user_api="blas"):
+        yield
 
 
 class OnnxNetwork:
