@@ -376,7 +376,7 @@ def test_the_emotion_changed_while_live_eases_in_and_is_recorded(tmp_path, speec
     until the change the frames are neutral's exactly, then the smile eases in over
     emotion.SWITCH_S and holds; the recording notes the change, so regenerating a range of it
     knows the emotion there. A bad emotion is refused and changes nothing."""
-    from diffsheg_core.emotion import SWITCH_S, take_emotion
+    from diffsheg_core.emotion import EASE_S, SWITCH_S, take_emotion
     from diffsheg_core.training.metrics.channels import face_channel
 
     clip = tmp_path / "speech.wav"
@@ -408,7 +408,11 @@ def test_the_emotion_changed_while_live_eases_in_and_is_recorded(tmp_path, speec
     track = take_emotion(changed)
     assert track is not None and track[held + 6:, 1].min() == pytest.approx(0.8, abs=0.01)
     w = 3 / round(SWITCH_S * fps)  # live's ease three frames in: 0.8 smoothstep(w)
-    assert not track[:at - 4].any() and track[at + 3, 1] == pytest.approx(0.8 * w * w * (3 - 2 * w), abs=0.08)
+    # the track is the change's step at its frame through emotion_track's Gaussian, which reaches
+    # ceil(3 sigma) frames before it (a frame more than `at - 4` when t's fraction rounds so)
+    before = round(t * fps) - int(np.ceil(3 * EASE_S * fps))
+    assert before >= at - 5 and not track[:before].any()
+    assert track[at + 3, 1] == pytest.approx(0.8 * w * w * (3 - 2 * w), abs=0.08)
 
 
 @pytest.mark.parametrize("lookahead", [0, 2, 5])
