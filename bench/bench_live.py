@@ -169,7 +169,8 @@ def _contact_cells(lower, trans, spans: dict, fps: float) -> str:
 
 
 def live_config(args, hop: int, lookahead: int = LiveConfig.lookahead) -> LiveConfig:
-    return LiveConfig(hop=hop, lookahead=lookahead, legs_eta=args.legs_eta, skip_scale=args.skip_scale)
+    return LiveConfig(hop=hop, lookahead=lookahead, legs_eta=args.legs_eta, skip_scale=args.skip_scale,
+                      legs_skip_scale=args.legs_skip_scale)
 
 
 def settings_tried(args) -> list[tuple]:
@@ -241,6 +242,9 @@ def main() -> int:
                    help="DDIM eta of a whole-body model's legs live (LiveConfig.legs_eta)")
     p.add_argument("--skip-scale", type=float, default=LiveConfig.skip_scale,
                    help="live gesture skip guidance, times the settings' (LiveConfig.skip_scale)")
+    p.add_argument("--legs-skip-scale", type=float, default=LiveConfig.legs_skip_scale,
+                   help="live skip guidance of a whole-body model's legs, times the settings' "
+                        "(LiveConfig.legs_skip_scale)")
     p.add_argument("--out", default="/tmp")
     args = p.parse_args()
     args.steps = [s or None for s in args.steps]

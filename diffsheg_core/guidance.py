@@ -22,7 +22,7 @@ All numpy: the mixing is the same whichever backend runs the passes.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Protocol
+from typing import Optional, Protocol, Union
 
 import numpy as np
 
@@ -48,6 +48,8 @@ class Guidance:
     scale: Optional[float] = None   # classifier-free, both branches (the gesture branch only without skip)
     skip: Optional[float] = None    # gesture skip guidance
     style: Optional[float] = None   # style guidance of the gestures
+    legs_skip: Optional[float] = None  # skip guidance of a lower branch's channels, the last `lower` (None: skip)
+    lower: int = 0                  # gesture channels a lower branch makes (a whole-body model's hips and legs)
 
     def __post_init__(self):
         # uncond + 1 * (cond - uncond) is the conditioned pass alone: skip the null pass
@@ -57,6 +59,15 @@ class Guidance:
             object.__setattr__(self, "skip", None)
         if self.style == 1.0:
             object.__setattr__(self, "style", None)
+
+    def skip_scales(self, channels: int) -> Union[float, np.ndarray]:
+        """The skip-guidance scale of each of `channels` gesture channels: `skip`, or per
+        channel with a lower branch's last `lower` at `legs_skip`."""
+        if self.legs_skip is None or not self.lower:
+            return self.skip
+        scales = np.full(channels, self.skip, np.float32)
+        scales[channels - self.lower:] = self.legs_skip
+        return scales
 
 
 def _rows(values: Optional[np.ndarray], n: int) -> Optional[np.ndarray]:
@@ -70,10 +81,11 @@ def classifier_free(out: np.ndarray, scale: float) -> np.ndarray:
     return u + np.float32(scale) * (c - u)
 
 
-def skip_guided(out: np.ndarray, scale: float) -> np.ndarray:
-    """c + s (c - k) over a doubled batch [conditioned c | without self-attention k]."""
+def skip_guided(out: np.ndarray, scale: Union[float, np.ndarray]) -> np.ndarray:
+    """c + s (c - k) over a doubled batch [conditioned c | without self-attention k]; `scale`
+    one number, or one per channel (`Guidance.skip_scales`)."""
     c, k = np.split(out, 2)
-    return c + np.float32(scale) * (c - k)
+    return c + np.asarray(scale, np.float32) * (c - k)
 
 
 def step_eps(net: Network, gesture_dim: int, x: np.ndarray, timesteps: np.ndarray, mel: np.ndarray,
@@ -136,7 +148,7 @@ def gesture_eps(net: Network, gesture: np.ndarray, timesteps: np.ndarray, audio:
                           _rows(expression_x0, n), styles, null, attend)
     eps_ges = eps_all[:guided]
     if mix is not None:
-        eps_ges = mix(eps_ges, guidance.skip if mix is skip_guided else guidance.scale)
+        eps_ges = mix(eps_ges, guidance.skip_scales(eps_ges.shape[-1]) if mix is skip_guided else guidance.scale)
     if guidance.style is not None:
         conditioned = eps_all[b:2 * b] if mix is classifier_free else eps_all[:b]
         eps_ges = eps_ges + np.float32(guidance.style - 1.0) * (conditioned - eps_all[-b:])

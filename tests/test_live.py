@@ -278,9 +278,13 @@ def test_a_machine_too_slow_for_the_hop_widens_it_and_never_drifts(tmp_path, spe
 
 def test_live_fast_sampling_scales_the_settings_skip_guidance(model):
     bundle, network = model
-    engine = LiveEngine(bundle, network, GenerateSettings(skip_guidance=0.2), 16000, LiveConfig(skip_scale=2.5))
+    engine = LiveEngine(bundle, network, GenerateSettings(skip_guidance=0.2), 16000,
+                        LiveConfig(skip_scale=2.5, legs_skip_scale=4.5))
     assert engine.plan.guidance.skip == pytest.approx(0.5)
     assert engine.meta()["skip_guidance"] == pytest.approx(0.5) and engine.meta()["live"]["skip_scale"] == 2.5
+    # the whole-body model's hips and legs (its lower branch's 30 channels) with their own
+    assert engine.plan.guidance.legs_skip == pytest.approx(0.9) and engine.plan.guidance.lower == 30
+    assert engine.meta()["live"]["legs_skip_scale"] == 4.5
     default = LiveEngine(bundle, network, GenerateSettings(), 16000)
     assert default.plan.guidance.skip == pytest.approx(bundle.skip_guidance * LiveConfig().skip_scale)
     assert LiveEngine(bundle, network, GenerateSettings(skip_guidance=0), 16000).plan.guidance.skip is None  # off stays off
@@ -301,8 +305,10 @@ def test_the_engine_refuses_what_live_cannot_do(model):
     with pytest.raises(DiffshegError, match="legs_eta"):
         LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(legs_eta=-0.5))
     for skip_scale in (-1.0, 11, True):
-        with pytest.raises(DiffshegError, match="skip_scale"):
+        with pytest.raises(DiffshegError, match="live skip_scale must be a number from 0 to 10"):
             LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(skip_scale=skip_scale))
+        with pytest.raises(DiffshegError, match="live legs_skip_scale must be a number from 0 to 10"):
+            LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(legs_skip_scale=skip_scale))
     for max_hop in (2, 17, 3.5):
         with pytest.raises(DiffshegError, match="max_hop must be a whole number of frames from the hop"):
             LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(max_hop=max_hop))

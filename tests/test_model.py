@@ -195,6 +195,11 @@ def test_skip_guidance_steers_gestures_away_from_the_branch_without_self_attenti
         torch.testing.assert_close(torch.from_numpy(skipped[..., :g]),
                                    torch.from_numpy(cond + 0.5 * (cond - without)))
         assert not np.allclose(cond, without)
+        # a lower branch's channels (the last `lower`: the legs, live) at a skip scale of their own
+        legs = step_eps(network, g, *args, Guidance(2.0, skip=0.5, legs_skip=1.5, lower=5))[0]
+        torch.testing.assert_close(torch.from_numpy(legs[..., :g - 5]), torch.from_numpy(skipped[..., :g - 5]))
+        torch.testing.assert_close(torch.from_numpy(legs[..., g - 5:g]),
+                                   torch.from_numpy(cond[..., g - 5:] + 1.5 * (cond[..., g - 5:] - without[..., g - 5:])))
         # and the expression branch of both is classifier-free guided: u + 2 (c - u)
         exp_null, _ = network.expression(x[r][..., g:], timesteps[r], mel[r], None, style[r], np.array([True]))
         exp_cond, _ = network.expression(x[r][..., g:], timesteps[r], mel[r], None, style[r], None)
