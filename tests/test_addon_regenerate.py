@@ -143,6 +143,54 @@ def test_only_the_range_changes_within_the_bound_and_without_a_jump(motion, spee
     assert left <= 1.5 and right <= 1.5, joins
 
 
+def _move_keys(id_data, frames: float) -> None:
+    """Every key of the Action `id_data` plays moved by `frames` (the Dope Sheet's G on all keys)."""
+    for fc in fcurves_of(id_data):
+        for point in fc.keyframe_points:
+            point.co[0] += frames
+            point.handle_left[0] += frames
+            point.handle_right[0] += frames
+        fc.update()
+
+
+def test_a_take_moved_in_time_is_regenerated_where_it_is(motion, speech):
+    """The animator moved the whole take 12 frames later (every key, on the armature and the
+    face): regenerating a range of it finds the take where it is now. None of its keys counts
+    as the animator's (before, every one did: pins everywhere, the range 12 frames off), the
+    same model frames are sampled anew as in place, and the new take is the one made in place
+    with the same seed, 12 frames later. Keys moved apart (the armature, not the face) or by
+    part of a frame are refused before anything runs."""
+    scene, options = _scene(motion, speech)
+    placed, new_placed, _ = _regenerate(scene, options, speech, seed=7)
+    frames = np.arange(FIRST - 30, LAST + 30)
+    expected = [_evaluate(t, frames) for t in _targets(options)]
+    takes.use_take("talk take 1")
+    for target in _targets(options):
+        _move_keys(target, 12)
+
+    request, new, result = _regenerate(scene, options, speech, first=FIRST + 12, last=LAST + 12, seed=7)
+
+    assert request.source.start_frame == placed.source.start_frame + 12 and request.pins == ()
+    assert (request.start, request.end) == (placed.start, placed.end) and not request.notes
+    np.testing.assert_array_equal(new.rotations, new_placed.rotations)
+    for target, before in zip(_targets(options), expected):
+        now = _evaluate(target, frames + 12)
+        for path in before:
+            np.testing.assert_allclose(now[path], before[path], atol=1e-4, err_msg=str(path))
+        assert {k[3] for keys in _keys(target).values() for k in keys} == {"GENERATED"}  # none made the animator's
+    assert takes.source_of(result.take).start_frame == placed.source.start_frame + 12
+
+    takes.use_take("talk take 1")
+    _move_keys(options.armature, -12)  # the armature back, the face still 12 frames later
+    with pytest.raises(DiffshegError, match=r"the keys of take 'talk take 1' were moved apart \(.* by 0, .* by 12 "):
+        regenerate.prepare_range(scene, options, FIRST, LAST)
+    for target in _targets(options)[1:]:
+        _move_keys(target, -11.5)
+    _move_keys(options.armature, 0.5)
+    with pytest.raises(DiffshegError, match="were moved by 0.5 frames: move them by whole frames"):
+        regenerate.prepare_range(scene, options, FIRST, LAST)
+
+
 def _join_ratios(armature, frames) -> tuple[float, float]:
     curves = _evaluate(armature, frames)
     rotations = np.stack([v for (path, _), v in curves.items() if path.endswith(".rotation_euler")

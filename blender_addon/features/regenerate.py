@@ -34,7 +34,7 @@ from diffsheg_core.rotations import axis_angle_to_matrix, convert
 from ..scene import takes
 from ..scene.bake import BakeOptions, BakeResult, Group, auto_preset, group_values, plan_keys, scene_fps
 from ..scene.keying import (GENERATED_KEY, Undo, action_fcurves, animators_keys, fcurves_of, mark_animators,
-                            record_baked, undone_on_error)
+                            moved_by, record_baked, undone_on_error)
 from ..scene.retarget import joint_rotation, map_armature, passed_rotation
 
 REACH = 2  # model frames on either side that one scene frame's value depends on (PCHIP face weights)
@@ -95,11 +95,38 @@ def model_range(first: int, last: int, source: takes.TakeSource, fps: float) -> 
     return max(start, 0), min(end, motion.n_frames)
 
 
+def take_shift(targets, take: str, frame: int) -> int:
+    """Whole frames the keys of take `take` were moved by since it was made (the Dope Sheet's
+    G over the take: keying.moved_by), the same for every one of `targets` that plays it at
+    scene `frame`. Refused where they were moved apart or by part of a frame: the take's
+    frames could not be matched to the speech's."""
+    shifts = {}
+    for target in targets:
+        action, slot = takes.playing_action(target, frame) if target is not None else (None, None)
+        if action is not None and takes.is_take(action) and action[takes.TAKE] == take:
+            owner = getattr(target, "user", None) or target  # a face's shape keys: its mesh
+            shifts[owner.name] = moved_by(action, action_fcurves(action, slot))
+    moved = set(shifts.values())
+    if len(moved) > 1:
+        apart = ", ".join(f"{name} by {shift:g}" for name, shift in shifts.items())
+        raise DiffshegError(f"the keys of take '{take}' were moved apart ({apart} frames): move them by the same "
+                            "frames on the armature and the faces to regenerate a range of it")
+    shift = moved.pop() if moved else 0.0
+    if shift != round(shift):
+        raise DiffshegError(f"the keys of take '{take}' were moved by {shift:g} frames: move them by whole frames "
+                            "to regenerate a range of it")
+    return int(round(shift))
+
+
 def prepare_range(scene, options: BakeOptions, first: int, last: int) -> RangeRequest:
-    """Everything regenerating [first, last] needs from the scene (main thread only)."""
+    """Everything regenerating [first, last] needs from the scene (main thread only). A take
+    whose keys the animator moved in time as a whole is regenerated where it is now."""
     targets = [options.armature] + [m.data.shape_keys for m in options.face_meshes]
     take = playing_take(targets, first)
     source = takes.source_of(take)
+    shift = take_shift(targets, take, first)
+    if shift:
+        source = replace(source, start_frame=source.start_frame + shift)
     start, end = model_range(first, last, source, scene_fps(scene))
     request = RangeRequest(take, source, first, last, start, end)
     if options.armature is not None:

@@ -147,23 +147,53 @@ def record_baked(action, fcurves: list) -> None:
 def animators_keys(action, fcurves: list) -> list[np.ndarray]:
     """Per F-curve of `action` in `fcurves`, which of its keys are the animator's: those not
     typed GENERATED, and those typed GENERATED whose frame and value are not one the take
-    baked (`record_baked`; a take made before the record: by type alone). Where one of a
-    property's keys at a frame is the animator's, all of them there are: keying keys the
-    whole property (a bone's rotation), and the animator keyed that pose."""
+    baked (`record_baked`, moved with the take where the animator moved it: `moved_by`; a
+    take made before the record: by type alone). Where one of a property's keys at a frame
+    is the animator's, all of them there are: keying keys the whole property (a bone's
+    rotation), and the animator keyed that pose."""
     generated = _enum("type", GENERATED_KEY)
     baked = _baked(action)
+    shift = np.array([moved_by(action, fcurves), 0.0], dtype=np.float32)
     frames, found = [], []
     for fc in fcurves:
         co, types = _keys_of(fc)
         theirs = types != generated
         if baked is not None:
-            theirs |= ~_matches(co, baked.get((fc.data_path, fc.array_index), np.empty((0, 2), dtype=np.float32)))
+            theirs |= ~_matches(co, baked.get((fc.data_path, fc.array_index), np.empty((0, 2), dtype=np.float32)) + shift)
         frames.append(co[:, 0])
         found.append(theirs)
     edited: dict[str, np.ndarray] = {}
     for fc, at, theirs in zip(fcurves, frames, found):
         edited[fc.data_path] = np.union1d(edited.get(fc.data_path, np.empty(0, dtype=np.float32)), at[theirs])
     return [theirs | _near(at, edited[fc.data_path]) for fc, at, theirs in zip(fcurves, frames, found)]
+
+
+def moved_by(action, fcurves: list) -> float:
+    """Frames the take's keys on `fcurves` (F-curves of `action`) were moved by since they were
+    baked, as a whole (the Dope Sheet's G on every key): the shift shared by most curves whose
+    generated keys are the ones `record_baked` kept, value for value, each moved by one and the
+    same amount. 0.0 where they were not moved, or without a record."""
+    baked = _baked(action)
+    if baked is None:
+        return 0.0
+    generated, votes, curves = _enum("type", GENERATED_KEY), {}, 0
+    for fc in fcurves:
+        kept = baked.get((fc.data_path, fc.array_index))
+        if kept is None or not len(kept):
+            continue
+        curves += 1
+        co, types = _keys_of(fc)
+        keys = co[types == generated]
+        if len(keys) != len(kept) or np.abs(keys[:, 1] - kept[:, 1]).max() > VALUE_TOLERANCE:
+            continue  # edited, keys added or removed: no vote
+        offsets = keys[:, 0] - kept[:, 0]
+        if np.ptp(offsets) <= FRAME_TOLERANCE:
+            shift = round(float(offsets.mean()), 3)
+            votes[shift] = votes.get(shift, 0) + 1
+    if not votes:
+        return 0.0
+    shift, count = max(votes.items(), key=lambda item: item[1])
+    return shift if 2 * count > curves else 0.0
 
 
 def mark_animators(action, fcurves: list) -> None:
