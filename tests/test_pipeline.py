@@ -158,6 +158,12 @@ def test_numpy_runs_on_the_generation_threads_while_it_generates(speech, model):
         assert blas_threads() == {2}
 
 
+def test_a_missing_threadpoolctl_is_named_with_the_fix(speech, model, monkeypatch):
+    monkeypatch.setitem(sys.modules, "threadpoolctl", None)  # as where it is not installed
+    with pytest.raises(DiffshegError, match=r"needs the threadpoolctl package: `pip install threadpoolctl`"):
+        generate(speech, model=model, device="cpu", steps=2)
+
+
 def test_cuda_request_without_gpu_explains(speech, model):
     torch = pytest.importorskip("torch")
     if torch.cuda.is_available():

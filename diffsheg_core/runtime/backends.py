@@ -57,9 +57,13 @@ def cpu_threads(threads: Optional[int] = None) -> Iterator[None]:
     prior's solves, the legs): on more threads than it has cores to itself it collapses. With
     the other core of a 2-core machine busy, the prior's solve for a new overlap took 0.06-1.4 s
     on OpenBLAS's 2 threads and 3-5 ms on one, and a live session fell 1.5 s behind from it."""
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=resolve_threads(threads), user_api="blas"):
+    threads = resolve_threads(threads)
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        raise DiffshegError("generation needs the threadpoolctl package: `pip install threadpoolctl` (the "
+                            "Blender add-on bundles it; the legacy add-on's Install dependencies installs it)") from None
+    with threadpool_limits(limits=threads, user_api="blas"):
         yield
 
 
