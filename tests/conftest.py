@@ -40,6 +40,13 @@ def tiny_hubert(tmp_path_factory) -> Path:
     return folder
 
 
+def blas_threads() -> frozenset[int]:
+    """The threads numpy's BLAS libraries run on now (threadpoolctl; empty where numpy has none)."""
+    from threadpoolctl import threadpool_info
+
+    return frozenset(info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas")
+
+
 def random_bundle(graphs: bool = True, seed: int = 0, **config):
     """A small randomly initialised model (no learned motion) as a ModelBundle, with its
     ONNX graphs unless `graphs` is false. `config`: ModelConfig fields over a small mel-only

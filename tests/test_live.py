@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import soundfile as sf
+from conftest import blas_threads
 
 from diffsheg_core.audio import Audio, n_motion_frames, read_audio_file
 from diffsheg_core.errors import DiffshegError
@@ -316,13 +317,6 @@ def test_the_engine_refuses_what_live_cannot_do(model):
             LiveEngine(bundle, network, GenerateSettings(), 16000, LiveConfig(max_hop=max_hop))
     with pytest.raises(DiffshegError, match="4000 Hz or more"):
         LiveEngine(bundle, network, GenerateSettings(), 100)
-
-
-def blas_threads() -> frozenset[int]:
-    """The threads numpy's BLAS libraries run on now (threadpoolctl)."""
-    from threadpoolctl import threadpool_info
-
-    return frozenset(info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas")
 
 
 def test_upper_body_only_streams_no_legs(tmp_path, speech, model):

@@ -8,7 +8,7 @@ from dataclasses import fields, replace
 import numpy as np
 import pytest
 import soundfile as sf
-from conftest import random_bundle
+from conftest import blas_threads, random_bundle
 
 from diffsheg_core import AudioError, Cancelled, CheckpointError, DiffshegError, Motion, generate
 from diffsheg_core.checkpoints import load_model, save_checkpoint
@@ -128,13 +128,6 @@ def test_the_threads_option_has_the_bounds_of_the_environment_variable(model):
         GenerateSettings(threads=2000)
     with pytest.raises(DiffshegError, match="^threads must be a whole number from 1 to 256, got 2000$"):
         open_network(model, threads=2000)
-
-
-def blas_threads() -> set[int]:
-    """The threads numpy's BLAS libraries run on now (threadpoolctl)."""
-    from threadpoolctl import threadpool_info
-
-    return {info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas"}
 
 
 def test_numpy_runs_on_the_generation_threads_while_it_generates(speech, model):

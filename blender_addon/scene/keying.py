@@ -153,10 +153,10 @@ def animators_keys(action, fcurves: list) -> list[np.ndarray]:
     rotation), and the animator keyed that pose."""
     generated = _enum("type", GENERATED_KEY)
     baked = _baked(action)
-    shift = np.array([moved_by(action, fcurves), 0.0], dtype=np.float32)
+    keys = [_keys_of(fc) for fc in fcurves]
+    shift = np.array([0.0 if baked is None else _shift(baked, fcurves, keys), 0.0], dtype=np.float32)
     frames, found = [], []
-    for fc in fcurves:
-        co, types = _keys_of(fc)
+    for fc, (co, types) in zip(fcurves, keys):
         theirs = types != generated
         if baked is not None:
             theirs |= ~_matches(co, baked.get((fc.data_path, fc.array_index), np.empty((0, 2), dtype=np.float32)) + shift)
@@ -174,19 +174,21 @@ def moved_by(action, fcurves: list) -> float:
     generated keys are the ones `record_baked` kept, value for value, each moved by one and the
     same amount. 0.0 where they were not moved, or without a record."""
     baked = _baked(action)
-    if baked is None:
-        return 0.0
+    return 0.0 if baked is None else _shift(baked, fcurves, [_keys_of(fc) for fc in fcurves])
+
+
+def _shift(baked: dict[tuple[str, int], np.ndarray], fcurves: list, keys: list) -> float:
+    """`moved_by` for the record `baked` (`_baked`) and each of `fcurves`' keys (`_keys_of`)."""
     generated, votes, curves = _enum("type", GENERATED_KEY), {}, 0
-    for fc in fcurves:
+    for fc, (co, types) in zip(fcurves, keys):
         kept = baked.get((fc.data_path, fc.array_index))
         if kept is None or not len(kept):
             continue
         curves += 1
-        co, types = _keys_of(fc)
-        keys = co[types == generated]
-        if len(keys) != len(kept) or np.abs(keys[:, 1] - kept[:, 1]).max() > VALUE_TOLERANCE:
+        made = co[types == generated]
+        if len(made) != len(kept) or np.abs(made[:, 1] - kept[:, 1]).max() > VALUE_TOLERANCE:
             continue  # edited, keys added or removed: no vote
-        offsets = keys[:, 0] - kept[:, 0]
+        offsets = made[:, 0] - kept[:, 0]
         if np.ptp(offsets) <= FRAME_TOLERANCE:
             shift = round(float(offsets.mean()), 3)
             votes[shift] = votes.get(shift, 0) + 1

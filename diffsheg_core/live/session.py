@@ -161,7 +161,6 @@ class LiveSession:
         self.network = network or open_network(self.bundle, settings.backend, settings.device,
                                                settings.precision, settings.threads)
         self.engine = LiveEngine(self.bundle, self.network, settings, source.sample_rate, live)
-        self._threads = settings.threads  # numpy's too, while the generation thread runs (cpu_threads)
         # the emotion and the hips and legs laid over what the model makes, as `generate` lays them
         self.emotion = EmotionStream(settings.emotion, self.bundle.config.fps)  # set_emotion changes it
         self._emotional: list[Motion] = []  # the frames made, with the emotion (the recording's)
@@ -318,7 +317,7 @@ class LiveSession:
 
     # --- the generation thread ---------------------------------------------------------
     def _generate(self) -> None:
-        with cpu_threads(self._threads):
+        with cpu_threads(self.engine.settings.threads):  # numpy's threads too, as generate holds them
             self._sample_until_done()
 
     def _sample_until_done(self) -> None:
