@@ -17,8 +17,8 @@ panel: builds the legacy add-on zip (build_addon.build_legacy), installs the run
 of the linux-x64 extension (build_addon.platform_wheels: cached, or fetched from PyPI once)
 into a throw-away Blender home so the panel shows no "missing packages" box, and runs
 tools/panel_screenshot.py twice under xvfb-run: the panel as it opens, and with its
-sub-panels open. Needs a Blender 3.4+ and Xvfb (`apt-get install -y blender xvfb
-python3-numpy` gives Debian's Blender 3.4). The crops are set for that Blender at the screen
+sub-panels open. Needs a Blender 3.4+ and Xvfb (`bash tools/install_system_packages.sh
+--screenshots` installs Debian's Blender 3.4 with numpy, and Xvfb). The crops are set for that Blender at the screen
 sizes below; check the pictures after a change of Blender or of the panel.
 """
 
@@ -217,7 +217,7 @@ def panel(blender: str = "blender") -> list[Path]:
 
     blender = shutil.which(blender) or blender
     if not Path(blender).exists() or shutil.which("xvfb-run") is None:
-        raise SystemExit("panel: needs Blender 3.4+ and xvfb-run (apt-get install -y blender xvfb python3-numpy)")
+        raise SystemExit("panel: needs Blender 3.4+ and xvfb-run (bash tools/install_system_packages.sh --screenshots)")
     IMAGES.mkdir(parents=True, exist_ok=True)
     made = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -5,12 +5,18 @@
 # (audio formats libsndfile cannot read, checking rendered videos) and, when `node` or `npm`
 # is not on PATH, Node.js and npm (the glTF validator of tools/install_node_tools.sh).
 # Installs what is missing, then checks that everything is there: exits 1 naming what is not.
+# --screenshots adds what the docs' panel pictures need and no test does: Debian's Blender 3.4
+# with numpy, and Xvfb for its window (tools/panel_screenshot.py, tools/docs_figures.py panel).
 # --corpus is still accepted (it used to add festival and fortunes, now always installed).
 set -euo pipefail
 packages=(espeak-ng flite sox libportaudio2 ffmpeg fortunes
           festival festvox-kallpc16k festvox-kdlpc16k festvox-us-slt-hts)
 for arg in "$@"; do
-  [ "$arg" = "--corpus" ] || { echo "install_system_packages.sh: unknown option $arg" >&2; exit 2; }
+  case "$arg" in
+    --corpus) ;;
+    --screenshots) packages+=(blender python3-numpy xvfb) ;;
+    *) echo "install_system_packages.sh: unknown option $arg" >&2; exit 2 ;;
+  esac
 done
 # Node.js may come from elsewhere (nodesource, nvm): Debian's only when there is none
 command -v node >/dev/null && command -v npm >/dev/null || packages+=(nodejs npm)

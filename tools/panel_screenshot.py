@@ -4,6 +4,7 @@
     xvfb-run -s "-screen 0 1600x1000x24" blender --factory-startup \
         --python tools/panel_screenshot.py -- dist/diffsheg-0.1.0-legacy.zip OUT.png [--open] [--range]
 
+Blender 3.4 and Xvfb on Debian: `bash tools/install_system_packages.sh --screenshots`.
 Installs and enables the add-on zip in that Blender (3.4+; into the user's add-ons folder),
 makes a character (armature, face mesh, two takes, a report), shows the 3D view's sidebar at
 its default width with the panel (before 4.1 on the first tab, see show_tab) and saves the
