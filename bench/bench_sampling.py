@@ -6,6 +6,8 @@ Both samplings of the bundled model on real speech, seeds 0 and 1:
   come from the first 44 s only);
 - speech the model never heard: 2_scott_0_3_3 (30 s) and another speaker, 12_zhao_2_3_3 (30 s),
   without a capture: figures against the quality sampling's.
+With a distilled student in the model file (training.distill), fast runs the student and a row
+"fast, guided teacher" runs the same fast sampling with the teacher's guided steps.
 Per sampling it prints the seconds per take (the whole take, one thread), how much faster than
 the quality sampling and than real time; then, per speech, wrist speed and jitter (against the
 capture where there is one), diversity between seeds, the window Fréchet distance to the
@@ -105,13 +107,13 @@ def figures(samples: list[Motion], audio: Audio, clip_len: int, reference: Motio
     return out
 
 
-def join_ratios(take: Motion, audio: Audio, sampling: str) -> tuple[float, float]:
+def join_ratios(take: Motion, audio: Audio, model, sampling: str) -> tuple[float, float]:
     """Issue 25's measure: the joints' acceleration at the two joins of a regenerated range over
     that inside it, averaged over seeds 7-9."""
     start, end = RANGE
     ratios = []
     for seed in (7, 8, 9):
-        new = regenerate(take, audio, start=start, end=end, seed=seed, sampling=sampling)
+        new = regenerate(take, audio, start=start, end=end, model=model, seed=seed, sampling=sampling)
         acc = np.linalg.norm(np.diff(new.rotations, 2, axis=0), axis=2).mean(axis=1)
         inside = acc[start + 1: end - 3].mean()
         ratios.append((acc[start - 3: start + 1].mean() / inside, acc[end - 3: end + 1].mean() / inside))
@@ -119,11 +121,11 @@ def join_ratios(take: Motion, audio: Audio, sampling: str) -> tuple[float, float
     return float(left), float(right)
 
 
-def style_spread(audio: Audio, sampling) -> tuple[float, float]:
+def style_spread(audio: Audio, model, sampling) -> tuple[float, float]:
     """calm's and animated's wrist speed over conversational's, seed 0."""
     speed = {}
     for style in ("calm", "conversational", "animated"):
-        wrists = wrist_positions(generate(audio, seed=0, style=style, sampling=sampling))
+        wrists = wrist_positions(generate(audio, model=model, seed=0, style=style, sampling=sampling))
         speed[style] = float(np.linalg.norm(np.diff(wrists, axis=0), axis=-1).mean())
     return speed["calm"] / speed["conversational"], speed["animated"] / speed["conversational"]
 
@@ -135,11 +137,14 @@ def main() -> int:
     args = p.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, one thread; seeds {list(SEEDS)}")
     bundle = load_model(args.model)
-    samplings: dict[str, object] = {"quality": "quality", "fast": "fast"}
+    # label: (model, sampling); with a distilled student, fast runs it and "fast, guided" the teacher
+    samplings: dict[str, tuple] = {"quality": (bundle, "quality"), "fast": (bundle, "fast")}
+    if bundle.student is not None:
+        samplings["fast, guided teacher"] = (replace(bundle, student=None), "fast")
     for n in filter(None, args.steps.split(",")):
         for eta in (0.0, 1.0):
-            samplings[f"{n} even steps, eta {eta:g}"] = replace(
-                sampling_settings(bundle.sampling, "quality").with_steps(int(n)), eta=eta)
+            samplings[f"{n} even steps, eta {eta:g}"] = (bundle, replace(
+                sampling_settings(bundle.sampling, "quality").with_steps(int(n)), eta=eta))
     take_audio = load_audio(TAKE.with_suffix(".wav"))
     capture = load_reference(TAKE_BVH, fps=15.0)
     phones = phone_tier(read_textgrid(TAKE.with_suffix(".TextGrid")), str(TAKE.with_suffix(".TextGrid")))
@@ -147,22 +152,23 @@ def main() -> int:
     held_audio = seconds_of(take_audio, held_from, take_audio.duration)
     held_capture = cut(capture, int(held_from * 15), capture.n_frames)
     unseen = {path.stem: seconds_of(load_audio(path), 0.0, UNSEEN_S) for path in UNSEEN}
-    generate(seconds_of(take_audio, 0, 3), model=bundle)  # load and warm the network
+    for model, sampling in samplings.values():  # load and warm the networks
+        generate(seconds_of(take_audio, 0, 3), model=model, sampling=sampling)
 
     rows: dict[str, dict] = {}
-    for label, sampling in samplings.items():
+    for label, (model, sampling) in samplings.items():
         started = time.perf_counter()
-        takes = [generate(take_audio, model=bundle, seed=s, sampling=sampling) for s in SEEDS]
+        takes = [generate(take_audio, model=model, seed=s, sampling=sampling) for s in SEEDS]
         seconds = (time.perf_counter() - started) / len(SEEDS)
         row = {"seconds": seconds, "take": figures(takes, take_audio, bundle.config.clip_len, capture, phones)}
-        held = [generate(held_audio, model=bundle, seed=s, sampling=sampling) for s in SEEDS]
+        held = [generate(held_audio, model=model, seed=s, sampling=sampling) for s in SEEDS]
         row["held-out 20 s"] = figures(held, held_audio, bundle.config.clip_len, held_capture)
         for name, audio in unseen.items():
-            row[name] = figures([generate(audio, model=bundle, seed=s, sampling=sampling) for s in SEEDS], audio,
+            row[name] = figures([generate(audio, model=model, seed=s, sampling=sampling) for s in SEEDS], audio,
                                 bundle.config.clip_len)
         if isinstance(sampling, str):
-            row["joins"] = join_ratios(takes[0], take_audio, sampling)
-            row["styles"] = style_spread(unseen[UNSEEN[0].stem], sampling)
+            row["joins"] = join_ratios(takes[0], take_audio, model, sampling)
+            row["styles"] = style_spread(unseen[UNSEEN[0].stem], model, sampling)
         rows[label] = row
         print(f"{label}: {seconds:.2f} s per {take_audio.duration:.0f} s take", flush=True)
 

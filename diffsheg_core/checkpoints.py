@@ -8,9 +8,13 @@ Our format is a safetensors file (no pickle): tensors `model.*` (the network, fo
 torch backend), `norm.mean`, `norm.std`, `onnx.*` (the exported graphs as bytes, for the
 onnxruntime backend), optionally `phonetic.*` (the phonetic encoder) and `prior.*` (the
 gesture prior), and JSON metadata (config, sampling, guidance scales, model id, model
-card). Reading it needs numpy and safetensors only. Official checkpoints are torch pickles
-holding the state dict under `encoder`; they need torch, are read with `weights_only=True`
-(in `torch_layer.official`) and loaded strictly by `official_checkpoints`, which knows their
+card). A weight a graph holds under its own name (graphs exported without constant folding
+hold them all) is stored there only: `model.*` keeps the rest, and loading reads the network's
+weights back from both. A model may carry a distilled student (`ModelBundle.student`, see
+`training.distill`): its graphs are `onnx.student.*`, its weights outside them `student.*`,
+and the metadata's `student` says what it was distilled from. Reading it needs numpy and
+safetensors only. Official checkpoints are torch pickles holding the state dict under
+`encoder`; they need torch, are read with `weights_only=True` (in `torch_layer.official`) and loaded strictly by `official_checkpoints`, which knows their
 format, configuration and normalisation statistics; `load_model` tells the two apart.
 """
 
@@ -18,7 +22,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Optional
 
@@ -32,13 +36,14 @@ from .official_checkpoints import OFFICIAL, STATS_ENV, STYLE_KEY, load_official,
 from .phonetic import PhoneticConfig
 from .prior import GesturePrior
 from .rigs import Layout, get_layout
-from .runtime.graphs import read_graph
+from .runtime.graphs import named_weights, read_graph
 from .style import style_names_fit
 
 FORMAT = "diffsheg-core/1"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.safetensors"
-MODEL_PREFIX, PHONETIC_PREFIX, GRAPH_PREFIX = "model.", "phonetic.", "onnx."
+MODEL_PREFIX, PHONETIC_PREFIX, GRAPH_PREFIX, STUDENT_PREFIX = "model.", "phonetic.", "onnx.", "student."
+NETWORK_GRAPHS = ("expression", "gesture")  # the graphs that hold the network's weights (export names them model.*)
 TORCH_HOW_TO = ("install torch: in Blender, Edit > Preferences > Add-ons > DiffSHEG > Install GPU "
                 "support; elsewhere `pip install torch==2.13.0` (README, GPU)")
 
@@ -60,6 +65,10 @@ class ModelBundle:
     prior: Optional[GesturePrior] = None  # where later FOPPAS windows start from (see prior.py)
     graphs: dict[str, bytes] = field(default_factory=dict)  # ONNX: expression, gesture[, phonetic]
     source: str = "model"            # how messages name it (its file)
+    # a few-step student distilled from this model's guided sampling: a bundle of its own that
+    # shares this one's config, statistics, prior and phonetic encoder, unguided, with what it was
+    # distilled at in its info["distilled"] (see pipeline.make_plan for when it samples)
+    student: Optional["ModelBundle"] = None
     networks: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # opened backends (runtime)
 
     @property
@@ -160,8 +169,24 @@ def _prefixed(tensors: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarr
     return {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
 
 
+def graph_weights(graphs: dict[str, bytes]) -> dict[str, np.ndarray]:
+    """The network weights the graphs hold under their own names."""
+    held: dict[str, np.ndarray] = {}
+    for name in NETWORK_GRAPHS:
+        if name in graphs:
+            held.update(named_weights(graphs[name], MODEL_PREFIX))
+    return held
+
+
+def _stored_apart(weights: dict[str, np.ndarray], graphs: dict[str, bytes]) -> dict[str, np.ndarray]:
+    """The weights the graphs do not hold exactly (same name, type and values)."""
+    held = graph_weights(graphs)
+    return {k: np.asarray(v) for k, v in weights.items()
+            if not (k in held and held[k].dtype == np.asarray(v).dtype and np.array_equal(held[k], v))}
+
+
 def save_checkpoint(bundle: ModelBundle, path: str | Path) -> Path:
-    tensors = {f"{MODEL_PREFIX}{k}": np.asarray(v) for k, v in bundle.weights.items()}
+    tensors = {f"{MODEL_PREFIX}{k}": v for k, v in _stored_apart(bundle.weights, bundle.graphs).items()}
     tensors["norm.mean"] = np.asarray(bundle.mean, dtype=np.float32)
     tensors["norm.std"] = np.asarray(bundle.std, dtype=np.float32)
     tensors.update({f"{PHONETIC_PREFIX}{k}": np.asarray(v) for k, v in bundle.phonetic_weights.items()})
@@ -179,7 +204,48 @@ def save_checkpoint(bundle: ModelBundle, path: str | Path) -> Path:
         "info": json.dumps(bundle.info, default=str),
         **({"phonetic": bundle.phonetic.metadata()} if bundle.phonetic is not None else {}),
     }
+    student = bundle.student
+    if student is not None:
+        tensors.update({f"{STUDENT_PREFIX}{k}": v for k, v in _stored_apart(student.weights, student.graphs).items()})
+        tensors.update({f"{GRAPH_PREFIX}{STUDENT_PREFIX}{k}": np.frombuffer(student.graphs[k], np.uint8)
+                        for k in NETWORK_GRAPHS})
+        meta["student"] = json.dumps({"model_id": student.model_id, "info": student.info}, default=str)
     return write_safetensors(tensors, meta, path)
+
+
+def _network_weights(stored: dict[str, np.ndarray], graphs: dict[str, bytes], path: Path, what: str
+                     ) -> dict[str, np.ndarray]:
+    """A network's weights: those stored apart and those its graphs hold."""
+    try:
+        weights = {**graph_weights(graphs), **stored}
+    except ValueError as exc:
+        raise CheckpointError(f"{path}: the ONNX graphs of its {what} are damaged ({exc}); download or export "
+                              "the model again") from None
+    if not weights:
+        raise CheckpointError(f"{path}: the file holds no weights of its {what} ({MODEL_PREFIX}* or in its graphs); "
+                              "export it again")
+    check_weights(weights, f"{path} ({what})")
+    return weights
+
+
+def _stored_student(teacher: ModelBundle, meta: dict, tensors: dict, graphs: dict, path: Path
+                    ) -> Optional[ModelBundle]:
+    """The distilled student a file carries (None: none)."""
+    own = {k[len(STUDENT_PREFIX):]: v for k, v in graphs.items() if k.startswith(STUDENT_PREFIX)}
+    if "student" not in meta and not own:
+        return None
+    record = _json(meta, "student", "null", path)
+    if not isinstance(record, dict) or set(own) != set(NETWORK_GRAPHS) \
+            or not isinstance(record.get("info", {}).get("distilled"), dict):
+        raise CheckpointError(f"{path}: its distilled student is incomplete (it needs the graphs "
+                              f"{', '.join(GRAPH_PREFIX + STUDENT_PREFIX + g for g in NETWORK_GRAPHS)} and the "
+                              "metadata 'student' saying what it was distilled at); export it again")
+    weights = _network_weights(_prefixed(tensors, STUDENT_PREFIX), own, path, "distilled student")
+    if "phonetic" in teacher.graphs:  # the student hears through the teacher's encoder
+        own["phonetic"] = teacher.graphs["phonetic"]
+    return replace(teacher, weights=weights, graphs=own, guidance=None, skip_guidance=None,
+                   model_id=str(record.get("model_id", f"{teacher.model_id}-student")), info=record["info"],
+                   student=None, source=f"{path} (distilled student)")
 
 
 def _load_ours(path: Path) -> ModelBundle:
@@ -196,23 +262,25 @@ def _load_ours(path: Path) -> ModelBundle:
     check_weights({"norm.mean": mean, "norm.std": std, **tensors}, str(path))
     if not (std > 0).all():
         raise CheckpointError(f"{path}: its normalisation std holds zero or negative values; export it again")
-    weights = _prefixed(tensors, MODEL_PREFIX)
-    if not weights:
-        raise CheckpointError(f"{path}: the file holds no network weights (model.*); export it again")
     phonetic = _stored_phonetic(cfg, meta, tensors, path)
     graphs = {k: v.tobytes() for k, v in _prefixed(tensors, GRAPH_PREFIX).items()}
     _check_graphs(graphs, cfg, phonetic.get("phonetic"), path)
+    weights = _network_weights(_prefixed(tensors, MODEL_PREFIX),
+                               {k: v for k, v in graphs.items() if k in NETWORK_GRAPHS}, path, "network")
     info = _json(meta, "info", "{}", path)
     if not isinstance(info, dict):
         raise CheckpointError(f"{path}: its metadata 'info' is a JSON {type(info).__name__}, not an object: "
                               f"the file was edited or damaged; export it again from its training run")
     _check_styles(info, cfg.style_dim, path)
-    return ModelBundle(
+    bundle = ModelBundle(
         config=cfg, weights=weights, mean=mean, std=std, sampling=sampling,
         guidance=_json(meta, "guidance", "null", path),
         skip_guidance=_json(meta, "skip_guidance", "null", path), model_id=meta.get("model_id", path.stem),
         trained=_json(meta, "trained", "true", path), info=info,
-        **phonetic, prior=_stored_prior(cfg, tensors, path), graphs=graphs, source=str(path))
+        **phonetic, prior=_stored_prior(cfg, tensors, path),
+        graphs={k: v for k, v in graphs.items() if not k.startswith(STUDENT_PREFIX)}, source=str(path))
+    bundle.student = _stored_student(bundle, meta, tensors, graphs, path)
+    return bundle
 
 
 def _check_styles(info: dict, style_dim: int, path: Path) -> None:
@@ -270,7 +338,8 @@ def _check_graphs(graphs: dict[str, bytes], cfg: ModelConfig, phonetic: Optional
                 f"{path}: refused: its ONNX graph '{name}' refers to external data files (tensor "
                 f"{', '.join(found.external[:3])}); our model files hold all their weights and never use "
                 "external data, so this file was edited or is not one of ours: download or export it again")
-        wanted = expected.get(name)
+        wanted = expected.get(name.removeprefix(STUDENT_PREFIX) if name.startswith(STUDENT_PREFIX) and
+                              name.removeprefix(STUDENT_PREFIX) in NETWORK_GRAPHS else name)
         if wanted is None:
             raise CheckpointError(f"{path}: it holds an ONNX graph '{name}' that no model of ours has "
                                   f"(expected {', '.join(expected)}): the file was edited; export it again")

@@ -78,11 +78,11 @@ def run_generate(args: argparse.Namespace) -> int:
         bar.set_postfix_str(f"clip {p.clip + 1}/{p.n_clips}", refresh=False)
         bar.update(int(p.fraction * 1000) - bar.n)
 
-    sampling = sampling_settings(bundle.sampling, settings.sampling)
-    if args.no_prior:
-        sampling = replace(sampling, prior_start=False)
-    if args.no_refine:
-        sampling = replace(sampling, refine=None)
+    sampling = None  # the named sampling (the distilled student's, where it applies), unless changed below
+    if args.no_prior or args.no_refine:
+        sampling = replace(sampling_settings(bundle.sampling, settings.sampling),
+                           **({"prior_start": False} if args.no_prior else {}),
+                           **({"refine": None} if args.no_refine else {}))
     cancel = threading.Event()
     try:
         result = generate(speech, settings=settings, model=bundle, sampling=sampling, hubert_path=args.hubert,

@@ -22,12 +22,13 @@ from .conditioning import Conditioning, SpeechFeatures
 from .diffusion import Schedule
 from .emotion import apply_emotion, emotion_track, remove_emotion, take_emotion
 from .errors import DiffshegError
-from .foppas import EpsFn, Foppas, FoppasConfig, FoppasStream, inpaint_range, sampling_settings, with_overrides
+from .foppas import (EpsFn, Foppas, FoppasConfig, FoppasStream, fast_sampling, inpaint_range, sampling_settings,
+                     with_overrides)
 from .guidance import Guidance, face_eps, gesture_eps, step_eps
 from .lower_body import JOINTS as LOWER_JOINTS, add_lower_body, legs_source, lower_rotations, plant, upper_body
 from .motion import Motion
 from .progress import ProgressCallback
-from .runtime.backends import cpu_threads, open_network
+from .runtime.backends import cpu_threads, open_network, student_network
 from .settings import GenerateSettings
 from .speech_features import speech_chunks
 from .style import StyleTrack, named_weights, resolve_style_guidance, style_meta, style_track, style_weights
@@ -76,6 +77,7 @@ class Plan:
     style: StyleTrack                    # the style of each frame (of the take; live, of a window)
     style_at: tuple = ()                 # ((seconds, {class: weight}), ...) of the track's changes
     sampling: str = "custom"             # the named sampling sampled with ("custom": settings given outright)
+    student: bool = False                # the model's distilled student makes each step in one pass (`uses_student`)
 
 
 def make_plan(bundle: ModelBundle, s: GenerateSettings, sampling: Optional[FoppasConfig] = None,
@@ -96,32 +98,51 @@ def make_plan(bundle: ModelBundle, s: GenerateSettings, sampling: Optional[Foppa
                         resolve_style_guidance(bundle, s.style_guidance))
     changes = tuple((t, style_weights(bundle, spec)) for t, spec in s.style_at or ())
     return Plan(config, guidance, scale, style_weights(bundle, s.style),
-                style_track(bundle, s.style, s.style_at, n_frames), changes, "custom" if sampling else name)
+                style_track(bundle, s.style, s.style_at, n_frames), changes, "custom" if sampling else name,
+                student=sampling is None and uses_student(bundle, name, config, guidance))
+
+
+def uses_student(bundle: ModelBundle, sampling: str, config: FoppasConfig, guidance: Guidance) -> bool:
+    """Whether a job samples with the model's distilled student (training.distill): it asks for
+    the fast sampling exactly as the student was distilled from it (the model's steps and
+    guidance scales; the overlap and the candidates may differ)."""
+    student = bundle.student
+    if student is None or sampling != "fast":
+        return False
+    d = student.info["distilled"]
+    fast = fast_sampling(bundle.sampling)
+    return (guidance == Guidance(d["guidance"], d["skip_guidance"]) and fast.refine_skip == d["refine_skip"]
+            and tuple(d["timesteps"]) == fast.timesteps
+            and replace(config, overlap=fast.overlap, candidates=fast.candidates) == fast)
 
 
 def build_sampling(bundle: ModelBundle, network, plan: Plan) -> tuple[Foppas, Callable[[Conditioning], EpsFn]]:
     """The FOPPAS sampler of `plan`, and the factory that binds the network and guidance
     scales to one window's conditioning. Bad settings raise DiffshegError."""
     config = plan.config
+    student = student_network(bundle, network) if plan.student else None
+    network, guidance = (network, plan.guidance) if student is None else (student, Guidance())
+    refine_offset = 0 if student is None else bundle.student.info["distilled"].get("refine_offset", 0)
     try:
         sampler = Foppas(Schedule.linear(), config, bundle.config.clip_len, bundle.config.dim,
                          proposal=bundle.prior.propose if uses_prior(bundle, config) else None,
                          gestures=bundle.config.gesture_dim, branch=bundle.config.lower_dim)
     except ValueError as exc:
         raise DiffshegError(str(exc)) from None
-    return sampler, make_eps_fn_factory(bundle, network, sampler, plan.guidance)
+    return sampler, make_eps_fn_factory(bundle, network, sampler, guidance, refine_offset)
 
 
 def _repeat(values: Optional[np.ndarray], rows: int) -> Optional[np.ndarray]:
     return values if values is None or len(values) == rows else np.repeat(values, rows, axis=0)
 
 
-def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas,
-                        guidance: Guidance) -> Callable[[Conditioning], EpsFn]:
+def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas, guidance: Guidance,
+                        refine_offset: int = 0) -> Callable[[Conditioning], EpsFn]:
     """Bind network and guidance scales; the result binds one window's conditioning, which
     it hands to the network as a batch of one: its speech features, and its style
     (`StyleTrack.window`). The sampler's refining pass steers the gestures with the
-    skip-guidance scale times `refine_skip` of the sampling settings."""
+    skip-guidance scale times `refine_skip` of the sampling settings; a distilled student
+    learnt that pass at its timestep plus `refine_offset` (training.distill)."""
     cfg, sched = bundle.config, sampler.schedule
     refining = guidance if guidance.skip is None else \
         replace(guidance, skip=guidance.skip * sampler.config.refine_skip)
@@ -141,8 +162,8 @@ def make_eps_fn_factory(bundle: ModelBundle, network, sampler: Foppas,
             if refine:  # the face is final: it is the gestures' face x0, and its branch need not run
                 if index not in fused:
                     fused[index] = face_eps(network, x[:1, :, g:], timesteps[:1], mel, speech, window_style)[1]
-                eps_ges = gesture_eps(network, x[..., :g], timesteps, _repeat(fused[index], rows), speech_rows,
-                                      style_rows, x[..., g:], refining)
+                eps_ges = gesture_eps(network, x[..., :g], timesteps + refine_offset, _repeat(fused[index], rows),
+                                      speech_rows, style_rows, x[..., g:], refining)
                 return np.concatenate([eps_ges, np.zeros_like(x[..., g:])], axis=-1)
             eps, audio = step_eps(network, g, x, timesteps, _repeat(mel, rows), speech_rows, style_rows,
                                   sched.x0_coefs(idx, x), guidance, face_only)
@@ -271,7 +292,7 @@ def generation_meta(bundle: ModelBundle, s: GenerateSettings, plan: Plan, networ
         **style_meta(bundle, plan.style_weights, plan.guidance.style),
         "style_at": [[t, named_weights(bundle, weights)] for t, weights in plan.style_at],
         "emotion": s.emotion or {}, "emotion_at": [[t, spec] for t, spec in s.emotion_at or ()],
-        "guidance": plan.guidance_scale,
+        "guidance": plan.guidance_scale, "student": bundle.student.model_id if plan.student else None,
         "skip_guidance": plan.guidance.skip,
         "sampling": plan.sampling, "steps": config.steps,
         "timesteps": None if config.timesteps is None else list(config.timesteps),

@@ -109,8 +109,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--face-seed", type=int,
                    help="keep the face of this seed while --seed changes the gestures (default: off)")
     g.add_argument("--sampling", default="fast", choices=_sampling_names(),
-                   help="fast (default: 5 steps, two of them for the gestures, with the quality figures of 25) or "
-                        "quality (the model's own sampling, 25 steps, about 4 times slower); or an official preset")
+                   help="fast (default: 5 steps, each one pass of the model's distilled student where it has one, "
+                        "with the quality figures of 25) or quality (the model's own sampling, 25 steps, about 5.5 "
+                        "times slower); or an official preset")
     g.add_argument("--steps", type=int, help=f"DDIM steps, {STEPS[0]}-{STEPS[1]} (default: the sampling's, 5 or 25)")
     g.add_argument("--overlap", type=int, help="frames shared by consecutive windows (default: the model's)")
     g.add_argument("--candidates", type=int,

@@ -120,9 +120,11 @@ def test_every_generation_option_of_the_panel_is_a_batch_option(scene_blend, tmp
 
 def test_the_25_step_sampling_stays_selectable_as_sampling_quality(scene_blend, tmp_path):
     """Issue 39, item 5: --sampling quality reaches generation (the model's own 25 steps), the
-    default is fast; the report (the saved .blend's Text, --report) says which."""
+    default is fast (by the bundled model's distilled student); the report (the saved .blend's
+    Text, --report) says which."""
     speech = cut_speech(tmp_path, seconds=1.0)
-    for option, said in (([], "sampling: fast, 5 steps"), (["--sampling", "quality"], "sampling: quality, 25 steps")):
+    for option, said in (([], "sampling: fast, 5 steps, by the distilled student"),
+                         (["--sampling", "quality"], "sampling: quality, 25 steps")):
         report = tmp_path / f"{said[10:14]}.txt"
         proc = _batch("--blend", str(scene_blend), "--audio", str(speech), "--preset", "beat", "--device", "cpu",
                       *option, "--no-render", "--report", str(report), cwd=tmp_path)

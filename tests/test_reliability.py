@@ -42,9 +42,22 @@ def default_file():
 
 
 def damaged_copy(default_file, path: Path, name: str, change) -> Path:
+    """The bundled file with tensor `name` changed. A network weight its ONNX graph holds is
+    damaged there (where the file stores it) and the graph's name for it is returned with it."""
+    import onnx
+    from onnx import numpy_helper
+
     meta, tensors = default_file
-    tensors = {**tensors, name: change(tensors[name].copy())}
-    return write_safetensors(tensors, meta, path)
+    if name in tensors:
+        return write_safetensors({**tensors, name: change(tensors[name].copy())}, meta, path)
+    for graph in ("onnx.expression", "onnx.gesture"):
+        proto = onnx.load_from_string(tensors[graph].tobytes())
+        for init in proto.graph.initializer:
+            if init.name in (name, name + ".fp16"):
+                init.CopyFrom(numpy_helper.from_array(change(numpy_helper.to_array(init).copy()), init.name))
+                damaged = np.frombuffer(proto.SerializeToString(), np.uint8)
+                return write_safetensors({**tensors, graph: damaged}, meta, path)
+    raise KeyError(name)
 
 
 def cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
@@ -58,9 +71,10 @@ def nan_at_first(values: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("name,change,match", [
-    ("model.encoder_ges.out.weight", nan_at_first, "model.encoder_ges.out.weight \\(NaN or infinite\\)"),
+    ("model.encoder_ges.out.weight", nan_at_first, "encoder_ges.out.weight \\(NaN or infinite\\)"),
     ("model.encoder_exp.joint_embed.weight", lambda v: (v.astype(np.float32) * 1e30).astype(np.float32),
-     "model.encoder_exp.joint_embed.weight \\(values up to"),
+     "encoder_exp.joint_embed.weight \\(values up to"),
+    ("model.encoder_low.PE.pe", nan_at_first, "model.encoder_low.PE.pe \\(NaN or infinite\\)"),
     ("norm.std", lambda v: np.full_like(v, np.inf), "norm.std \\(NaN or infinite\\)"),
 ])
 def test_damaged_weights_are_refused_when_the_model_loads(default_file, tmp_path, speech, name, change, match):

@@ -611,3 +611,36 @@ def test_a_beat_model_widens_into_a_whole_body_one_that_keeps_its_upper_body(tmp
     assert again.joint_names == list(BEAT.joint_names) and again.root_translation is None
     with pytest.raises(DiffshegError, match="the hips and legs are not pinned"):
         regenerate(motion, *audio, model=tuned, start=10, end=30, pins=(Pin(15, "LeftLeg", (0.0, 0.0, 0.0)),))
+
+
+def test_a_guided_model_distils_into_a_student_that_its_file_carries(small_root, tmp_path):
+    """objective = "distill" (training.distill): a copy of a guided model learns its guided fast
+    steps, one pass each. The loss falls; the run's file is the teacher's, weights to the bit,
+    with the student in it, which then makes the fast sampling. A model without guidance has
+    nothing to distil, and an unknown objective is named."""
+    base = tmp_path / "base"
+    train(TrainConfig.from_dict(config(small_root, base, steps=5, checkpoint_every=5)))
+    guided = config(small_root, tmp_path / "guided", steps=5, checkpoint_every=5, cond_drop=0.3, guidance=1.5,
+                    skip_guidance=0.2, init_from=str(base / MODEL_FILE), model={**TINY, "classifier_free": True})
+    train(TrainConfig.from_dict(guided))
+    settings = {**guided, "out_dir": str(tmp_path / "student"), "objective": "distill", "steps": 30,
+                "checkpoint_every": 100, "init_from": str(tmp_path / "guided" / MODEL_FILE)}
+    train(TrainConfig.from_dict(settings))
+    losses = [r["loss"] for r in read_log(tmp_path / "student") if "loss" in r]
+    assert np.mean(losses[-5:]) < 0.7 * np.mean(losses[:5]), losses
+
+    teacher, run = load_model(tmp_path / "guided" / MODEL_FILE), load_model(tmp_path / "student" / MODEL_FILE)
+    assert run.guidance == 1.5 and run.skip_guidance == 0.2 and run.student is not None
+    for name, value in teacher.weights.items():
+        np.testing.assert_array_equal(run.weights[name], value)
+    assert run.student.info["distilled"] | {"steps": 0} == {
+        "from": teacher.model_id, "guidance": 1.5, "skip_guidance": 0.2, "refine_skip": 1.0,
+        "timesteps": [50, 300, 450, 650, 900], "refine_offset": 1000, "steps": 0}
+    motion = generate(str(small_root / "talk.wav"), model=run, device="cpu")
+    assert motion.meta["student"] == run.student.model_id and np.isfinite(motion.rotations).all()
+
+    with pytest.raises(DiffshegError, match="there is nothing to distil from an unguided one"):
+        Trainer(TrainConfig.from_dict({**settings, "init_from": str(base / MODEL_FILE),
+                                       "out_dir": str(tmp_path / "other")}), Dist())
+    with pytest.raises(DiffshegError, match="objective must be one of denoise, distill"):
+        Trainer(TrainConfig.from_dict({**settings, "objective": "consistency"}), Dist())

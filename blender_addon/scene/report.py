@@ -52,11 +52,13 @@ def report_details(result, seconds: float, model: str, meta: dict, extra: list[s
 
 
 def sampling_lines(meta: dict) -> list[str]:
-    """'sampling: quality, 25 steps' where `meta` records the sampling (Live's takes do not)."""
+    """'sampling: quality, 25 steps' where `meta` records the sampling (Live's takes do not),
+    ', by the distilled student' when the model's student made the steps."""
     if not meta.get("sampling"):
         return []
     steps = meta.get("steps")
-    return [f"sampling: {meta['sampling']}" + (f", {steps} steps" if steps else "")]
+    return [f"sampling: {meta['sampling']}" + (f", {steps} steps" if steps else "")
+            + (", by the distilled student" if meta.get("student") else "")]
 
 
 def changes_text(weights: dict, changes: list | None, none: str) -> str:

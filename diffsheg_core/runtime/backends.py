@@ -173,3 +173,11 @@ def open_network(bundle: ModelBundle, backend: str = "auto", device: str = "auto
 
             bundle.networks[key] = TorchNetwork(bundle, device, precision, threads)
     return bundle.networks[key]
+
+
+def student_network(bundle: ModelBundle, network):
+    """The network of `bundle`'s distilled student, opened as `network` (one `open_network`
+    opened for `bundle`) is: same backend, device, precision and threads. None when `network`
+    was not opened that way (a caller's own network runs the guided steps itself)."""
+    key = next((k for k, v in bundle.networks.items() if v is network), None)
+    return None if key is None or bundle.student is None else open_network(bundle.student, *key)

@@ -4,11 +4,16 @@ external files, which onnxruntime would open relative to the working directory.
 
 Only the fields of onnx.proto that lead to tensors and inputs are followed; everything else
 (raw weights included) is skipped by its length, so reading a 13 MB graph takes milliseconds.
+`named_weights` reads the initializers that carry a network's parameter names (a graph
+exported without constant folding holds every weight that way), so that a model file stores
+each weight once, in its graph, and the torch backend reads it from there.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+
+import numpy as np
 
 EXTERNAL = 1  # TensorProto.DataLocation.EXTERNAL
 ELEMENT_TYPES = {1: "float32", 7: "int64", 9: "bool", 10: "float16", 11: "float64", 6: "int32"}
@@ -119,3 +124,51 @@ def read_graph(graph: bytes) -> GraphInputs:
     except (IndexError, UnicodeDecodeError, KeyError, TypeError) as exc:
         raise ValueError(f"it is not an ONNX model ({exc})") from None
     return out
+
+
+def _dims(value) -> list[int]:
+    """A TensorProto's dims field: one varint, or a packed run of them."""
+    if isinstance(value, int):
+        return [value]
+    dims, pos = [], 0
+    while pos < len(value):
+        dim, pos = _varint(value, pos)
+        dims.append(dim)
+    return dims
+
+
+RAW_TYPES = {1: np.float32, 10: np.float16}  # the element types a network's weights are stored as
+
+
+def named_weights(graph: bytes, prefix: str) -> dict[str, np.ndarray]:
+    """{name: array} of the graph's float initializers named `prefix` + a parameter name (a
+    `.fp16` suffix, the half-stored copy `export` casts back, is dropped); ValueError when the
+    bytes are not an ONNX model. Tensors not stored as raw bytes are left out."""
+    buf = memoryview(graph)
+    found: dict[str, np.ndarray] = {}
+    try:
+        body = [v for n, v in _fields(buf) if n == 7]
+        if not body or not isinstance(body[-1], memoryview):
+            raise ValueError("it holds no graph")
+        for number, tensor in _fields(body[-1]):
+            if number != 5 or not isinstance(tensor, memoryview):
+                continue
+            dims, kind, name, raw = [], None, "", None
+            for n, value in _fields(tensor):
+                if n == 1:
+                    dims += _dims(value)
+                elif n == 2:
+                    kind = value
+                elif n == 8:
+                    name = bytes(value).decode("utf-8")
+                elif n == 9:
+                    raw = value
+            if not name.startswith(prefix) or kind not in RAW_TYPES or raw is None:
+                continue
+            array = np.frombuffer(raw, dtype=np.dtype(RAW_TYPES[kind]).newbyteorder("<"))
+            if array.size != int(np.prod(dims, dtype=np.int64)):
+                raise ValueError(f"tensor {name} holds {array.size} values for shape {tuple(dims)}")
+            found[name[len(prefix):].removesuffix(".fp16")] = array.reshape(dims).copy()
+    except (IndexError, UnicodeDecodeError, TypeError) as exc:
+        raise ValueError(f"it is not an ONNX model ({exc})") from None
+    return found

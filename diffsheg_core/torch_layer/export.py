@@ -4,7 +4,10 @@ Three graphs, each with dynamic batch and length: `expression` and `gesture` (th
 calls of one sampling step, `UniEG.expression` / `UniEG.gesture`) and, for models that
 hear the phonetic encoder, `phonetic` (log-mel -> phone posteriors). They are exported
 from float32 modules holding exactly the weights the file stores, so both backends run
-the same numbers. Needs torch and onnx (tooling: the trainer calls it when it exports).
+the same numbers. Constant folding is left to onnxruntime (it folds when it loads a graph), so
+every weight stays an initializer named after its parameter and the file stores it once, in
+the graph (`checkpoints.graph_weights`). Needs torch and onnx (tooling: the trainer calls it
+when it exports).
 """
 
 from __future__ import annotations
@@ -84,6 +87,7 @@ def _onnx(module: nn.Module, inputs: dict[str, torch.Tensor], outputs: dict[str,
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation and tracer notes
         torch.onnx.export(module, tuple(inputs.values()), buffer, dynamo=False, opset_version=OPSET,
+                          do_constant_folding=False,
                           input_names=list(inputs), output_names=list(outputs), dynamic_axes=axes)
     return _half_initializers(buffer.getvalue())
 
@@ -123,13 +127,19 @@ def phonetic_graph(encoder_cfg, weights: dict[str, np.ndarray], source: str) -> 
 
 
 def with_graphs(bundle: ModelBundle) -> ModelBundle:
-    """`bundle` with ONNX graphs exported from its weights (replacing any it had)."""
+    """`bundle` (and its distilled student) with ONNX graphs exported from its weights
+    (replacing any it had)."""
     graphs = network_graphs(bundle.config, bundle.weights, bundle.source)
     if bundle.phonetic is not None:
         graphs["phonetic"] = phonetic_graph(bundle.phonetic, bundle.phonetic_weights,
                                             f"{bundle.source} (phonetic encoder)")
     bundle.graphs = graphs
     bundle.networks.clear()
+    student = bundle.student
+    if student is not None:  # it hears through the same phonetic encoder
+        student.graphs = {**network_graphs(student.config, student.weights, student.source),
+                          **({"phonetic": graphs["phonetic"]} if "phonetic" in graphs else {})}
+        student.networks.clear()
     return bundle
 
 

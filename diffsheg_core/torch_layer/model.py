@@ -279,13 +279,18 @@ class UniEG(nn.Module):
 
     def forward(self, x_t: torch.Tensor, timesteps: torch.Tensor, mel: torch.Tensor,
                 speech: torch.Tensor | None, style: torch.Tensor,
-                x0_coefs: tuple[torch.Tensor, torch.Tensor], null_rows: int = 0) -> torch.Tensor:
+                x0_coefs: tuple[torch.Tensor, torch.Tensor], null_rows: int = 0,
+                expression_x0: torch.Tensor | None = None, gesture_timesteps: torch.Tensor | None = None
+                ) -> torch.Tensor:
         """Predict the noise in x_t, one unguided prediction per row (training).
 
         x0_coefs: sqrt(1/abar_t) and sqrt(1/abar_t - 1), each (B, 1, 1), used to turn the
         expression noise into the expression x0 that conditions the gesture branch.
         null_rows: the first `null_rows` rows see the learned null condition instead of
         their speech (classifier-free dropout).
+        expression_x0: the face x0 the gesture branch sees instead (distillation feeds it the
+        teacher's guided one); gesture_timesteps: the gesture branch's timesteps where they are
+        not `timesteps` (a distilled student's refining pass, see training.distill).
         """
         cfg = self.cfg
         if null_rows and not cfg.classifier_free:
@@ -294,8 +299,9 @@ class UniEG(nn.Module):
         gesture, expression = x_t.split([cfg.gesture_dim, cfg.expression_dim], dim=-1)
         eps_exp, audio = self.expression(expression, timesteps, mel, speech, style, null)
         sqrt_recip, sqrt_recipm1 = x0_coefs
-        exp_x0 = sqrt_recip * expression - sqrt_recipm1 * eps_exp.detach()
-        eps_ges = self.gesture(gesture, timesteps, audio, speech, exp_x0, style, null)
+        exp_x0 = sqrt_recip * expression - sqrt_recipm1 * eps_exp.detach() if expression_x0 is None else expression_x0
+        eps_ges = self.gesture(gesture, timesteps if gesture_timesteps is None else gesture_timesteps, audio, speech,
+                               exp_x0, style, null)
         return torch.cat([eps_ges, eps_exp], dim=-1)
 
 

@@ -15,6 +15,9 @@ continues exactly as it would have. The run folder holds:
   summary.json        final step, losses and a parameter checksum per rank
 With `export` set, the final EMA model is also written there (in `export_dtype`); running
 the same command again after the last step only rewrites that file.
+
+`objective = "distill"` trains a few-step student of the `init_from` model's guided fast
+sampling instead (training.distill); the run's model file is that model with the student in it.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from ..checkpoints import ModelBundle, load_model, save_checkpoint
 from ..config import ModelConfig
 from ..style import style_names_fit
 from .data import ClipDataset, DataConfig, NormStats, TakeSet, load_takes, normalisation
+from .distill import Distillation, distill_loss
 from ..diffusion import Schedule
 from ..errors import DiffshegError
 from ..foppas import PRESETS, FoppasConfig, with_overrides
@@ -53,6 +57,7 @@ from ..torch_layer.model import PhoneticEncoder, UniEG, load_state_strict, state
 
 EXPORT_DTYPES = {"float32": torch.float32, "float16": torch.float16}
 TRAINS = ("all", "gestures", "legs", "face")  # the parts of the network a run may train (TrainConfig.trains)
+OBJECTIVES = ("denoise", "distill")  # what a run learns (TrainConfig.objective)
 STATE_FILE = "train_state.pt"
 MODEL_FILE = "model.safetensors"
 LOG_FILE = "log.jsonl"
@@ -100,6 +105,9 @@ class TrainConfig:
     # speech layer, the gesture and lower-body branches and the gesture prior stay, and the
     # gestures change only through the face they are fed)
     trains: str = "all"
+    # denoise: the paper's loss on the data; distill: a student of init_from's guided fast
+    # sampling, one pass a step (training.distill), written into a copy of init_from's file
+    objective: str = "denoise"
     # how far the data's normalisation statistics may lie from those of the model a run is
     # fine-tuned from, as a share of each channel's spread: a rebuild of the same corpus moves
     # them by up to 2 %, other data by far more; raise it only for data widened on purpose
@@ -162,6 +170,11 @@ class TrainConfig:
             setattr(self, name, check_number(f"training setting {name}", getattr(self, name), bounds, whole))
         if not isinstance(self.out_dir, str) or not self.out_dir:
             raise DiffshegError(f"training setting out_dir must name a folder, got {self.out_dir!r}")
+        if self.objective not in OBJECTIVES:
+            raise DiffshegError(f"training setting objective must be one of {', '.join(OBJECTIVES)}, "
+                                f"got {self.objective!r}")
+        if self.objective == "distill" and not self.init_from:
+            raise DiffshegError("objective = \"distill\" trains a student of a guided model: set init_from to it")
         if self.trains not in TRAINS:
             raise DiffshegError(f"training setting trains must be one of {', '.join(TRAINS)} (the part of the "
                                 f"network that trains), got {self.trains!r}")
@@ -531,6 +544,18 @@ class Trainer:
         self.schedule = Schedule.linear()
         self.step = 0
         self._prior: GesturePrior | None = None  # fitted when first exported, with the statistics in use
+        # distilling: the guided model the student learns from, frozen; the run's file is its own
+        # with the student in it
+        self.teacher_bundle = self.teacher = self.distillation = None
+        if cfg.objective == "distill":
+            self.teacher_bundle = self.source or load_model(cfg.init_from)
+            self.distillation = Distillation.of(self.teacher_bundle)
+            self.teacher = UniEG(self.teacher_bundle.config).to(env.device).eval().requires_grad_(False)
+            load_state_strict(self.teacher, {k: torch.from_numpy(np.array(v)).float()
+                                             for k, v in self.teacher_bundle.weights.items()}, cfg.init_from)
+            self.teacher_bundle.student = None  # a student of its own is replaced by this run's
+            with_graphs(self.teacher_bundle)  # graphs that hold its weights by name: the file stores them once
+            self._prior = self.teacher_bundle.prior  # the student starts later windows where its teacher does
 
     # -- state
 
@@ -619,7 +644,7 @@ class Trainer:
         if self._prior is None:
             self._prior = (self.kept_prior if self.cfg.trains == "face" else
                            fit_prior(self.train_set.takes, self.stats, self.model_cfg, self.kept_prior))
-        return with_graphs(ModelBundle(
+        own = with_graphs(ModelBundle(
             config=self.model_cfg, weights=state_arrays(self.ema, dtype), mean=self.stats.mean,
             std=self.stats.std,
             sampling=self.sampling, guidance=self.guidance, skip_guidance=self.cfg.skip_guidance,
@@ -630,6 +655,12 @@ class Trainer:
                   "training": training, "style_names": list(self.cfg.style_names),
                   "default_style": self.cfg.default_style,
                   "null_style": self.cfg.style_drop > 0}, source=f"run {self.out}"))
+        if self.teacher_bundle is None:
+            return own
+        teacher = self.teacher_bundle
+        own.guidance = own.skip_guidance = None
+        own.info = {**own.info, "distilled": self.distillation.record(teacher, self.step)}
+        return replace(teacher, student=own, source=f"run {self.out}")
 
     # -- steps
 
@@ -647,8 +678,7 @@ class Trainer:
         for part in self.frozen:  # no dropout, and batch-norm statistics kept as they are
             part.eval()
         with torch.autocast(env.device.type, dtype=self.amp, enabled=self.amp is not None):
-            losses = diffsheg_loss(self.ddp, self.schedule, batch, cfg, gen, self.model_cfg.style_dim,
-                                   self.model_cfg.classifier_free)
+            losses = self.loss(self.ddp, batch, cfg, gen, self.model_cfg.classifier_free)
         for group in self.opt.param_groups:
             group["lr"] = learning_rate(cfg, self.step)
         self.opt.zero_grad(set_to_none=True)
@@ -668,6 +698,14 @@ class Trainer:
         out["lr"] = self.opt.param_groups[0]["lr"]
         return out
 
+    def loss(self, model: torch.nn.Module, batch: dict[str, torch.Tensor], cfg: TrainConfig, gen: torch.Generator,
+             null_condition: bool) -> dict[str, torch.Tensor]:
+        """The run's objective on one batch (see TrainConfig.objective)."""
+        if self.teacher is not None:
+            return distill_loss(model, self.teacher, self.distillation, self.schedule, batch, gen,
+                                self.model_cfg.style_dim)
+        return diffsheg_loss(model, self.schedule, batch, cfg, gen, self.model_cfg.style_dim, null_condition)
+
     @torch.no_grad()
     def validate(self) -> float | None:
         """Mean loss of the EMA model on fixed validation clips, timesteps and noise."""
@@ -679,7 +717,7 @@ class Trainer:
         total, count = 0.0, 0
         for start in range(0, n, self.cfg.batch_size):
             batch = self.batch(self.val_set, torch.arange(start, min(start + self.cfg.batch_size, n)))
-            losses = diffsheg_loss(self.ema, self.schedule, batch, cfg, gen, self.model_cfg.style_dim, False)
+            losses = self.loss(self.ema, batch, cfg, gen, False)
             total += float(losses["loss"]) * len(batch["motion"])
             count += len(batch["motion"])
         return total / count

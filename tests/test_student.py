@@ -1,0 +1,129 @@
+"""The bundled model's distilled student (issue 39): the fast sampling's guided steps, each in
+one pass of a network distilled from them (training.distill), on real speech with the real
+model file. The file stores every weight once (in the graphs that run it), so the teacher and
+the student fit in it; the fast sampling runs the student whenever a job asks for exactly what
+it was distilled from, and the teacher otherwise."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from diffsheg_core.audio import Audio, load_audio
+from diffsheg_core.checkpoints import DEFAULT_WEIGHTS, MODEL_PREFIX, graph_weights, load_model, read_safetensors
+from diffsheg_core.pipeline import Pin, generate, regenerate
+from diffsheg_core.runtime import backends
+from diffsheg_core.training.metrics import envelope_correlation, mouth_opening
+from diffsheg_core.training.metrics.posture import wrist_positions
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+UNSEEN = DATA / "audio" / "2_scott_0_3_3.wav"
+
+
+@pytest.fixture(scope="module")
+def bundle():
+    return load_model()
+
+
+@pytest.fixture(scope="module")
+def speech() -> Audio:
+    audio = load_audio(UNSEEN)
+    return Audio(audio.samples[: 12 * audio.sample_rate], audio.sample_rate, path=audio.path)
+
+
+@pytest.fixture
+def calls(monkeypatch):
+    """(network, graph, rows) of every onnxruntime call."""
+    seen = []
+    run = backends.OnnxNetwork._run
+
+    def recorded(self, graph, feeds):
+        seen.append((self, graph, len(feeds["timesteps"]) if "timesteps" in feeds else 1))
+        return run(self, graph, feeds)
+
+    monkeypatch.setattr(backends.OnnxNetwork, "_run", recorded)
+    return seen
+
+
+def test_the_file_holds_the_teacher_and_its_student_each_weight_once(bundle):
+    """Under 60 MB with both networks: the weights live in the graphs that run them, under their
+    own names, and load back exactly; model.* keeps only what no graph holds (a few small
+    tensors). The student says what it was distilled from and at."""
+    assert DEFAULT_WEIGHTS.stat().st_size < 60e6
+    _, tensors = read_safetensors(DEFAULT_WEIGHTS, "")
+    apart = [k for k in tensors if k.startswith(MODEL_PREFIX)]
+    assert sum(tensors[k].nbytes for k in apart) < 1e6 < sum(v.nbytes for v in graph_weights(bundle.graphs).values())
+    for network in (bundle, bundle.student):
+        held = graph_weights(network.graphs)
+        assert set(held) | {k[len(MODEL_PREFIX):] for k in apart} == set(network.weights)
+        assert all(np.array_equal(network.weights[k], v) for k, v in held.items())
+    student = bundle.student
+    assert set(student.weights) == set(bundle.weights) and student.guidance is None and student.student is None
+    assert not all(np.array_equal(student.weights[k], bundle.weights[k]) for k in bundle.weights)
+    assert student.info["distilled"] | {"steps": 0} == {
+        "from": "diffsheg-default-v9", "guidance": 2.0, "skip_guidance": 0.1, "refine_skip": 3.5,
+        "timesteps": [50, 300, 450, 650, 900], "refine_offset": 1000, "steps": 0}
+    assert student.prior is bundle.prior and student.graphs["phonetic"] is bundle.graphs["phonetic"]
+
+
+def test_the_fast_sampling_runs_the_student_one_pass_a_step(bundle, speech, calls):
+    """Every network call of a fast take is the student's, one row each (the teacher's guided
+    steps run two); best-of-N runs its candidates (every window after the first) as rows of the
+student."""
+    take = generate(speech, model=bundle, seed=0)
+    assert take.meta["student"] == bundle.student.model_id and take.meta["guidance"] == 2.0
+    steps = [(net, rows) for net, graph, rows in calls if graph != "phonetic"]
+    student = backends.student_network(bundle, backends.open_network(bundle))
+    assert steps and all(net is student and rows == 1 for net, rows in steps)
+    calls.clear()
+    generate(speech, model=bundle, seed=0, candidates=3)
+    assert {rows for net, graph, rows in calls if graph != "phonetic"} == {1, 3}  # the first window: one
+    calls.clear()
+    teacher = generate(speech, model=replace(bundle, student=None), seed=0)
+    assert teacher.meta["student"] is None and {rows for _, g, rows in calls if g != "phonetic"} == {2}
+    assert teacher.n_frames == take.n_frames and not np.allclose(teacher.rotations, take.rotations)
+
+
+@pytest.mark.parametrize("options", [{"sampling": "quality"}, {"guidance": 2.5}, {"skip_guidance": 0.2},
+                                     {"steps": 8}, {"style_guidance": 1.5}])
+def test_a_job_that_asks_for_other_than_the_student_learnt_runs_the_teacher(bundle, speech, options):
+    """The student reproduces one sampling: other steps or scales keep their meaning."""
+    short = Audio(speech.samples[: 3 * speech.sample_rate], speech.sample_rate)
+    assert generate(short, model=bundle, seed=0, **options).meta["student"] is None
+
+
+def test_a_range_regenerated_in_a_student_take_joins_it_with_the_teachers_steps(bundle, speech):
+    """Jobs that hold frames (a range, pins) sample with the model's own 25 steps, student or not:
+    the frames outside the range come back bit for bit."""
+    take = generate(speech, model=bundle, seed=0)
+    new = regenerate(take, speech, start=60, end=100, model=bundle, seed=3)
+    record = new.meta["regenerated"][-1]
+    assert record["student"] is None and record["sampling"] == "quality"
+    np.testing.assert_array_equal(new.rotations[:60], take.rotations[:60])
+    np.testing.assert_array_equal(new.rotations[100:], take.rotations[100:])
+    posed = generate(speech, model=bundle, seed=0, pins=(Pin(0, "RightArm", (0.0, 0.0, 0.5)),))
+    assert posed.meta["student"] is None and posed.meta["sampling"] == "quality"
+
+
+def test_the_student_moves_and_speaks_as_the_teacher_does(bundle, speech):
+    """Against the teacher's fast sampling on unheard speech, seeds 0-1: wrist speed within 10 %,
+    jitter (the wrists' acceleration) at most 1.15x, the mouth following the voice as closely,
+    and the seeds as far apart. Coarse bars of the benchmark's (bench/bench_sampling.py)."""
+    teacher = replace(bundle, student=None)
+    figures = {}
+    for name, model in (("teacher", teacher), ("student", bundle)):
+        takes = [generate(speech, model=model, seed=seed, upper_body_only=True) for seed in (0, 1)]
+        wrists = [wrist_positions(t) for t in takes]
+        figures[name] = {
+            "speed": np.mean([np.linalg.norm(np.diff(w, axis=0), axis=-1).mean() for w in wrists]),
+            "jitter": np.mean([np.linalg.norm(np.diff(w, 2, axis=0), axis=-1).mean() for w in wrists]),
+            "mouth": np.mean([envelope_correlation(mouth_opening(t), t.fps, speech.samples, speech.sample_rate)[0]
+                              for t in takes]),
+            "seeds": np.abs(takes[0].rotations - takes[1].rotations).mean(),
+        }
+    ratio = {k: figures["student"][k] / figures["teacher"][k] for k in figures["teacher"]}
+    assert 0.9 <= ratio["speed"] <= 1.1 and ratio["jitter"] <= 1.15, ratio
+    assert ratio["mouth"] >= 0.9 and ratio["seeds"] >= 0.85, ratio
