@@ -14,8 +14,9 @@ weights back from both. A model may carry a distilled student (`ModelBundle.stud
 `training.distill`): its graphs are `onnx.student.*`, its weights outside them `student.*`,
 and the metadata's `student` says what it was distilled from. Reading it needs numpy and
 safetensors only. Official checkpoints are torch pickles holding the state dict under
-`encoder`; they need torch, are read with `weights_only=True` (in `torch_layer.official`) and loaded strictly by `official_checkpoints`, which knows their
-format, configuration and normalisation statistics; `load_model` tells the two apart.
+`encoder`; they need torch, are read with `weights_only=True` (in `torch_layer.official`) and
+loaded strictly by `official_checkpoints`, which knows their format, configuration and
+normalisation statistics; `load_model` tells the two apart.
 """
 
 from __future__ import annotations
@@ -265,8 +266,7 @@ def _load_ours(path: Path) -> ModelBundle:
     phonetic = _stored_phonetic(cfg, meta, tensors, path)
     graphs = {k: v.tobytes() for k, v in _prefixed(tensors, GRAPH_PREFIX).items()}
     _check_graphs(graphs, cfg, phonetic.get("phonetic"), path)
-    weights = _network_weights(_prefixed(tensors, MODEL_PREFIX),
-                               {k: v for k, v in graphs.items() if k in NETWORK_GRAPHS}, path, "network")
+    weights = _network_weights(_prefixed(tensors, MODEL_PREFIX), graphs, path, "network")
     info = _json(meta, "info", "{}", path)
     if not isinstance(info, dict):
         raise CheckpointError(f"{path}: its metadata 'info' is a JSON {type(info).__name__}, not an object: "
@@ -309,6 +309,7 @@ def _graph_inputs(cfg: ModelConfig, phonetic: Optional[PhoneticConfig]) -> dict[
                           "audio": ("float32", (*frames, 2 * cfg.mel_dim)),
                           "expression_x0": ("float32", (*frames, cfg.expression_dim)), **common,
                           "attend": ("bool", (None,))}}
+    graphs.update({STUDENT_PREFIX + name: graphs[name] for name in NETWORK_GRAPHS})  # a distilled student's
     if phonetic is not None:
         graphs["phonetic"] = {"mel": ("float32", (1, phonetic.n_mels, None))}
     return graphs
@@ -338,8 +339,7 @@ def _check_graphs(graphs: dict[str, bytes], cfg: ModelConfig, phonetic: Optional
                 f"{path}: refused: its ONNX graph '{name}' refers to external data files (tensor "
                 f"{', '.join(found.external[:3])}); our model files hold all their weights and never use "
                 "external data, so this file was edited or is not one of ours: download or export it again")
-        wanted = expected.get(name.removeprefix(STUDENT_PREFIX) if name.startswith(STUDENT_PREFIX) and
-                              name.removeprefix(STUDENT_PREFIX) in NETWORK_GRAPHS else name)
+        wanted = expected.get(name)
         if wanted is None:
             raise CheckpointError(f"{path}: it holds an ONNX graph '{name}' that no model of ours has "
                                   f"(expected {', '.join(expected)}): the file was edited; export it again")

@@ -110,6 +110,14 @@ def _input(buf: memoryview) -> tuple[str, tuple[str, tuple]]:
     return name, (elem, tuple(dims))
 
 
+def _graph_body(buf: memoryview) -> memoryview:
+    """The GraphProto of a serialised ModelProto (its last `graph` field)."""
+    body = [v for n, v in _fields(buf) if n == 7]
+    if not body or not isinstance(body[-1], memoryview):
+        raise ValueError("it holds no graph")
+    return body[-1]
+
+
 def read_graph(graph: bytes) -> GraphInputs:
     """The inputs and external-data tensors of a serialised ONNX ModelProto; ValueError
     when the bytes are not one."""
@@ -117,10 +125,7 @@ def read_graph(graph: bytes) -> GraphInputs:
     out = GraphInputs()
     try:
         _external(buf, "model", out.external)
-        body = [v for n, v in _fields(buf) if n == 7]
-        if not body or not isinstance(body[-1], memoryview):
-            raise ValueError("it holds no graph")
-        out.inputs = dict(_input(v) for n, v in _fields(body[-1]) if n == 11)
+        out.inputs = dict(_input(v) for n, v in _fields(_graph_body(buf)) if n == 11)
     except (IndexError, UnicodeDecodeError, KeyError, TypeError) as exc:
         raise ValueError(f"it is not an ONNX model ({exc})") from None
     return out
@@ -144,13 +149,9 @@ def named_weights(graph: bytes, prefix: str) -> dict[str, np.ndarray]:
     """{name: array} of the graph's float initializers named `prefix` + a parameter name (a
     `.fp16` suffix, the half-stored copy `export` casts back, is dropped); ValueError when the
     bytes are not an ONNX model. Tensors not stored as raw bytes are left out."""
-    buf = memoryview(graph)
     found: dict[str, np.ndarray] = {}
     try:
-        body = [v for n, v in _fields(buf) if n == 7]
-        if not body or not isinstance(body[-1], memoryview):
-            raise ValueError("it holds no graph")
-        for number, tensor in _fields(body[-1]):
+        for number, tensor in _fields(_graph_body(memoryview(graph))):
             if number != 5 or not isinstance(tensor, memoryview):
                 continue
             dims, kind, name, raw = [], None, "", None

@@ -14,9 +14,10 @@ x0; and the refining pass at its own scale (skip x refine_skip). The refining pa
 lowest step's noise level, so the student is told it apart by its timestep plus
 REFINE_OFFSET, a timestep the schedule never reaches (`pipeline.make_eps_fn_factory` feeds it
 so): taught the pass's stronger guidance at the step's own timestep, a student steered every
-window's gestures twice at that strength, and they moved 5-8 % faster and jittered more. The
-loss is the squared error of each branch's noise, plus that of x0 and of its acceleration,
-weighted by abar (the low-noise steps finish the motion).
+window's gestures twice at that strength, and they moved 5-8 % faster and jittered more.
+The loss (`train.distill_loss`, beside the paper's) is the squared error of each branch's
+noise, plus that of x0 and of its acceleration, weighted by abar (the low-noise steps finish
+the motion).
 """
 
 from __future__ import annotations
@@ -24,10 +25,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 
 from ..checkpoints import ModelBundle
-from ..diffusion import Schedule
 from ..errors import DiffshegError
 from ..foppas import FAST_TIMESTEPS, fast_sampling
 
@@ -64,11 +63,6 @@ class Distillation:
                 "refine_offset": REFINE_OFFSET, "steps": steps}
 
 
-def _masked_mean(values: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    weight = weight.expand_as(values)
-    return (values * weight).sum() / weight.sum().clamp_min(1.0)
-
-
 @torch.no_grad()
 def guided_target(teacher: torch.nn.Module, d: Distillation, x_t: torch.Tensor, timesteps: torch.Tensor,
                   skip: torch.Tensor, mel: torch.Tensor, speech: torch.Tensor | None, style: torch.Tensor,
@@ -87,36 +81,3 @@ def guided_target(teacher: torch.nn.Module, d: Distillation, x_t: torch.Tensor, 
                           None, first)  # rows with self-attention first, then without
     eps_gesture = out[:b] + skip.to(out.dtype).view(-1, 1, 1) * (out[:b] - out[b:])
     return torch.cat([eps_gesture, eps_face], dim=-1), face_x0
-
-
-def distill_loss(student: torch.nn.Module, teacher: torch.nn.Module, d: Distillation, schedule: Schedule,
-                 batch: dict[str, torch.Tensor], gen: torch.Generator, style_dim: int) -> dict[str, torch.Tensor]:
-    """The student's error against the teacher's guided step on one batch, at the distilled
-    steps and the refining pass drawn evenly."""
-    x0, mel, mask = batch["motion"], batch["mel"], batch["mask"].unsqueeze(1)
-    b, device, g = x0.shape[0], x0.device, teacher.cfg.gesture_dim
-    kinds = list(d.timesteps) + ([] if d.refine_timestep is None else [d.refine_timestep])
-    pick = torch.randint(len(kinds), (b,), generator=gen)
-    refine = pick == len(d.timesteps)  # rows of the refining pass
-    index = torch.tensor(kinds)[pick].to(device)
-    noise = torch.randn(x0.shape, generator=gen).to(device)
-    style, speech = F.one_hot(batch["style"], style_dim).float(), batch.get("extra")
-    x_t = schedule.q_sample(x0, index, noise)
-    timesteps, coefs = schedule.model_timesteps(index), schedule.x0_coefs(index, x_t)
-    skip = torch.where(refine, d.skip * d.refine_skip, d.skip).to(device)
-    target, face_x0 = guided_target(teacher, d, x_t, timesteps, skip, mel, speech, style, coefs)
-    # the gestures are fed the teacher's guided face, which the student's own face learns to give;
-    # the refining pass's rows see their timestep moved past the schedule's
-    seen = timesteps + REFINE_OFFSET * refine.to(device, timesteps.dtype)
-    eps = student(x_t, timesteps, mel, speech, style, coefs, expression_x0=face_x0, gesture_timesteps=seen)
-    eps_gesture, eps_face = eps[..., :g], eps[..., g:]
-    loss_face = _masked_mean((eps_face - target[..., g:]) ** 2, mask[..., g:])
-    loss_gesture = _masked_mean((eps_gesture - target[..., :g]) ** 2, mask[..., :g])
-    weight = torch.from_numpy(schedule.alphas_cumprod).to(device, x_t.dtype)[index].view(-1, 1, 1)
-    error_x0 = schedule.predict_x0(x_t, index, eps) - schedule.predict_x0(x_t, index, target)
-    loss_x0 = _masked_mean(weight * error_x0 ** 2, mask)
-    # the error's acceleration: a student wrong by a wobble makes a window jitter more than one
-    # wrong by an offset (issue 39's jitter bar)
-    loss_accel = _masked_mean(weight * error_x0.diff(n=2, dim=1) ** 2, mask)
-    return {"loss": 10.0 * (loss_face + loss_gesture + loss_accel) + loss_x0, "loss_face": loss_face,
-            "loss_gesture": loss_gesture, "loss_x0": loss_x0, "loss_accel": loss_accel}

@@ -41,7 +41,7 @@ from ..checkpoints import ModelBundle, load_model, save_checkpoint
 from ..config import ModelConfig
 from ..style import style_names_fit
 from .data import ClipDataset, DataConfig, NormStats, TakeSet, load_takes, normalisation
-from .distill import Distillation, distill_loss
+from .distill import REFINE_OFFSET, Distillation, guided_target
 from ..diffusion import Schedule
 from ..errors import DiffshegError
 from ..foppas import PRESETS, FoppasConfig, with_overrides
@@ -341,6 +341,39 @@ def diffsheg_loss(model: torch.nn.Module, schedule: Schedule, batch: dict[str, t
         losses["loss_a"] = masked_mean(w * (x0_hat.diff(n=2, dim=1) - x0.diff(n=2, dim=1)) ** 2, mask)
         total = total + cfg.lambda_a * losses["loss_a"]
     return {"loss": total, **losses}
+
+
+def distill_loss(student: torch.nn.Module, teacher: torch.nn.Module, d: Distillation, schedule: Schedule,
+                 batch: dict[str, torch.Tensor], gen: torch.Generator, style_dim: int) -> dict[str, torch.Tensor]:
+    """The student's error against the teacher's guided step on one batch, at the distilled
+    steps and the refining pass drawn evenly."""
+    x0, mel, mask = batch["motion"], batch["mel"], batch["mask"].unsqueeze(1)
+    b, device, g = x0.shape[0], x0.device, teacher.cfg.gesture_dim
+    kinds = list(d.timesteps) + ([] if d.refine_timestep is None else [d.refine_timestep])
+    pick = torch.randint(len(kinds), (b,), generator=gen)
+    refine = pick == len(d.timesteps)  # rows of the refining pass
+    index = torch.tensor(kinds)[pick].to(device)
+    noise = torch.randn(x0.shape, generator=gen).to(device)
+    style, speech = F.one_hot(batch["style"], style_dim).float(), batch.get("extra")
+    x_t = schedule.q_sample(x0, index, noise)
+    timesteps, coefs = schedule.model_timesteps(index), schedule.x0_coefs(index, x_t)
+    skip = torch.where(refine, d.skip * d.refine_skip, d.skip).to(device)
+    target, face_x0 = guided_target(teacher, d, x_t, timesteps, skip, mel, speech, style, coefs)
+    # the gestures are fed the teacher's guided face, which the student's own face learns to give;
+    # the refining pass's rows see their timestep moved past the schedule's
+    seen = timesteps + REFINE_OFFSET * refine.to(device, timesteps.dtype)
+    eps = student(x_t, timesteps, mel, speech, style, coefs, expression_x0=face_x0, gesture_timesteps=seen)
+    eps_gesture, eps_face = eps[..., :g], eps[..., g:]
+    loss_face = masked_mean((eps_face - target[..., g:]) ** 2, mask[..., g:])
+    loss_gesture = masked_mean((eps_gesture - target[..., :g]) ** 2, mask[..., :g])
+    weight = x0_term_weight(schedule, index, x_t, "abar")
+    error_x0 = schedule.predict_x0(x_t, index, eps) - schedule.predict_x0(x_t, index, target)
+    loss_x0 = masked_mean(weight * error_x0 ** 2, mask)
+    # the error's acceleration: a student wrong by a wobble makes a window jitter more than one
+    # wrong by an offset (issue 39's jitter bar)
+    loss_accel = masked_mean(weight * error_x0.diff(n=2, dim=1) ** 2, mask)
+    return {"loss": 10.0 * (loss_face + loss_gesture + loss_accel) + loss_x0, "loss_face": loss_face,
+            "loss_gesture": loss_gesture, "loss_x0": loss_x0, "loss_accel": loss_accel}
 
 
 # ---------------------------------------------------------------- the trainer
