@@ -9,8 +9,7 @@
 # with numpy, and Xvfb for its window (tools/panel_screenshot.py, tools/docs_figures.py panel).
 # --corpus is still accepted (it used to add festival and fortunes, now always installed).
 set -euo pipefail
-packages=(espeak-ng flite sox libportaudio2 ffmpeg fortunes
-          festival festvox-kallpc16k festvox-kdlpc16k festvox-us-slt-hts)
+packages=(espeak-ng flite sox libportaudio2 ffmpeg fortunes festival festvox-kallpc16k festvox-kdlpc16k festvox-us-slt-hts)
 for arg in "$@"; do
   case "$arg" in
     --corpus) ;;
