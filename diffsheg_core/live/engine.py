@@ -64,15 +64,24 @@ class LiveConfig:
       in Blender a planted foot moved 3.1 mm from where it landed (at the model's eta under
       2 mm), so it is not the default; at 0.5 the first foot came down at 1.5 s, and at 0
       neither settled in the first 3 s of a session (README, Live; bench_live --legs-eta).
-    - With the fast sampling, live steps the gestures with 3x the settings' skip guidance
-      (`skip_scale`; offline's refining pass, which live does without, uses 3.5x): 0.3 for the
-      bundled model. (The 25 steps keep the settings': at 3x their jitter was 2.3x.) Measured
-      (2026-12-05, 2 seeds, 64 s, H 3, L 2, fast sampling, against offline fast) at 1x, 2x,
-      2.5x, 3x, 3.5x: wrist speed 0.73x, 0.84x, 0.89x, 0.95x, 1.00x; jitter 0.96x, 1.06x,
-      1.12x, 1.17x, 1.24x; hips sway 0.56x, 0.67x, 0.73x, 0.78x, 0.83x; lip-sync 1.02x /
-      0.97x and joins 1.26-1.29x at all; compute the same (0.31-0.35 s a second of speech).
-      Deterministic gesture steps (eta 0) instead: 0.84x wrist speed at 1.11x jitter, with 2x
-      skip 0.94x at 1.21x; later windows' gestures from one step higher: 0.64x, for more compute.
+    - With the fast sampling, live steps the gestures with 2.6x the settings' skip guidance
+      (`skip_scale`; offline's refining pass, which live does without, uses 3.5x): 0.26 for the
+      bundled model. (The 25 steps keep the settings': at 3x their jitter was 2.3x.) Against
+      offline's default, the distilled student (2026-12-05, H 3, L 2, 4 seeds, mean of each
+      seed's live / offline), wrist speed and jitter at 2.4x, 2.6x, 2.8x and 3x: on the whole
+      64 s take (bench_live) 0.93x / 1.16x, 0.95x / 1.19x, 0.97x / 1.21x, about 1.0x / 1.3x;
+      on its held-out last 20 s 0.87x / 1.15x, 0.89x / 1.17x, 0.90x / 1.18x, 0.92x / 1.21x; on
+      unseen speech (12_zhao_2_3_3, 2_scott_0_3_3, 40 s each) 0.89x / 1.14x, 0.91x / 1.16x,
+      0.93x / 1.18x, 0.95x / 1.20x. More skip guidance buys speed with jitter; 2.6x keeps both
+      nearest the bars (0.9x, 1.2x) everywhere. Lip-sync 0.96-1.02x and joins 1.20x at all. (3x
+      was the default against v9's guided steps offline, which jitter more than the student.)
+      Earlier, against v9's guided steps (2 seeds) at 1x, 2x, 2.5x, 3x, 3.5x: wrist speed 0.73x,
+      0.84x, 0.89x, 0.95x, 1.00x; jitter 0.96x, 1.06x, 1.12x, 1.17x, 1.24x; compute the same
+      (0.31-0.35 s a second of speech). Deterministic gesture steps (eta 0) instead: 0.84x wrist
+      speed at 1.11x jitter, with 2x skip 0.94x at 1.21x; later windows' gestures from one step
+      higher: 0.64x, for more compute. The student itself, live at its own scales: 0.72x wrist
+      speed, 0.97x jitter; with its refining pass's scale at each window's last step, 0.82x and
+      1.11x (it was distilled at offline's scales only).
     - A whole-body model's hips and legs get a skip scale of their own, 3.5x the settings'
       (`legs_skip_scale`; the lower branch's channels of the same passes, so no more compute).
       Measured (2026-12-05, 4 seeds, 64 s, H 3, L 2, against offline fast) with the legs at 3x,
@@ -80,7 +89,9 @@ class LiveConfig:
       0.74-0.91x, 0.79-0.96x, 0.85-1.04x), a foot down 95-98 %, 95-98 %, 93-96 % and 86-94 % of
       frames; the wrists as at 3x. On the Ready Player Me avatar in Blender, on a loaded machine, a
       planted foot moved 0.3-0.9 mm from where it landed at 3.5x and 3-4 mm in three runs of four
-      at 4x (bar 2 mm: the rig's legs cannot reach where the wider sway puts the hips).
+      at 4x (bar 2 mm: the rig's legs cannot reach where the wider sway puts the hips). With
+      the gestures at 2.4-2.6x, against the student offline (4 seeds): hips sway 0.82x
+      (0.74-0.91x per seed), a foot down 95-97 % of frames.
     - A machine too slow for the hop does not fall behind: when more than a hop of audio
       waits, the next window takes it all, up to `max_hop` frames (a window costs about the
       same for any hop), so the latency stays bounded and no audio is dropped; the status
@@ -92,7 +103,7 @@ class LiveConfig:
     context: float = 3.0               # seconds of audio the speech features of a window are computed over
     later_start: Optional[int] = 14    # schedule index later windows start from, at 25 steps (None: the model's)
     legs_eta: Optional[float] = None   # eta of a whole-body model's legs (None: the model's eta)
-    skip_scale: float = 3.0            # the fast sampling's gesture skip guidance live, times the settings'
+    skip_scale: float = 2.6            # the fast sampling's gesture skip guidance live, times the settings'
     legs_skip_scale: float = 3.5       # ... and that of a whole-body model's hips and legs
 
     def check(self, clip_len: int) -> None:
