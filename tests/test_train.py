@@ -516,6 +516,61 @@ def test_the_face_alone_fine_tunes_on_captured_faces_beside_the_data(small_root,
         TrainConfig.from_dict({**settings, "datasets": [{**facegood, "clip_len": 20}]})
 
 
+def test_keep_unsaid_holds_the_face_channels_a_capture_leaves_out(small_root, tmp_path):
+    """keep_unsaid (issue 42): a FACEGOOD take trains only the jaw and the lips' rounding, and
+    with it the face channels the capture leaves out (blinks, brows) learn the source's own
+    prediction. Fine-tuned hard beside the data, they stay nearer the source than without it;
+    the term is logged; a resumed run keeps the source it started from; it needs init_from."""
+    base = tmp_path / "base"
+    train(TrainConfig.from_dict(config(small_root, base, steps=5, checkpoint_every=5)))
+    facegood = {"kind": "facegood", "root": str(DATA / "lang_capture" / "zh_facegood"), "stride": 34, "pause": 0.1}
+
+    def settings(keep: float, steps: int = 12) -> dict:
+        return config(small_root, tmp_path / f"keep{keep:g}", steps=steps, checkpoint_every=6, trains="face",
+                      lr=3e-3, init_from=str(base / MODEL_FILE), stats_tolerance=100.0, datasets=[facegood],
+                      keep_unsaid=keep)
+
+    for keep in (0.0, 10.0):
+        train(TrainConfig.from_dict(settings(keep)))
+    unsaid = [r["loss_unsaid"] for r in read_log(tmp_path / "keep10") if "loss_unsaid" in r]
+    assert unsaid[0] == 0.0 and max(unsaid) > 0  # the model starts as its source, then drifts
+    assert not any("loss_unsaid" in r for r in read_log(tmp_path / "keep0"))
+    trained = {}
+    for keep in (0.0, 10.0):  # each run's model, resumed from its folder
+        trainer = Trainer(TrainConfig.from_dict(settings(keep, steps=13)), Dist())
+        assert trainer.begin()
+        trained[keep] = trainer
+    source = trained[10.0].unsaid_source  # read again from init_from on resuming
+    for name, value in load_model(base / MODEL_FILE).weights.items():
+        np.testing.assert_array_equal(source.state_dict()[name].numpy(), np.asarray(value, np.float32), err_msg=name)
+    t = trained[0.0]
+    clips = [i for i in range(len(t.train_set)) if not bool(t.train_set[i]["mask"].all())]  # the FACEGOOD clips
+    batch = t.batch(t.train_set, torch.tensor(clips[:8]))
+    drift = {}
+    with torch.no_grad():
+        for keep, trainer in trained.items():
+            trainer.model.eval()
+            losses = diffsheg_loss(trainer.model, Schedule.linear(), batch, trainer.cfg, torch.Generator().manual_seed(3),
+                                   trainer.model_cfg.style_dim, False, source, trainer.model_cfg.gesture_dim)
+            drift[keep] = float(losses["loss_unsaid"])
+    assert drift[10.0] < 0.5 * drift[0.0], drift
+    with pytest.raises(DiffshegError, match="keep_unsaid keeps what the data leaves out"):
+        Trainer(TrainConfig.from_dict({**settings(1.0), "init_from": "", "trains": "all"}), Dist())
+    # face = "source": a dataset rehearsed with its face left to the source (keep_unsaid teaches it)
+    rehearsed = settings(1.0)
+    rehearsed["data"] = {**rehearsed["data"], "face": "source"}
+    rehearsed["datasets"] = [{**facegood, "face": "data"}]
+    t = Trainer(TrainConfig.from_dict({**rehearsed, "out_dir": str(tmp_path / "rehearsed")}), Dist())
+    g = t.model_cfg.gesture_dim
+    talk, captured = t.train_set.takes[0], t.train_set.takes[1]
+    assert talk.mask[:g].all() and not talk.mask[g:].any()  # its body still trains
+    assert captured.mask[g:].any() and not captured.mask[:g].any()  # the capture's mouth trains, as it holds it
+    with pytest.raises(DiffshegError, match=r"takes its face from the source model \(face = \"source\"\): set keep_unsaid"):
+        Trainer(TrainConfig.from_dict({**rehearsed, "keep_unsaid": 0.0}), Dist())
+    with pytest.raises(DiffshegError, match="data setting face must be"):
+        Trainer(TrainConfig.from_dict({**rehearsed, "data": {**rehearsed["data"], "face": "teacher"}}), Dist())
+
+
 def test_a_beat_model_widens_into_a_whole_body_one_that_keeps_its_upper_body(tmp_path):
     """init_from a `beat` model with whole_body data (layout beat_body: 30 more gesture
     channels, the hips, legs and hips' translation, made by a lower-body branch of their

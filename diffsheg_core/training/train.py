@@ -23,6 +23,7 @@ sampling instead (training.distill); the run's model file is that model with the
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import os
@@ -108,6 +109,11 @@ class TrainConfig:
     # denoise: the paper's loss on the data; distill: a student of init_from's guided fast
     # sampling, one pass a step (training.distill), written into a copy of init_from's file
     objective: str = "denoise"
+    # fine-tuning on data that holds only some face channels (a `facegood` capture's mouth): the
+    # face channels a clip leaves out of the loss learn init_from's own noise prediction there,
+    # this much of the noise term's weight (0: off, as before), so what the data does not say
+    # (blinks, brows) stays the model's instead of drifting with the shared weights
+    keep_unsaid: float = 0.0
     # how far the data's normalisation statistics may lie from those of the model a run is
     # fine-tuned from, as a share of each channel's spread: a rebuild of the same corpus moves
     # them by up to 2 %, other data by far more; raise it only for data widened on purpose
@@ -161,7 +167,8 @@ class TrainConfig:
                "val_clips": ((0, math.inf), True), "seed": ((0, math.inf), True),
                "lr": ((0, math.inf), False), "lr_min": ((0, math.inf), False),
                "weight_decay": ((0, math.inf), False), "grad_clip": ((0, math.inf), False),
-               "ema_decay": ((0, 1), False), "cond_drop": ((0, 1), False)}
+               "ema_decay": ((0, 1), False), "cond_drop": ((0, 1), False),
+               "keep_unsaid": ((0, math.inf), False)}
 
     def check(self) -> None:
         """Refuse settings no run can use (DiffshegError naming the setting), before anything
@@ -175,6 +182,15 @@ class TrainConfig:
                                 f"got {self.objective!r}")
         if self.objective == "distill" and not self.init_from:
             raise DiffshegError("objective = \"distill\" trains a student of a guided model: set init_from to it")
+        for data in (self.data, *self.datasets):
+            if data.face not in ("data", "source"):
+                raise DiffshegError(f"data setting face must be \"data\" or \"source\", got {data.face!r}")
+            if data.face == "source" and not self.keep_unsaid:
+                raise DiffshegError(f"the {data.kind} dataset {data.root} takes its face from the source model "
+                                    "(face = \"source\"): set keep_unsaid (for example 1.0) so it is taught")
+        if self.keep_unsaid and (self.objective != "denoise" or not self.init_from):
+            raise DiffshegError("keep_unsaid keeps what the data leaves out as the model fine-tuned from says it: "
+                                "set init_from to that model (and objective to \"denoise\"), or keep_unsaid to 0")
         if self.trains not in TRAINS:
             raise DiffshegError(f"training setting trains must be one of {', '.join(TRAINS)} (the part of the "
                                 f"network that trains), got {self.trains!r}")
@@ -307,10 +323,12 @@ def x0_term_weight(schedule: Schedule, index: torch.Tensor, like: torch.Tensor, 
 
 
 def diffsheg_loss(model: torch.nn.Module, schedule: Schedule, batch: dict[str, torch.Tensor],
-                  cfg: TrainConfig, gen: torch.Generator, style_dim: int, null_condition: bool
-                  ) -> dict[str, torch.Tensor]:
+                  cfg: TrainConfig, gen: torch.Generator, style_dim: int, null_condition: bool,
+                  source: torch.nn.Module | None = None, gesture_dim: int = 0) -> dict[str, torch.Tensor]:
     """The paper's loss terms for one batch (eq. 4, 6, 7, 8), the x0 terms weighted as
-    `cfg.x0_weighting` says (see x0_term_weight)."""
+    `cfg.x0_weighting` says (see x0_term_weight). With `source` (the frozen model fine-tuned
+    from, `cfg.keep_unsaid` > 0), also the noise error against its prediction on the face
+    channels (those after `gesture_dim`) that a clip's mask leaves out."""
     b, device = batch["motion"].shape[0], batch["motion"].device
     index = torch.randint(len(schedule), (b,), generator=gen).to(device)
     noise = torch.randn(batch["motion"].shape, generator=gen).to(device)
@@ -333,10 +351,20 @@ def diffsheg_loss(model: torch.nn.Module, schedule: Schedule, batch: dict[str, t
     x0_hat = schedule.predict_x0(x_t, index, eps)
     w = x0_term_weight(schedule, index, x0_hat, cfg.x0_weighting)
     loss_t = masked_mean((eps - noise) ** 2, mask)
+    if source is not None:
+        with torch.no_grad():
+            said = source(x_t, schedule.model_timesteps(index), mel, batch.get("extra"), style,
+                          schedule.x0_coefs(index, x_t), **extra).float()
+        unsaid = (~mask[..., gesture_dim:].bool()).to(eps.dtype)
+        extra_terms = {"loss_unsaid": masked_mean((eps[..., gesture_dim:] - said[..., gesture_dim:]) ** 2, unsaid)}
+    else:
+        extra_terms = {}
     loss_v = masked_mean(w * (x0_hat.diff(dim=1) - x0.diff(dim=1)) ** 2, mask)
     loss_d = masked_mean(w * F.huber_loss(x0_hat, x0, reduction="none", delta=cfg.huber_delta), mask)
     total = cfg.lambda_t * loss_t + cfg.lambda_v * loss_v + cfg.lambda_delta * loss_d
-    losses = {"loss_t": loss_t, "loss_v": loss_v, "loss_delta": loss_d}
+    losses = {"loss_t": loss_t, "loss_v": loss_v, "loss_delta": loss_d, **extra_terms}
+    if extra_terms:
+        total = total + cfg.lambda_t * cfg.keep_unsaid * extra_terms["loss_unsaid"]
     if cfg.lambda_a > 0:
         losses["loss_a"] = masked_mean(w * (x0_hat.diff(n=2, dim=1) - x0.diff(n=2, dim=1)) ** 2, mask)
         total = total + cfg.lambda_a * losses["loss_a"]
@@ -515,13 +543,15 @@ class Trainer:
                   else hubert_encoding(cfg.hubert or None, device=str(env.device))
                   if self.model_cfg.has_speech_input else None)
         train, val = (TakeSet(cfg.data.layout, []), TakeSet(cfg.data.layout, []))
-        strides = []
+        strides, from_source = [], []
         for data in (cfg.data, *cfg.datasets):
             if data.layout != cfg.data.layout:
                 raise DiffshegError(f"the {data.kind} dataset {data.root} holds the {data.layout.name} layout, "
                                     f"[data] the {cfg.data.layout.name} one: every dataset must fit one model")
             for split, found in (("train", train), ("val", val)):
                 taken = load_takes(data, split, speech)
+                if data.face == "source":
+                    from_source += taken.takes
                 found.takes += taken.takes
                 found.skipped += taken.skipped
             strides += [data.stride] * (len(train.takes) - len(strides))
@@ -532,6 +562,9 @@ class Trainer:
         if self.source is not None:
             self.stats = fine_tuning_statistics(cfg.init_from, NormStats(self.source.mean, self.source.std),
                                                 self.stats, cfg.stats_tolerance, self.widened_channels())
+        for take in from_source:  # face = "source": its face leaves the data loss (keep_unsaid teaches it)
+            take.mask = take.mask.copy()
+            take.mask[cfg.data.layout.gesture_dim:] = False
         self.train_set = ClipDataset(train.takes, cfg.data.clip_len, strides, self.stats)
         self.val_set = ClipDataset(val.takes, cfg.data.clip_len, cfg.data.clip_len, self.stats) \
             if val.takes and any(t.n_frames >= cfg.data.clip_len for t in val.takes) else None
@@ -580,6 +613,7 @@ class Trainer:
         # distilling: the guided model the student learns from, frozen; the run's file is its own
         # with the student in it
         self.teacher_bundle = self.teacher = self.distillation = None
+        self.unsaid_source: torch.nn.Module | None = None  # keep_unsaid: init_from's model, frozen (begin)
         if cfg.objective == "distill":
             self.teacher_bundle = self.source or load_model(cfg.init_from)
             self.distillation = Distillation.of(self.teacher_bundle)
@@ -601,12 +635,17 @@ class Trainer:
     def begin(self) -> bool:
         """Resume from the run folder's state, or else start from `init_from` when it is set.
         Returns whether the run resumed."""
-        if self.resume():
-            return True
-        if self.source is not None:
+        resumed = self.resume()
+        if not resumed and self.source is not None:
             self.init_weights(self.source, self.cfg.init_from)
             self.source = None  # its weights are the model's now: the run does not hold them twice
-        return False
+        if self.cfg.keep_unsaid:  # what the data leaves out, as the model fine-tuned from says it
+            source = copy.deepcopy(self.model) if not resumed else UniEG(self.model_cfg).to(self.env.device)
+            if resumed:
+                load_state_strict(source, self.source_state(load_model(self.cfg.init_from), self.cfg.init_from),
+                                  f"init_from {self.cfg.init_from}")
+            self.unsaid_source = source.eval().requires_grad_(False)
+        return resumed
 
     def resume(self) -> bool:
         path = self.out / STATE_FILE
@@ -657,10 +696,12 @@ class Trainer:
         if differ:
             raise DiffshegError(f"init_from {path}: its model differs in {', '.join(differ)}; "
                                 "make the [model] settings match it")
-        state = {**self.model.state_dict(),
-                 **{k: torch.from_numpy(np.array(v)).float() for k, v in source.weights.items()}}
-        load_state_strict(self.model, state, f"init_from {path}")
+        load_state_strict(self.model, self.source_state(source, path), f"init_from {path}")
         self.ema.load_state_dict(self.model.state_dict())
+
+    def source_state(self, source: ModelBundle, path: str) -> dict[str, torch.Tensor]:
+        """The model's state with `source`'s weights over it (the parts it lacks keep theirs)."""
+        return {**self.model.state_dict(), **{k: torch.from_numpy(np.array(v)).float() for k, v in source.weights.items()}}
 
     def save(self) -> None:
         """Training state, then the generation checkpoint, each written atomically."""
@@ -737,7 +778,8 @@ class Trainer:
         if self.teacher is not None:
             return distill_loss(model, self.teacher, self.distillation, self.schedule, batch, gen,
                                 self.model_cfg.style_dim)
-        return diffsheg_loss(model, self.schedule, batch, cfg, gen, self.model_cfg.style_dim, null_condition)
+        return diffsheg_loss(model, self.schedule, batch, cfg, gen, self.model_cfg.style_dim, null_condition,
+                             self.unsaid_source, self.model_cfg.gesture_dim)
 
     @torch.no_grad()
     def validate(self) -> float | None:

@@ -39,7 +39,9 @@ class DataConfig:
     face-only dataset ('facegood') fits that layout too, its body masked out. pause
     ('facegood'): silences longer than this many seconds are cut to it, audio and face
     together, so words read one by one follow one another as in running speech (0: as
-    recorded).
+    recorded). face: 'data' (the takes' face is in the loss) or 'source' (left out of it, so
+    with the run's keep_unsaid its channels learn the model fine-tuned from's prediction on
+    this speech: rehearsal that keeps the face as it was while another dataset teaches it).
     """
 
     kind: str = "beat"
@@ -54,6 +56,7 @@ class DataConfig:
     max_length_mismatch: float = MAX_LENGTH_MISMATCH_S
     whole_body: bool = False
     pause: float = 0.0
+    face: str = "data"
 
     def reader(self) -> ModuleType:
         if self.kind not in READERS:
