@@ -485,8 +485,9 @@ def test_the_bundled_models_training_recipes_read():
     body = TrainConfig.from_dict(read_config_file(recipes[0].with_name("default_body.toml")))
     assert body.trains == "legs" and body.data.whole_body and body.model["lower_dim"] == 30
     face = TrainConfig.from_dict(read_config_file(recipes[0].with_name("default_face_zh.toml")))
-    assert face.trains == "face"
-    assert [(d.kind, d.pause, d.whole_body) for d in face.datasets] == [("facegood", 0.0, True), ("facegood", 0.1, True)]
+    assert face.trains == "face" and face.keep_unsaid == 1.0 and face.data.face == "source"
+    assert [(d.kind, d.pause, d.whole_body, d.face) for d in face.datasets] == [
+        ("facegood", 0.0, True, "data"), ("facegood", 0.1, True, "data")]
 
 
 def test_the_face_alone_fine_tunes_on_captured_faces_beside_the_data(small_root, tmp_path):
