@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import platform
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -32,30 +31,15 @@ import numpy as np  # noqa: E402
 
 from blender_addon.scene.bake import BakeOptions, bake_motion, metres_per_unit  # noqa: E402
 from blender_addon.scene.preset import load_preset  # noqa: E402
-from diffsheg_core import generate, lower_body  # noqa: E402
-from diffsheg_core.bvh import bvh_to_motion, read_bvh  # noqa: E402
+from diffsheg_core import generate  # noqa: E402
 from diffsheg_core.motion import Motion  # noqa: E402
+from render_feet import DATA, TAKE_WAV, capture_take  # noqa: E402  (the same capture, keyed the same way)
 
-DATA = REPO.parent / "shared" / "data"
-TAKE_WAV = DATA / "beat2" / "2_scott_0_1_1.wav"
-TAKE_BVH = DATA / "beat" / "2_scott_0_1_1.bvh"
-TAKE_NPZ = DATA / "beat2" / "2_scott_0_1_1.npz"
 AVATAR = DATA / "rigs" / "readyplayerme_brunette.glb"
-FPS = 15.0
 HELD_OUT_S = 20.0
 HANDS = ("LeftHand", "RightHand")
 FEET = ("LeftFoot", "RightFoot")
 BARS = {"hands": 0.05, "pitch": 3.0}
-
-
-def capture_take() -> Motion:
-    """The whole real take: BEAT BVH upper body, BEAT2 SMPL-X hips and legs."""
-    upper = bvh_to_motion(read_bvh(TAKE_BVH, fps=FPS))
-    lower, trans, _ = lower_body.read_capture(TAKE_NPZ, FPS)
-    n = min(upper.n_frames, len(lower))
-    body = replace(upper, rotations=upper.rotations[:n], face_names=[],
-                   face=np.zeros((n, 0), np.float32), meta={})
-    return lower_body.with_lower_body(body, lower[:n], trans[:n], lower_body.contacts(lower[:n], trans[:n], FPS))
 
 
 def posture(motion: Motion) -> dict[str, np.ndarray]:
@@ -94,7 +78,7 @@ def main() -> int:
     p.add_argument("--sampling", default="fast", choices=["fast", "quality"])
     args = p.parse_args()
     print(f"machine: {platform.machine()}, {platform.processor() or platform.platform()}; bpy {bpy.app.version_string}")
-    capture = summary(posture(capture_take()), 24.0)
+    capture = summary(posture(capture_take(None)[0]), 24.0)
     rows = {"capture": capture}
     for seed in args.seeds:
         made = generate(str(TAKE_WAV), seed=seed, sampling=args.sampling, device="cpu")

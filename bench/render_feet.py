@@ -42,12 +42,13 @@ FPS = 15.0
 APART = 1.4  # metres between the two speakers
 
 
-def capture_take(seconds: float):
-    """The capture's last `seconds`: BEAT BVH upper body, BEAT2 SMPL-X hips and legs."""
+def capture_take(seconds: float | None):
+    """The capture's last `seconds` (None: all of it), BEAT BVH upper body and BEAT2 SMPL-X hips
+    and legs, and the frames of the take they are."""
     upper = bvh_to_motion(read_bvh(TAKE_BVH, fps=FPS))
     lower, trans, _ = lower_body.read_capture(TAKE_NPZ, FPS)
     n = min(upper.n_frames, len(lower))
-    part = slice(n - int(seconds * FPS), n)
+    part = slice(0 if seconds is None else n - int(seconds * FPS), n)
     face = np.zeros((part.stop - part.start, 0), np.float32)
     body = replace(upper, rotations=upper.rotations[part], face_names=[], face=face, meta={})
     return lower_body.with_lower_body(body, lower[part], trans[part],
