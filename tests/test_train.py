@@ -558,14 +558,21 @@ def test_keep_unsaid_holds_the_face_channels_a_capture_leaves_out(small_root, tm
     with pytest.raises(DiffshegError, match="keep_unsaid keeps what the data leaves out"):
         Trainer(TrainConfig.from_dict({**settings(1.0), "init_from": "", "trains": "all"}), Dist())
     # face = "source": a dataset rehearsed with its face left to the source (keep_unsaid teaches it)
+    faced = tmp_path / "faced"
+    write_take(faced, "talk", 12.0, 3.0, face=True)
     rehearsed = settings(1.0)
-    rehearsed["data"] = {**rehearsed["data"], "face": "source"}
+    rehearsed["data"] = {**rehearsed["data"], "face": "source", "root": str(faced), "cache_dir": str(faced / "cache")}
     rehearsed["datasets"] = [{**facegood, "face": "data"}]
     t = Trainer(TrainConfig.from_dict({**rehearsed, "out_dir": str(tmp_path / "rehearsed")}), Dist())
     g = t.model_cfg.gesture_dim
     talk, captured = t.train_set.takes[0], t.train_set.takes[1]
-    assert talk.mask[:g].all() and not talk.mask[g:].any()  # its body still trains
-    assert captured.mask[g:].any() and not captured.mask[:g].any()  # the capture's mouth trains, as it holds it
+    assert talk.taught[:g].all() and not talk.taught[g:].any()  # its body still trains
+    held = talk.mask[g:]  # the face channels the recording holds, still in its clips as recorded
+    assert held.any()
+    item = t.train_set[next(i for i, (take, _) in enumerate(t.train_set.index) if take == 0)]
+    assert np.array_equal(item["mask"].numpy(), talk.taught.astype(np.float32))
+    assert item["motion"][:, g:][:, torch.from_numpy(held)].abs().sum() > 0
+    assert captured.taught is None and captured.mask[g:].any() and not captured.mask[:g].any()
     with pytest.raises(DiffshegError, match=r"takes its face from the source model \(face = \"source\"\): set keep_unsaid"):
         Trainer(TrainConfig.from_dict({**rehearsed, "keep_unsaid": 0.0}), Dist())
     with pytest.raises(DiffshegError, match="data setting face must be"):

@@ -543,15 +543,16 @@ class Trainer:
                   else hubert_encoding(cfg.hubert or None, device=str(env.device))
                   if self.model_cfg.has_speech_input else None)
         train, val = (TakeSet(cfg.data.layout, []), TakeSet(cfg.data.layout, []))
-        strides, from_source = [], []
+        strides = []
         for data in (cfg.data, *cfg.datasets):
             if data.layout != cfg.data.layout:
                 raise DiffshegError(f"the {data.kind} dataset {data.root} holds the {data.layout.name} layout, "
                                     f"[data] the {cfg.data.layout.name} one: every dataset must fit one model")
             for split, found in (("train", train), ("val", val)):
                 taken = load_takes(data, split, speech)
-                if data.face == "source":
-                    from_source += taken.takes
+                for take in taken.takes if data.face == "source" else ():
+                    take.taught = take.mask.copy()  # its face stays in the clips but leaves the data loss
+                    take.taught[data.layout.gesture_dim:] = False  # (keep_unsaid teaches it)
                 found.takes += taken.takes
                 found.skipped += taken.skipped
             strides += [data.stride] * (len(train.takes) - len(strides))
@@ -562,9 +563,6 @@ class Trainer:
         if self.source is not None:
             self.stats = fine_tuning_statistics(cfg.init_from, NormStats(self.source.mean, self.source.std),
                                                 self.stats, cfg.stats_tolerance, self.widened_channels())
-        for take in from_source:  # face = "source": its face leaves the data loss (keep_unsaid teaches it)
-            take.mask = take.mask.copy()
-            take.mask[cfg.data.layout.gesture_dim:] = False
         self.train_set = ClipDataset(train.takes, cfg.data.clip_len, strides, self.stats)
         self.val_set = ClipDataset(val.takes, cfg.data.clip_len, cfg.data.clip_len, self.stats) \
             if val.takes and any(t.n_frames >= cfg.data.clip_len for t in val.takes) else None

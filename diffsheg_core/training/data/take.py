@@ -23,7 +23,10 @@ class Take:
     """motion: (T, D) float32 in layout order (gesture then expression), at the layout's fps;
     mel: (T, 128) float32 features of the same frames; mask: (D,) bool, False for channels
     the recording does not hold (e.g. no face capture); style: speaker / style class;
-    extra: (T, E) the model's second speech input (HuBERT or phonetic), when it has one."""
+    extra: (T, E) the model's second speech input (HuBERT or phonetic), when it has one;
+    taught: (D,) bool, the channels in the data loss when they are fewer than the take
+    holds (a dataset's face = "source": held, so the clips carry it, but taught by the
+    source model), None for `mask`."""
 
     name: str
     motion: np.ndarray
@@ -31,6 +34,7 @@ class Take:
     style: int
     mask: np.ndarray
     extra: np.ndarray | None = None
+    taught: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:

@@ -20,8 +20,9 @@ def window_starts(n_frames: int, clip_len: int, stride: int) -> list[int]:
 
 class ClipDataset(Dataset):
     """Every window of every take. Items: motion (L, D) normalised, mel (L, 128),
-    style (int), mask (D,) float (1 where the take holds the channel), and extra (L, E)
-    when the takes carry a second speech input."""
+    style (int), mask (D,) float (1 where the data loss takes the channel: where the take
+    holds it, or its `taught` channels), and extra (L, E) when the takes carry a second
+    speech input."""
 
     def __init__(self, takes: list[Take], clip_len: int, stride: int | list[int], stats: NormStats):
         """stride: frames between windows, for every take or one per take (datasets of
@@ -49,7 +50,7 @@ class ClipDataset(Dataset):
             "motion": torch.from_numpy(self._normalised[take_i][start:end]),
             "mel": torch.from_numpy(take.mel[start:end]),
             "style": torch.tensor(take.style, dtype=torch.long),
-            "mask": torch.from_numpy(take.mask.astype(np.float32)),
+            "mask": torch.from_numpy((take.mask if take.taught is None else take.taught).astype(np.float32)),
         }
         if take.extra is not None:
             item["extra"] = torch.from_numpy(take.extra[start:end])
