@@ -346,25 +346,21 @@ def diffsheg_loss(model: torch.nn.Module, schedule: Schedule, batch: dict[str, t
 
     x_t = schedule.q_sample(x0, index, noise)
     extra = {"null_rows": n_null} if n_null else {}
-    eps = model(x_t, schedule.model_timesteps(index), mel, batch.get("extra"), style,
-                schedule.x0_coefs(index, x_t), **extra).float()
+    inputs = (x_t, schedule.model_timesteps(index), mel, batch.get("extra"), style, schedule.x0_coefs(index, x_t))
+    eps = model(*inputs, **extra).float()
     x0_hat = schedule.predict_x0(x_t, index, eps)
     w = x0_term_weight(schedule, index, x0_hat, cfg.x0_weighting)
     loss_t = masked_mean((eps - noise) ** 2, mask)
-    if source is not None:
-        with torch.no_grad():
-            said = source(x_t, schedule.model_timesteps(index), mel, batch.get("extra"), style,
-                          schedule.x0_coefs(index, x_t), **extra).float()
-        unsaid = (~mask[..., gesture_dim:].bool()).to(eps.dtype)
-        extra_terms = {"loss_unsaid": masked_mean((eps[..., gesture_dim:] - said[..., gesture_dim:]) ** 2, unsaid)}
-    else:
-        extra_terms = {}
     loss_v = masked_mean(w * (x0_hat.diff(dim=1) - x0.diff(dim=1)) ** 2, mask)
     loss_d = masked_mean(w * F.huber_loss(x0_hat, x0, reduction="none", delta=cfg.huber_delta), mask)
     total = cfg.lambda_t * loss_t + cfg.lambda_v * loss_v + cfg.lambda_delta * loss_d
-    losses = {"loss_t": loss_t, "loss_v": loss_v, "loss_delta": loss_d, **extra_terms}
-    if extra_terms:
-        total = total + cfg.lambda_t * cfg.keep_unsaid * extra_terms["loss_unsaid"]
+    losses = {"loss_t": loss_t, "loss_v": loss_v, "loss_delta": loss_d}
+    if source is not None:
+        with torch.no_grad():
+            said = source(*inputs, **extra).float()
+        unsaid = (~mask[..., gesture_dim:].bool()).to(eps.dtype)
+        losses["loss_unsaid"] = masked_mean((eps[..., gesture_dim:] - said[..., gesture_dim:]) ** 2, unsaid)
+        total = total + cfg.lambda_t * cfg.keep_unsaid * losses["loss_unsaid"]
     if cfg.lambda_a > 0:
         losses["loss_a"] = masked_mean(w * (x0_hat.diff(n=2, dim=1) - x0.diff(n=2, dim=1)) ** 2, mask)
         total = total + cfg.lambda_a * losses["loss_a"]
@@ -638,10 +634,12 @@ class Trainer:
             self.init_weights(self.source, self.cfg.init_from)
             self.source = None  # its weights are the model's now: the run does not hold them twice
         if self.cfg.keep_unsaid:  # what the data leaves out, as the model fine-tuned from says it
-            source = copy.deepcopy(self.model) if not resumed else UniEG(self.model_cfg).to(self.env.device)
-            if resumed:
-                load_state_strict(source, self.source_state(load_model(self.cfg.init_from), self.cfg.init_from),
+            if resumed:  # the model has trained: read the source again
+                source = UniEG(self.model_cfg).to(self.env.device)
+                load_state_strict(source, self.source_state(load_model(self.cfg.init_from)),
                                   f"init_from {self.cfg.init_from}")
+            else:
+                source = copy.deepcopy(self.model)
             self.unsaid_source = source.eval().requires_grad_(False)
         return resumed
 
@@ -694,10 +692,10 @@ class Trainer:
         if differ:
             raise DiffshegError(f"init_from {path}: its model differs in {', '.join(differ)}; "
                                 "make the [model] settings match it")
-        load_state_strict(self.model, self.source_state(source, path), f"init_from {path}")
+        load_state_strict(self.model, self.source_state(source), f"init_from {path}")
         self.ema.load_state_dict(self.model.state_dict())
 
-    def source_state(self, source: ModelBundle, path: str) -> dict[str, torch.Tensor]:
+    def source_state(self, source: ModelBundle) -> dict[str, torch.Tensor]:
         """The model's state with `source`'s weights over it (the parts it lacks keep theirs)."""
         return {**self.model.state_dict(), **{k: torch.from_numpy(np.array(v)).float() for k, v in source.weights.items()}}
 
