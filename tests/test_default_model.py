@@ -62,7 +62,10 @@ def test_bundled_weights_load(bundle):
     assert DEFAULT_WEIGHTS.is_file()
     # float16 weights for the torch backend and the same weights as ONNX graphs for onnxruntime
     assert DEFAULT_WEIGHTS.stat().st_size < 60e6 and bundle.has_graphs  # issue 29: under 60 MB
-    assert bundle.trained and bundle.model_id == "diffsheg-default-v9"
+    assert bundle.trained and bundle.model_id == "diffsheg-default-v10"
+    # issue 42: v10's face learnt from the real captured Mandarin face beside the English rehearsal
+    assert [d["kind"] for d in bundle.info["datasets"]] == ["facegood", "facegood"]
+    assert bundle.info["training"]["trains"] == "face" and bundle.info["training"]["keep_unsaid"] == 1.0
     assert bundle.config.temporal_kernel == 5  # the gesture branch's temporal convolutions
     assert bundle.style_names == ["calm", "conversational", "animated"] and bundle.null_style
     assert bundle.default_style == "conversational"

@@ -64,7 +64,7 @@ def test_the_file_holds_the_teacher_and_its_student_each_weight_once(bundle):
     assert set(student.weights) == set(bundle.weights) and student.guidance is None and student.student is None
     assert not all(np.array_equal(student.weights[k], bundle.weights[k]) for k in bundle.weights)
     assert student.info["distilled"] | {"steps": 0} == {
-        "from": "diffsheg-default-v9", "guidance": 2.0, "skip_guidance": 0.1, "refine_skip": 3.5,
+        "from": "diffsheg-default-v10", "guidance": 2.0, "skip_guidance": 0.1, "refine_skip": 3.5,
         "timesteps": [50, 300, 450, 650, 900], "refine_offset": 1000, "steps": 0}
     assert student.prior is bundle.prior and student.graphs["phonetic"] is bundle.graphs["phonetic"]
 
