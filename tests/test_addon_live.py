@@ -169,20 +169,31 @@ def test_live_poses_the_character_from_the_stream_keys_nothing_and_stop_puts_the
     assert listener.addresses.count("/VMC/Ext/Bone/Pos") > 40 * sent
 
 
-def test_live_plants_the_feet_on_the_ready_player_me_avatar(speech):
+@pytest.mark.parametrize("catch_up", [1, 4], ids=["as-made", "catching-up"])
+def test_live_plants_the_feet_on_the_ready_player_me_avatar(speech, catch_up):
     """Whole body live on a rig with other proportions than the canonical body: the hips
     move, and a foot the stream says is down stays where it landed on the rig's own legs
-    (feet.LiveFeet) over every run of frames shown with it down: within 2 mm (the issue asks
-    for 1 cm; unpinned on the rig, the same frames drift 0.82 cm)."""
+    (feet.LiveFeet) over every run of frames made with it down: within 2 mm (the issue asks
+    for 1 cm; unpinned on the rig, the same frames drift 0.82 cm). A tick that catches up (a
+    loaded machine, here `catch_up` frames at a time) poses only the newest frame due; a foot
+    that stepped in the frames it passed over lands anew, not pulled back to where it stood."""
     scene = reset_scene()
     rig, faces = import_readyplayerme()
     s = scene.diffsheg
     s.armature, s.device = rig, "CPU"
     s.live_source, s.live_file, s.live_speed, s.live_record = "FILE", str(speech), SPEED, False
     run = live.LiveRun(bpy.context).start()
-    shown = []
+    shown, waiting = [], []
     frames_due = run.session.frames_due
-    run.session.frames_due = lambda now=None: shown.append(frames_due(now)) or shown[-1]
+
+    def due(now=None):
+        waiting.extend(frames_due(now))
+        batch = waiting[:] if len(waiting) >= catch_up or run.session.done else []
+        del waiting[:len(batch)]
+        shown.append(batch)
+        return batch
+
+    run.session.frames_due = due
     ankles, downs, hips = [], [], []
     try:
         deadline = time.monotonic() + 30
@@ -192,23 +203,25 @@ def test_live_plants_the_feet_on_the_ready_player_me_avatar(speech):
                 bpy.context.view_layer.update()
                 ankles.append({side: np.array(rig.matrix_world @ rig.pose.bones[f"{side.capitalize()}Foot"].head)
                                for side in ("right", "left")})
-                downs.append(shown[-1][-1].feet_down)
+                # per side: down in every frame made since the last tick, in the one posed, and how many
+                downs.append({side: (all(f.feet_down[side] for f in shown[-1]), shown[-1][-1].feet_down[side],
+                                     len(shown[-1])) for side in ("right", "left")})
                 hips.append(np.array(rig.pose.bones["Hips"].location))
             time.sleep(1 / 60)
         run.end(bpy.context)
     finally:
         if live.current() is run:
             run.end(bpy.context)
-    assert len(downs) > 10 and np.ptp(np.array(hips), axis=0).max() > 1e-3
+    assert sum(down["right"][2] for down in downs) > 10 and np.ptp(np.array(hips), axis=0).max() > 1e-3
     worst, held = 0.0, 0
     for side in ("right", "left"):
         landed = None
         for ankle, down in zip(ankles, downs):
-            if down[side]:
-                landed = ankle[side] if landed is None else landed
-                worst, held = max(worst, float(np.linalg.norm(ankle[side] - landed))), held + 1
-            else:
-                landed = None
+            stayed, posed, frames = down[side]
+            if stayed and landed is not None:
+                worst, held = max(worst, float(np.linalg.norm(ankle[side] - landed))), held + frames
+            else:  # landed in the frames of this tick, or up
+                landed = ankle[side] if posed else None
     print(f"live, Ready Player Me: a planted foot moves at most {100 * worst:.2f} cm from where it landed")
     assert held > 10 and worst < 0.002
 

@@ -25,9 +25,12 @@ GOAL = 0.9
 """Issue 29: voiced-frame correlation on non-English speech at least 0.9x English's."""
 
 # language: (floor the model meets on voiced frames, the measured ratio to English if under GOAL)
-# measured (seed 0; English 0.40 over the two English recordings): de 0.14 (0.34x English),
-# es 0.37 (0.93x), fr 0.35 (0.87x), hi 0.23 (0.58x), ja 0.32 (0.81x), ru 0.54, sv 0.57, zh 0.47
-LANGUAGES = {"de": (0.08, 0.34), "es": (0.3, None), "fr": (0.25, 0.87), "hi": (0.15, 0.58), "ja": (0.2, 0.81),
+# measured with v10 (seed 0; English 0.48 over the two English recordings): de 0.16 (0.33x
+# English), es 0.42 (0.87x), fr 0.40 (0.83x), hi 0.31 (0.65x), ja 0.36 (0.76x), ru 0.62, sv 0.64,
+# zh 0.52. Every language rose from v9's (English 0.40, de 0.14, es 0.37, fr 0.35, hi 0.23, ja
+# 0.32, ru 0.54, sv 0.57, zh 0.47), English most: its face learnt a Mandarin reader's jaw, which
+# follows the voice's level more (issue 42 retired this figure for the captured-face agreement).
+LANGUAGES = {"de": (0.08, 0.33), "es": (0.3, 0.87), "fr": (0.25, 0.83), "hi": (0.15, 0.65), "ja": (0.2, 0.76),
              "ru": (0.4, None), "sv": (0.4, None), "zh": (0.35, None)}
 CLOSURES_MIN = 0.3
 """Lip closures per second of voiced speech, a language's mean over its recordings, that every
@@ -94,9 +97,10 @@ def test_lips_close_during_speech(measured, lang):
 def test_a_captured_face_follows_the_voice_s_level_less_than_the_goal_asks(generated, measured):
     """Why the goal is a loudness figure that faithful lip-sync need not reach: the take's own
     motion capture (the BEAT2 SMPL-X jaw of the same take) follows the voice's level over
-    voiced frames at 0.30, under 0.9x the model's English (0.36), so the goal asks a language's
-    mouth to follow the level more than a real English face does. The model's jaw moves with
-    that captured jaw (0.51 over voiced frames; the exact visemes of the TextGrid 0.56), and
+    voiced frames at 0.30, under 0.9x the model's English (0.40 over the two English
+    recordings with v9, 0.48 with v10), so the goal asks a language's mouth to follow the level
+    more than a real English face does. The model's jaw moves with that captured jaw (about 0.5
+    over voiced frames; the exact visemes of the TextGrid 0.56), and
     making it follow the level enough to meet the goal moves it away (bench/eval_languages.py
     --loudness-gain)."""
     from diffsheg_core.training.evaluate import load_reference

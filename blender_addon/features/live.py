@@ -84,6 +84,8 @@ class Poser:
     def _values(self, motion, frame=None) -> list[tuple[object, str, tuple]]:
         """(datablock, data path, values by array index) of the first frame of `motion`, the
         stream's `frame` (a LiveFrame) when it is one, with its feet pinned."""
+        import numpy as np
+
         from ..scene.bake import body_pose, face_channels, location_channels, rotation_channels
 
         out = []
@@ -92,8 +94,12 @@ class Poser:
             armature = self.options.armature
             quaternions, location = body_pose(mapping, motion)
             if frame is not None and frame.feet_down and location is not None and mapping.legs:
-                quaternions.update(self.feet.solve(mapping.legs, location @ mapping.root.rest.T, quaternions,
-                                                   mapping.root.bone, frame.feet_down, frame.index))
+                displacement = location @ mapping.root.rest.T
+                legs, lowered = self.feet.solve(mapping.legs, displacement, quaternions, mapping.root.bone,
+                                                frame.feet_down, frame.index)
+                quaternions.update(legs)
+                if lowered is not displacement:  # the hips came down for a pinned foot to reach
+                    location = np.linalg.solve(mapping.root.rest, lowered.T).T
             groups = [rotation_channels(bone, armature.pose.bones[bone].rotation_mode, quats)
                       for bone, quats in quaternions.items()]
             if location is not None:
@@ -122,8 +128,12 @@ class Poser:
         owner, attr = self._owner(id_data, path)
         setattr(owner, attr, values[0] if len(values) == 1 else values)
 
-    def pose(self, frame) -> None:
-        """Pose one LiveFrame (its rotations, face weights and hips' translation)."""
+    def pose(self, frame, passed: tuple = ()) -> None:
+        """Pose one LiveFrame (its rotations, face weights and hips' translation); `passed`:
+        the frames made since the last one posed that are not shown (their feet still count)."""
+        for skipped in passed:
+            if skipped.feet_down:
+                self.feet.passed(skipped.feet_down)
         root = None if frame.root_translation is None else frame.root_translation[None]
         motion = replace(self.template, rotations=frame.rotations[None], face=frame.face[None], root_translation=root)
         for id_data, path, values in self._values(motion, frame):
@@ -297,7 +307,7 @@ class LiveRun:
             frames = self.session.frames_due(now)
             if frames:
                 self.last = last = frames[-1]
-                self.poser.pose(last)
+                self.poser.pose(last, passed=frames[:-1])
                 self.shown += len(frames)
                 if self.vmc is not None:
                     for frame in frames:

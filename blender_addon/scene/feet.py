@@ -82,6 +82,34 @@ def _solve(leg: LegRig, worlds: list, heads: list, pins: list, ease: int) -> dic
             foot_bone: _local(leg.rest[3], new_foot, new_shin)}
 
 
+MAX_DROP = 0.05
+"""The most Live lowers the hips for a pinned foot to stay within its leg's reach, as a share of
+the leg's length (thigh and shin)."""
+
+REACH = 0.999
+"""The share of a leg's length (thigh and shin) Live lets a pinned foot lie from the hip joint."""
+
+
+def _up(legs: list[LegRig]) -> np.ndarray:
+    """The rig's up in armature space: from the ankles to the hip joints at rest."""
+    up = sum(leg.heads[1] - leg.heads[3] for leg in legs)
+    return up / np.linalg.norm(up)
+
+
+def _reach_drop(leg: LegRig, heads: list, pins: list, worlds: list, ease: int) -> float:
+    """How far (armature units, at most MAX_DROP of the leg) the hips must come down for the
+    leg's hip joint to lie within REACH of the ankle's pinned goal this frame."""
+    goal = pin_goals(heads[3], worlds[3], pins, ease)[0][0]
+    length = np.linalg.norm(leg.heads[2] - leg.heads[1]) + np.linalg.norm(leg.heads[3] - leg.heads[2])
+    reach = REACH * length
+    apart = heads[1][0] - goal
+    if np.linalg.norm(apart) <= reach:
+        return 0.0
+    along = float(apart @ _up([leg]))
+    inside = along ** 2 - float(apart @ apart) + reach ** 2
+    return float(np.clip(along - np.sqrt(inside) if inside >= 0 else along, 0.0, MAX_DROP * length))
+
+
 class LiveFeet:
     """Contact feet pinned on the rig a frame at a time (Live posing, live.py). Live cannot
     see a span's middle: a foot is pinned where it is on the frame it lands, held while the
@@ -91,25 +119,44 @@ class LiveFeet:
         self.ease = max(1, int(round(EASE_S * fps)))
         self._pins: dict[str, tuple[int, int, np.ndarray, np.ndarray]] = {}  # side: (landed, last down, ankle, foot)
         self._shown: int | None = None  # the stream's frame posed last
+        self._lifted: set[str] = set()  # sides up in a frame made since then that was not posed
+
+    def passed(self, down: dict[str, bool]) -> None:
+        """A frame of the stream the rig did not show (a session catching up poses only the
+        newest frame due): a foot up in it has stepped, so it lands anew when next posed down
+        rather than being held where it stood before the step."""
+        self._lifted.update(side for side in self._pins if not down.get(side))
 
     def solve(self, legs: list[LegRig], displacement: np.ndarray, quaternions: dict[str, np.ndarray], hips: str,
-              down: dict[str, bool], index: int) -> dict[str, np.ndarray]:
+              down: dict[str, bool], index: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """New local quaternions (1, 4) of the legs' bones for the stream's frame `index`,
         posed as `quaternions` ((1, 4) per bone, `hips` the hips bone's) and `displacement`
-        (1, 3); `down`: per side whether that foot is planted in this frame."""
-        out = {}
+        (1, 3); `down`: per side whether that foot is planted in this frame. Also returns the
+        displacement, lowered as far as a pinned foot needs to be within its leg's reach (the
+        stream's hips sway over the canonical body's legs; on a rig's, a straight leg can fall
+        a few millimetres short, and the foot would slide towards the hips)."""
+        pose = {"hips": quaternions[hips], **{b: quaternions[b] for leg in legs for b in leg.bones}}
+        pinned = []
         for leg in legs:
-            worlds, heads = _pose(leg, displacement, {"hips": quaternions[hips],
-                                                      **{b: quaternions[b] for b in leg.bones}})
+            worlds, heads = _pose(leg, displacement, pose)
             pin = self._pins.get(leg.side)
             if down.get(leg.side):
-                landed = pin is None or self._shown is None or pin[1] < self._shown
+                landed = pin is None or self._shown is None or pin[1] < self._shown or leg.side in self._lifted
                 pin = (index, index, heads[3][0], worlds[3][0]) if landed else (pin[0], index, pin[2], pin[3])
                 self._pins[leg.side] = pin
             elif pin is not None and index - pin[1] > self.ease:
                 del self._pins[leg.side]
                 pin = None
             if pin is not None:
-                out.update(_solve(leg, worlds, heads, [(pin[0] - index, pin[1] - index, pin[2], pin[3])], self.ease))
+                pinned.append((leg, [(pin[0] - index, pin[1] - index, pin[2], pin[3])], worlds, heads))
+        drop = max([_reach_drop(leg, heads, pins, worlds, self.ease) for leg, pins, worlds, heads in pinned], default=0.0)
+        if drop > 0:
+            displacement = displacement - drop * _up(legs)
+        out = {}
+        for leg, pins, worlds, heads in pinned:
+            if drop > 0:
+                worlds, heads = _pose(leg, displacement, pose)
+            out.update(_solve(leg, worlds, heads, pins, self.ease))
         self._shown = index
-        return out
+        self._lifted.clear()
+        return out, displacement
