@@ -44,58 +44,25 @@ LIVE_STEPS = 25  # the schedule `LiveConfig.later_start` counts in (rescaled to 
 
 @dataclass(frozen=True)
 class LiveConfig:
-    """How the stream is sampled. The defaults, by bench/bench_live.py on the 2-core CI
-    machine (bundled model, one thread, real speech): see the README's Live section.
-    - hop 3 and lookahead 1 showed frames 0.45 s (p95) after their audio; hop 4 costs 0.07 s
-      more latency for a fifth less compute.
-    - A lookahead of 2 frames gives the phonetic encoder the sound after a frame. Measured
-      with a window's features stopping at its lookahead, as they do live (2026-12-05, 2
-      seeds, 64 s, H 3): jawOpen at open vowels over bilabials 0.79x offline's at lookahead
-      1, 1.01x at 2, 0.97x at 3; mouth-voice 0.94x, 0.98x, 0.97x. (Earlier figures, 0.98x at
-      lookahead 1, came from a bench whose windows saw the audio after their lookahead.)
-    - Later windows start at index 14 of 25 steps, FOPPAS's published value, rather than the
-      bundled model's 17: 15 network calls a window instead of 18, with the same figures
-      against offline (wrist speed 0.74x / 0.76x, jitter 0.96x / 1.03x, lip-sync 0.98x both);
-      at 12 the jaw contrast fell to 0.92x.
-    - A whole-body model's legs are stepped with the model's eta (`legs_eta` None; the bundled
-      model's is 1: fresh noise at every step). With 3x skip guidance (below), 2026-12-05,
-      seeds 0 / 1: hips sway 0.85x / 0.72x offline's, a foot down from 0.1 s / 0.0 s, in contact
-      98 % / 95 %. At eta 0.75 the hips sway 1.00x / 0.83x, but on the Ready Player Me avatar
-      in Blender a planted foot moved 3.1 mm from where it landed (at the model's eta under
-      2 mm), so it is not the default; at 0.5 the first foot came down at 1.5 s, and at 0
-      neither settled in the first 3 s of a session (README, Live; bench_live --legs-eta).
-    - With the fast sampling, live steps the gestures with 2.6x the settings' skip guidance
-      (`skip_scale`; offline's refining pass, which live does without, uses 3.5x): 0.26 for the
-      bundled model. (The 25 steps keep the settings': at 3x their jitter was 2.3x.) Against
-      offline's default, the distilled student (2026-12-05, H 3, L 2, 4 seeds, mean of each
-      seed's live / offline), wrist speed and jitter at 2.4x, 2.6x, 2.8x and 3x: on the whole
-      64 s take (bench_live) 0.93x / 1.16x, 0.95x / 1.19x, 0.97x / 1.21x, about 1.0x / 1.3x;
-      on its held-out last 20 s 0.87x / 1.15x, 0.89x / 1.17x, 0.90x / 1.18x, 0.92x / 1.21x; on
-      unseen speech (12_zhao_2_3_3, 2_scott_0_3_3, 40 s each) 0.89x / 1.14x, 0.91x / 1.16x,
-      0.93x / 1.18x, 0.95x / 1.20x. More skip guidance buys speed with jitter; 2.6x keeps both
-      nearest the bars (0.9x, 1.2x) everywhere. Lip-sync 0.96-1.02x and joins 1.20x at all. (3x
-      was the default against v9's guided steps offline, which jitter more than the student.)
-      Earlier, against v9's guided steps (2 seeds) at 1x, 2x, 2.5x, 3x, 3.5x: wrist speed 0.73x,
-      0.84x, 0.89x, 0.95x, 1.00x; jitter 0.96x, 1.06x, 1.12x, 1.17x, 1.24x; compute the same
-      (0.31-0.35 s a second of speech). Deterministic gesture steps (eta 0) instead: 0.84x wrist
-      speed at 1.11x jitter, with 2x skip 0.94x at 1.21x; later windows' gestures from one step
-      higher: 0.64x, for more compute. The student itself, live at its own scales: 0.72x wrist
-      speed, 0.97x jitter; with its refining pass's scale at each window's last step, 0.82x and
-      1.11x (it was distilled at offline's scales only).
-    - A whole-body model's hips and legs get a skip scale of their own, 3.5x the settings'
-      (`legs_skip_scale`; the lower branch's channels of the same passes, so no more compute).
-      Measured (2026-12-05, 4 seeds, 64 s, H 3, L 2, against offline fast) with the legs at 3x,
-      3.5x, 4x and 5x: hips sway 0.76x, 0.81x, 0.85x and 0.95x offline's (per seed 0.68-0.85x,
-      0.74-0.91x, 0.79-0.96x, 0.85-1.04x), a foot down 95-98 %, 95-98 %, 93-96 % and 86-94 % of
-      frames; the wrists as at 3x. On the Ready Player Me avatar in Blender, on a loaded machine, a
-      planted foot moved 0.3-0.9 mm from where it landed at 3.5x and 3-4 mm in three runs of four
-      at 4x (bar 2 mm: the rig's legs cannot reach where the wider sway puts the hips). With
-      the gestures at 2.4-2.6x, against the student offline (4 seeds): hips sway 0.82x
-      (0.74-0.91x per seed), a foot down 95-97 % of frames.
-    - A machine too slow for the hop does not fall behind: when more than a hop of audio
-      waits, the next window takes it all, up to `max_hop` frames (a window costs about the
-      same for any hop), so the latency stays bounded and no audio is dropped; the status
-      line and the recording say so. `max_hop` = `hop` turns that off."""
+    """How the stream is sampled. Each default was chosen by measurement (bench/bench_live.py on
+    the 2-core CI box; the figures are on docs/live.md, "The defaults, measured").
+    - hop 3: a third of a core with the fast sampling; smaller hops wait less but cost the
+      lip-sync (a window's new frames sit at its edge) and compute.
+    - lookahead 2: the phonetic encoder hears the phone after a frame; at 1 the jaw opens at
+      open vowels over bilabials only 0.79x as much as offline.
+    - later_start 14 of 25 steps (FOPPAS's published value): 15 network calls a window instead
+      of 18, the same figures against offline.
+    - legs_eta None (the model's eta): less noise sways the hips more, but the first foot
+      comes down late and a rig's planted foot strays.
+    - skip_scale 2.6: live's new frames are painted against 31 known ones without the refining
+      pass, so they need more skip guidance to move like offline's; 2.6x keeps wrist speed and
+      jitter nearest their bars (0.9x, 1.2x of offline's). The 25 steps keep the settings'.
+    - legs_skip_scale 3.5: the hips sway about 0.8x offline's (the lower branch's channels of the
+      same passes: no more compute).
+    - max_hop 12: a machine too slow for the hop does not fall behind: when more than a hop of
+      audio waits, the next window takes it all (a window costs about the same for any hop),
+      so the latency stays bounded and no audio is dropped; the status line and the recording
+      say so. `max_hop` = `hop` turns that off."""
 
     hop: int = 3                       # new frames per window
     max_hop: int = 12                  # frames a window may take when more are waiting: a slow machine keeps up
