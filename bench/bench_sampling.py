@@ -120,8 +120,8 @@ def join_ratios(take: Motion, audio: Audio, model, sampling: str) -> tuple[float
     """Issue 25's measure: the joints' acceleration at the two joins of a regenerated range over
     that inside it, averaged over seeds 7-9; then each over the same ratio in the take before
     the range was regenerated. The first pair also counts how the take happens to move around
-    the range's ends (the fast take's seed 0 moves faster there than inside: 0.93 at the left
-    end before any regeneration, the quality take's 0.47); the second is what the joins add."""
+    the range's ends (before any regeneration, the fast take's seed 0 accelerates at the left
+    end 0.93x as much as inside, the quality take's 0.47x); the second is what the joins add."""
     new = np.mean([_join_ratios(regenerate(take, audio, start=RANGE[0], end=RANGE[1], model=model, seed=seed,
                                            sampling=sampling)) for seed in (7, 8, 9)], axis=0)
     own = _join_ratios(take)

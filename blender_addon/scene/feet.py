@@ -96,18 +96,20 @@ def _up(legs: list[LegRig]) -> np.ndarray:
     return up / np.linalg.norm(up)
 
 
-def _reach_drop(leg: LegRig, heads: list, pins: list, worlds: list, ease: int) -> float:
-    """How far (armature units, at most MAX_DROP of the leg) the hips must come down for the
-    leg's hip joint to lie within REACH of the ankle's pinned goal this frame."""
-    goal = pin_goals(heads[3], worlds[3], pins, ease)[0][0]
+def _reach_drop(leg: LegRig, heads: list, pins: list, worlds: list, ease: int, up: np.ndarray) -> float:
+    """How far along `up` (armature units, at most MAX_DROP of the leg) the hips must come down
+    for the leg's hip joint to lie within REACH of the ankle's pinned goal this frame. Easing
+    out (the pin's weight w under 1) the goal comes down with the hips by 1 - w of the drop."""
+    goal, _, weight = pin_goals(heads[3], worlds[3], pins, ease)
     length = np.linalg.norm(leg.heads[2] - leg.heads[1]) + np.linalg.norm(leg.heads[3] - leg.heads[2])
     reach = REACH * length
-    apart = heads[1][0] - goal
-    if np.linalg.norm(apart) <= reach:
+    apart = heads[1][0] - goal[0]
+    if np.linalg.norm(apart) <= reach or weight[0] <= 0:
         return 0.0
-    along = float(apart @ _up([leg]))
+    along = float(apart @ up)
     inside = along ** 2 - float(apart @ apart) + reach ** 2
-    return float(np.clip(along - np.sqrt(inside) if inside >= 0 else along, 0.0, MAX_DROP * length))
+    closer = along - np.sqrt(inside) if inside >= 0 else along  # how much nearer the goal the hip must come
+    return float(np.clip(closer / weight[0], 0.0, MAX_DROP * length))
 
 
 class LiveFeet:
@@ -149,9 +151,11 @@ class LiveFeet:
                 pin = None
             if pin is not None:
                 pinned.append((leg, [(pin[0] - index, pin[1] - index, pin[2], pin[3])], worlds, heads))
-        drop = max([_reach_drop(leg, heads, pins, worlds, self.ease) for leg, pins, worlds, heads in pinned], default=0.0)
+        up = _up(legs)
+        drop = max([_reach_drop(leg, heads, pins, worlds, self.ease, up) for leg, pins, worlds, heads in pinned],
+                   default=0.0)
         if drop > 0:
-            displacement = displacement - drop * _up(legs)
+            displacement = displacement - drop * up
         out = {}
         for leg, pins, worlds, heads in pinned:
             if drop > 0:
