@@ -452,3 +452,36 @@ def test_the_live_panel_and_the_preferences():
     else:
         assert labels == problem[0].upper() + problem[1:]
         assert in_preferences == f"Live cannot use a microphone: {problem}"
+
+
+def test_live_feet_lower_the_hips_for_a_straight_leg_and_land_anew_after_a_passed_step():
+    """feet.LiveFeet on a straight leg (thigh and shin 0.45 each, the ankle right under the hip):
+    the hips rising 1 cm under a planted foot come down again as far as the leg needs, with the
+    ankle kept where it landed; a foot up in a frame a catching-up tick passed over lands anew
+    where the stream put it, not where it stood before the step."""
+    from blender_addon.scene.feet import REACH, LiveFeet, _pose
+    from blender_addon.scene.retarget import LegRig
+
+    eye = np.eye(3)
+    leg = LegRig(side="left", bones=("thigh", "shin", "foot"), rest=(eye, eye, eye, eye),
+                 heads=np.array([[0.0, 0, 1.0], [0.1, 0, 0.95], [0.1, 0, 0.5], [0.1, 0, 0.05]]),
+                 left=np.array([1.0, 0, 0]))
+    still = {name: np.array([[1.0, 0, 0, 0]]) for name in ("hips", "thigh", "shin", "foot")}
+
+    def ankle(displacement, legs):
+        return _pose(leg, displacement, {**still, **legs})[1][3][0]
+
+    feet = LiveFeet(15.0)
+    legs, lowered = feet.solve([leg], np.zeros((1, 3)), still, "hips", {"left": True}, 0)
+    landed = ankle(np.zeros((1, 3)), {})
+    assert np.allclose(ankle(lowered, legs), landed, atol=1e-6)
+    risen = np.array([[0.0, 0.0, 0.01]])
+    legs, lowered = feet.solve([leg], risen, still, "hips", {"left": True}, 1)
+    assert np.linalg.norm(ankle(lowered, legs) - landed) < 1e-4  # without the drop: 1 cm short
+    assert 0.0105 < risen[0, 2] - lowered[0, 2] < 0.0115 and np.allclose(lowered[0, :2], 0)
+    assert np.linalg.norm(ankle(lowered, legs) - (lowered[0] + leg.heads[1])) <= REACH * 0.9 + 1e-6
+
+    feet.passed({"left": False})  # frame 2 was made with the foot up, and not shown
+    moved = np.array([[0.2, 0.0, 0.0]])
+    legs, lowered = feet.solve([leg], moved, still, "hips", {"left": True}, 3)
+    assert np.linalg.norm(ankle(lowered, legs) - (landed + moved[0])) < 1e-3
