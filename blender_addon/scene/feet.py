@@ -16,7 +16,7 @@ import numpy as np
 from diffsheg_core.lower_body.leg_ik import pin_goals, two_bone
 from diffsheg_core.rotations import convert, quaternion_sequence_continuous
 
-from .retarget import LegRig
+from .retarget import LegRig, leg_length
 
 EASE_S = 0.08  # seconds over which a pin eases in and out: the motion's own feet already land on the spot, the pin only takes out what the rig's proportions change, so a longer ease would drag a stepping foot over the floor
 
@@ -101,7 +101,7 @@ def _reach_drop(leg: LegRig, heads: list, pins: list, worlds: list, ease: int, u
     for the leg's hip joint to lie within REACH of the ankle's pinned goal this frame. Easing
     out (the pin's weight w under 1) the goal comes down with the hips by 1 - w of the drop."""
     goal, _, weight = pin_goals(heads[3], worlds[3], pins, ease)
-    length = np.linalg.norm(leg.heads[2] - leg.heads[1]) + np.linalg.norm(leg.heads[3] - leg.heads[2])
+    length = leg_length(leg)
     reach = REACH * length
     apart = heads[1][0] - goal[0]
     if np.linalg.norm(apart) <= reach or weight[0] <= 0:
