@@ -22,7 +22,7 @@ from diffsheg_core.motion import Motion, resample_motion, smooth_frames
 from . import takes
 from .keying import (Channel, Undo, action_fcurves, new_action, record_baked, rotation_channels,
                      shape_key_channel, undone_on_error, write_channels)
-from .feet import plant_foot, scene_spans
+from .feet import plant_feet, scene_spans
 from .preset import AUTO, available_presets, choose_preset, load_preset, preset_fit
 from .retarget import ArmatureMapping, Preset, ShapeKeyMapping, bone_quaternions, map_armature, map_shape_keys
 from .sound import NO_AUDIO_NOTE, add_sound_strip, audio_supported, remove_strips, strips_added_for
@@ -198,7 +198,8 @@ def body_pose(mapping: ArmatureMapping, motion: Motion,
               smoothing: float = 0.0) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
     """Per driven bone its (T, 4) local quaternions, and the hips bone's (T, 3) location (None
     where the mapping keys none); over the motion's contact spans (meta "contacts") each leg
-    is solved again on the rig's bones so the contact foot stays put (feet.py)."""
+    is solved again on the rig's bones so the contact foot stays put, the hips lowered where a
+    leg needs them to reach (feet.py)."""
     quaternions = bone_quaternions(motion, mapping)
     if smoothing > 0:
         for bone, quats in quaternions.items():
@@ -210,13 +211,14 @@ def body_pose(mapping: ArmatureMapping, motion: Motion,
     if smoothing > 0:
         location = smooth_frames(location, smoothing)
     contacts = motion.meta.get("contacts") or {}
-    displacement = location @ mapping.root.rest.T
-    for leg in mapping.legs:
-        spans = scene_spans(contacts.get(leg.side, []), motion.meta.get("source_fps", motion.fps),
-                            motion.fps, motion.n_frames)
-        if spans:
-            pose = {"hips": quaternions[mapping.root.bone], **{b: quaternions[b] for b in leg.bones}}
-            quaternions.update(plant_foot(leg, displacement, pose, spans, motion.fps))
+    spans = {leg.side: scene_spans(contacts.get(leg.side, []), motion.meta.get("source_fps", motion.fps),
+                                   motion.fps, motion.n_frames) for leg in mapping.legs}
+    if any(spans.values()):
+        displacement = location @ mapping.root.rest.T
+        legs, lowered = plant_feet(mapping.legs, displacement, quaternions, mapping.root.bone, spans, motion.fps)
+        quaternions.update(legs)
+        if lowered is not displacement:  # the hips came down for a pinned foot to reach
+            location = np.linalg.solve(mapping.root.rest, lowered.T).T
     return quaternions, location
 
 

@@ -4,7 +4,9 @@ The motion plants its feet on the canonical body; on a rig whose legs, hips widt
 height differ, the same turns move the feet a little. Over each contact span of the motion
 (meta "contacts") the rig's ankle is pinned where it is at the span's middle frame and the
 foot keeps that frame's orientation (eased in and out), and each leg is solved with two-bone
-IK on the rig's own bone lengths (diffsheg_core.lower_body.leg_ik, as the canonical body's). Live
+IK on the rig's own bone lengths (diffsheg_core.lower_body.leg_ik, as the canonical body's).
+The motion's hips sway over the canonical body's legs; where a rig's straightened leg cannot
+reach its pinned foot (a few millimetres), the hips come down as far as it needs. Live
 (`LiveFeet`) pins a foot a frame at a time, where it lands. numpy only, fed with the rig's
 rest matrices (retarget.LegRig): bones between the keyed ones are taken at rest.
 """
@@ -55,24 +57,61 @@ def _pose(leg: LegRig, displacement: np.ndarray, quaternions: dict[str, np.ndarr
     return worlds, heads
 
 
-def plant_foot(leg: LegRig, displacement: np.ndarray, quaternions: dict[str, np.ndarray],
-               spans: list[tuple[int, int]], fps: float) -> dict[str, np.ndarray]:
-    """New local quaternions of the leg's thigh, shin and foot (by bone name) that pin the
-    ankle and the foot's orientation over each span (diffsheg_core.lower_body.leg_ik). `quaternions`:
-    local (T, 4) of "hips" and of the leg's bones."""
-    worlds, heads = _pose(leg, displacement, quaternions)
-    ankle, foot = heads[3], worlds[3]
-    pins = [(a, b, ankle[(a + b) // 2], foot[(a + b) // 2]) for a, b in spans]
-    return _solve(leg, worlds, heads, pins, max(1, int(round(EASE_S * fps))))
+def plant_feet(legs: list[LegRig], displacement: np.ndarray, quaternions: dict[str, np.ndarray], hips: str,
+               spans: dict[str, list[tuple[int, int]]], fps: float) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """New local quaternions of the legs' thigh, shin and foot (by bone name) that pin the
+    ankle and the foot's orientation over each leg's `spans` (by side) where they are at the
+    span's middle frame (diffsheg_core.lower_body.leg_ik), and the hips' (T, 3) `displacement`,
+    lowered (eased in and out) where a pinned foot lies beyond its straight leg's reach.
+    `quaternions`: local (T, 4) per bone, `hips` the hips bone's."""
+    pose = {"hips": quaternions[hips], **{b: quaternions[b] for leg in legs for b in leg.bones}}
+    pins = {}
+    for leg in legs:
+        worlds, heads = _pose(leg, displacement, pose)
+        pins[leg.side] = [(a, b, heads[3][(a + b) // 2], worlds[3][(a + b) // 2]) for a, b in spans.get(leg.side, [])]
+    ease = max(1, int(round(EASE_S * fps)))
+    drop = _eased(_reach_drop(legs, displacement, pose, pins, ease), max(1, int(round(DROP_EASE_S * fps))))
+    return _solve_legs(legs, displacement, drop, pose, pins, ease)
 
 
-def _solve(leg: LegRig, worlds: list, heads: list, pins: list, ease: int) -> dict[str, np.ndarray]:
-    """The leg's thigh, shin and foot local quaternions with its ankle and foot held by `pins`."""
+def _eased(drop: np.ndarray, frames: int) -> np.ndarray:
+    """`drop` spread over time so the hips ease down and up over about 4 x `frames` frames
+    instead of in a frame, and never less than `drop`: its maximum over 2 x `frames` either
+    side, averaged twice over `frames` either side."""
+    spread = np.lib.stride_tricks.sliding_window_view(np.pad(drop, 2 * frames, mode="edge"), 4 * frames + 1).max(1)
+    box = np.full(2 * frames + 1, 1.0 / (2 * frames + 1))
+    for _ in range(2):
+        spread = np.convolve(np.pad(spread, frames, mode="edge"), box, mode="valid")
+    return np.maximum(spread, drop)  # only rounding can leave the averages under it
+
+
+def _solve_legs(legs: list[LegRig], displacement: np.ndarray, drop: np.ndarray, pose: dict[str, np.ndarray],
+                pins: dict[str, list], ease: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The legs' bones solved so each ankle and foot are where its `pins` (by side) hold them
+    and, where the hips come down by `drop` along the rig's up, elsewhere where they were before
+    (a free foot is not dragged down with the hips); and the lowered displacement (the same
+    array where `drop` is all 0)."""
+    lowered = displacement - np.reshape(drop, (-1, 1)) * _up(legs) if np.any(drop) else displacement
+    out = {}
+    for leg in legs:
+        worlds, heads = _pose(leg, displacement, pose)
+        goal, goal_rot, weight = pin_goals(heads[3], worlds[3], pins.get(leg.side, []), ease)
+        held = (weight > 0) | (drop > 0)
+        if np.any(held):
+            if lowered is not displacement:
+                worlds, heads = _pose(leg, lowered, pose)
+            out.update(_solve(leg, worlds, heads, goal, goal_rot, held))
+    return out, lowered
+
+
+def _solve(leg: LegRig, worlds: list, heads: list, goal: np.ndarray, goal_rot: np.ndarray,
+           held: np.ndarray) -> dict[str, np.ndarray]:
+    """The leg's thigh, shin and foot local quaternions with, in the `held` frames, its ankle at
+    `goal` and its foot turned to `goal_rot` (armature space)."""
     (hips, thigh, shin, foot), (_, hip, knee, ankle) = worlds, heads
-    goal, goal_rot, weight = pin_goals(ankle, foot, pins, ease)
     turn, bend = two_bone(hip, knee, ankle, goal, float(np.linalg.norm(leg.heads[2] - leg.heads[1])),
                           float(np.linalg.norm(leg.heads[3] - leg.heads[2])), hips @ leg.left)
-    held = (weight > 0)[:, None, None]
+    held = held[:, None, None]
     new_thigh = np.where(held, turn @ thigh, thigh)
     new_shin = np.where(held, turn @ bend @ shin, shin)
     new_foot = np.where(held, goal_rot, foot)
@@ -83,11 +122,14 @@ def _solve(leg: LegRig, worlds: list, heads: list, pins: list, ease: int) -> dic
 
 
 MAX_DROP = 0.05
-"""The most Live lowers the hips for a pinned foot to stay within its leg's reach, as a share of
+"""The most the hips come down for a pinned foot to stay within its leg's reach, as a share of
 the leg's length (thigh and shin)."""
 
+DROP_EASE_S = 0.12
+"""Offline, the hips ease down and up for a pinned foot over about four times this (seconds)."""
+
 REACH = 0.999
-"""The share of a leg's length (thigh and shin) Live lets a pinned foot lie from the hip joint."""
+"""The share of a leg's length (thigh and shin) a pinned foot may lie from the hip joint."""
 
 
 def _up(legs: list[LegRig]) -> np.ndarray:
@@ -96,20 +138,25 @@ def _up(legs: list[LegRig]) -> np.ndarray:
     return up / np.linalg.norm(up)
 
 
-def _reach_drop(leg: LegRig, heads: list, pins: list, worlds: list, ease: int, up: np.ndarray) -> float:
-    """How far along `up` (armature units, at most MAX_DROP of the leg) the hips must come down
-    for the leg's hip joint to lie within REACH of the ankle's pinned goal this frame. Easing
-    out (the pin's weight w under 1) the goal comes down with the hips by 1 - w of the drop."""
-    goal, _, weight = pin_goals(heads[3], worlds[3], pins, ease)
-    length = leg_length(leg)
-    reach = REACH * length
-    apart = heads[1][0] - goal[0]
-    if np.linalg.norm(apart) <= reach or weight[0] <= 0:
-        return 0.0
-    along = float(apart @ up)
-    inside = along ** 2 - float(apart @ apart) + reach ** 2
-    closer = along - np.sqrt(inside) if inside >= 0 else along  # how much nearer the goal the hip must come
-    return float(np.clip(closer / weight[0], 0.0, MAX_DROP * length))
+def _reach_drop(legs: list[LegRig], displacement: np.ndarray, pose: dict[str, np.ndarray], pins: dict[str, list],
+                ease: int) -> np.ndarray:
+    """Per frame, how far along the rig's up (armature units, at most MAX_DROP of the leg) the
+    hips must come down for each leg's hip joint to lie within REACH of where its `pins` (by
+    side) hold the ankle; 0 where no pin holds."""
+    up, drop = _up(legs), np.zeros(len(displacement))
+    for leg in legs:
+        worlds, heads = _pose(leg, displacement, pose)
+        goal, _, weight = pin_goals(heads[3], worlds[3], pins.get(leg.side, []), ease)
+        length = leg_length(leg)
+        reach = REACH * length
+        apart = heads[1] - goal
+        along = apart @ up
+        inside = along ** 2 - np.einsum("ti,ti->t", apart, apart) + reach ** 2
+        # how much nearer the goal the hip must come along up
+        closer = np.where(inside >= 0, along - np.sqrt(np.clip(inside, 0.0, None)), along)
+        short = (np.linalg.norm(apart, axis=1) > reach) & (weight > 0)
+        drop = np.maximum(drop, np.where(short, np.clip(closer, 0.0, MAX_DROP * length), 0.0))
+    return drop
 
 
 class LiveFeet:
@@ -136,31 +183,27 @@ class LiveFeet:
         (1, 3); `down`: per side whether that foot is planted in this frame. Also returns the
         displacement, lowered as far as a pinned foot needs to be within its leg's reach (the
         stream's hips sway over the canonical body's legs; on a rig's, a straight leg can fall
-        a few millimetres short, and the foot would slide towards the hips)."""
+        a few millimetres short, and the foot would slide towards the hips); a foot not pinned
+        stays where the stream put it while the hips come down."""
         pose = {"hips": quaternions[hips], **{b: quaternions[b] for leg in legs for b in leg.bones}}
-        pinned = []
+        pins = {}
         for leg in legs:
-            worlds, heads = _pose(leg, displacement, pose)
             pin = self._pins.get(leg.side)
             if down.get(leg.side):
                 landed = pin is None or self._shown is None or pin[1] < self._shown or leg.side in self._lifted
-                pin = (index, index, heads[3][0], worlds[3][0]) if landed else (pin[0], index, pin[2], pin[3])
+                if landed:
+                    worlds, heads = _pose(leg, displacement, pose)
+                    pin = (index, index, heads[3][0], worlds[3][0])
+                else:
+                    pin = (pin[0], index, pin[2], pin[3])
                 self._pins[leg.side] = pin
             elif pin is not None and index - pin[1] > self.ease:
                 del self._pins[leg.side]
                 pin = None
             if pin is not None:
-                pinned.append((leg, [(pin[0] - index, pin[1] - index, pin[2], pin[3])], worlds, heads))
-        up = _up(legs)
-        drop = max([_reach_drop(leg, heads, pins, worlds, self.ease, up) for leg, pins, worlds, heads in pinned],
-                   default=0.0)
-        if drop > 0:
-            displacement = displacement - drop * up
-        out = {}
-        for leg, pins, worlds, heads in pinned:
-            if drop > 0:
-                worlds, heads = _pose(leg, displacement, pose)
-            out.update(_solve(leg, worlds, heads, pins, self.ease))
+                pins[leg.side] = [(pin[0] - index, pin[1] - index, pin[2], pin[3])]
+        out, displacement = _solve_legs(legs, displacement, _reach_drop(legs, displacement, pose, pins, self.ease),
+                                        pose, pins, self.ease)
         self._shown = index
         self._lifted.clear()
         return out, displacement
