@@ -1,6 +1,7 @@
 """The fast sampling against the model's own 25-step sampling, side by side in one run (issue 39).
 
-Both samplings of the bundled model on real speech, seeds 0 and 1:
+Both samplings of the bundled model on real speech, seeds 0-3 (with two, the window Fréchet
+distance of the same sampling moved 1.12x -> 1.27x between seeds 0-1 and 2-3):
 - the real take 2_scott_0_1_1 (64 s; its motion capture as the reference, its TextGrid for the
   jaw's vowel/bilabial contrast), and its held-out last 20 s (the gestures the model learned
   come from the first 44 s only);
@@ -55,7 +56,7 @@ TAKE_BVH = DATA / "beat" / "2_scott_0_1_1.bvh"
 UNSEEN = (DATA / "audio" / "2_scott_0_3_3.wav", DATA / "audio" / "12_zhao_2_3_3.wav")
 HELD_OUT_S = 20.0
 UNSEEN_S = 30.0
-SEEDS = (0, 1)
+SEEDS = (0, 1, 2, 3)
 RANGE = (300, 370)  # frames of the take regenerated (20 s to 24.7 s)
 FIGURES = (("comparison", "wrist speed / reference", "speed/cap"),
            ("comparison", "wrist jitter / reference", "jitter/cap"),

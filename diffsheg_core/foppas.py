@@ -59,6 +59,7 @@ FACE_STREAM = 0xFACE5EED  # the face's generator is seeded with (face_seed, this
 BRANCH_STREAM = 0xB4A9C5  # a lower branch's channels: generators seeded with (seed, this[, PROPOSAL_STREAM])
 SEAM_FRAMES = 5  # frames either side of a seam that best-of-N selection compares
 HOLD_CARRY = 16  # frames at least that a held value's gap is carried into (a pin flows in and out)
+MAX_PRIOR_SPREAD = 4.0  # FoppasConfig.prior_spread's upper bound: beyond it a draw is no longer the prior's
 
 class EpsFn(Protocol):
     """(x_t of shape (B, L, D), schedule index) -> predicted noise (B, L, D). Only the
@@ -92,6 +93,7 @@ class FoppasConfig:
     branch_eta: Optional[float] = None  # the eta of a lower branch's channels (None: eta)
     face_eta: Optional[float] = None   # the eta of the face's channels (None: eta)
     prior_start: bool = True           # later windows start from the model's gesture prior, if it has one
+    prior_spread: float = 1.0          # that draw's spread about its mean, as a multiple of the fitted one's
     candidates: int = 1                # later windows sampled this many times in one batch; the best continues
     carry: int = 0                     # frames the overlap's x0 gap is carried into (0: off, as the official code)
     refine: Optional[int] = None       # schedule index of a last pass over each window's gestures (None: off)
@@ -144,6 +146,10 @@ class FoppasConfig:
         if isinstance(self.refine_skip, bool) or not isinstance(self.refine_skip, (int, float)) \
                 or not 0 <= self.refine_skip < float("inf"):
             raise ValueError(f"refine_skip must be a finite number >= 0, got {self.refine_skip!r}")
+        if isinstance(self.prior_spread, bool) or not isinstance(self.prior_spread, (int, float)) \
+                or not 0 < self.prior_spread <= MAX_PRIOR_SPREAD:
+            raise ValueError(f"prior_spread must be a number above 0 and at most {MAX_PRIOR_SPREAD:g}, "
+                             f"got {self.prior_spread!r}")
 
     def with_steps(self, steps: int) -> "FoppasConfig":
         """The same settings with `steps` DDIM steps; later windows keep starting, and the
@@ -188,6 +194,12 @@ start: five face steps keep its blinks, three lose nine in ten), the gestures at
 three, from the gesture prior (from the lowest two their jitter on unseen speech was 1.17x the
 25 steps'), low enough to leave no wobble after the refining pass (docs/foppas.md)."""
 
+FAST_PRIOR_SPREAD = 1.1
+"""The fast sampling's gesture prior draws (`FoppasConfig.prior_spread`): its three gesture steps
+calm a draw of the fitted spread (the gestures' window Fréchet distance to the capture 1.18x the
+25 steps', wrist speed on unseen speech 0.94x); 1.1x brings them to 1.01x and 0.99x, jitter
+1.04x (bench/bench_sampling.py, seeds 0-3, 2026-12-06; docs/foppas.md)."""
+
 SAMPLINGS = ("fast", "quality")
 """The named samplings: `fast` (the default) and `quality` (the model's own settings, 25 steps
 for the bundled model); `sampling_settings` turns a name, or a preset's, into settings."""
@@ -206,7 +218,7 @@ def fast_sampling(config: FoppasConfig) -> FoppasConfig:
     the expression branch and the refining pass's gesture branch, instead of 18 and the pass."""
     return replace(config, steps=len(FAST_TIMESTEPS), timesteps=FAST_TIMESTEPS, later_start=2,
                    face_start=len(FAST_TIMESTEPS) - 1, face_eta=0.0, jump_length=1, jump_n_sample=1,
-                   refine=None if config.refine is None else 0)
+                   refine=None if config.refine is None else 0, prior_spread=FAST_PRIOR_SPREAD)
 
 
 def sampling_settings(model_sampling: FoppasConfig, name: str) -> FoppasConfig:

@@ -9,6 +9,7 @@ are the same for both.
 from __future__ import annotations
 
 import threading
+from functools import partial
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Iterator, Optional, Union
@@ -125,7 +126,8 @@ def build_sampling(bundle: ModelBundle, network, plan: Plan) -> tuple[Foppas, Ca
     refine_offset = 0 if student is None else bundle.student.info["distilled"].get("refine_offset", 0)
     try:
         sampler = Foppas(Schedule.linear(), config, bundle.config.clip_len, bundle.config.dim,
-                         proposal=bundle.prior.propose if uses_prior(bundle, config) else None,
+                         proposal=partial(bundle.prior.propose, spread=config.prior_spread)
+                         if uses_prior(bundle, config) else None,
                          gestures=bundle.config.gesture_dim, branch=bundle.config.lower_dim)
     except ValueError as exc:
         raise DiffshegError(str(exc)) from None
@@ -297,7 +299,8 @@ def generation_meta(bundle: ModelBundle, s: GenerateSettings, plan: Plan, networ
         "sampling": plan.sampling, "steps": config.steps,
         "timesteps": None if config.timesteps is None else list(config.timesteps),
         "overlap": config.overlap, "candidates": config.candidates,
-        "prior_start": uses_prior(bundle, config), "carry": config.carry,
+        "prior_start": uses_prior(bundle, config),
+        "prior_spread": config.prior_spread if uses_prior(bundle, config) else None, "carry": config.carry,
         "refine": config.refine, "refine_skip": config.refine_skip if config.refine is not None else None,
         "clip_len": bundle.config.clip_len, "backend": network.name,
         "warnings": list(getattr(speech, "notes", [])),

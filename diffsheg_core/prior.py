@@ -67,9 +67,11 @@ class GesturePrior:
         axes[:self.dims, :self.dims], axes[self.dims:, self.dims:] = self.axes, other.axes
         return GesturePrior(np.concatenate([self.mean, other.mean]), axes, np.concatenate([self.autocov, other.autocov]))
 
-    def propose(self, known: np.ndarray, length: int, generator: np.random.Generator) -> np.ndarray:
+    def propose(self, known: np.ndarray, length: int, generator: np.random.Generator,
+                spread: float = 1.0) -> np.ndarray:
         """A (length, dims) draw of the gesture channels whose first frames are those of
-        `known` (n, >= dims), n < length <= max_len."""
+        `known` (n, >= dims), n < length <= max_len; `spread` scales the new frames' deviation
+        from their mean given the known ones (1: the fitted prior's)."""
         n = known.shape[0]
         if not 0 < n < length <= self.max_len:
             raise DiffshegError(f"the gesture prior continues 1 to {self.max_len - 1} known frames "
@@ -78,7 +80,7 @@ class GesturePrior:
         given = np.asarray(known[:, : self.dims], np.float64)
         y_known = ((given - self.mean) @ self.axes).T                                     # (G, n)
         z = generator.standard_normal((self.dims, length - n))
-        y_new = gain @ y_known[..., None] + scale @ z[..., None]                          # (G, m, 1)
+        y_new = gain @ y_known[..., None] + spread * (scale @ z[..., None])               # (G, m, 1)
         drawn = y_new[..., 0].T @ self.axes.T + self.mean
         return np.concatenate([given, drawn]).astype(known.dtype)
 

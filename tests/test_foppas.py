@@ -609,15 +609,17 @@ def test_best_of_n_is_recorded_changes_only_later_windows_and_keeps_a_fixed_face
 def test_the_fast_sampling_steps_at_its_own_timesteps_and_keeps_the_models_settings():
     """`fast_sampling` of a model's settings: five steps at FAST_TIMESTEPS (the schedule's
     model timesteps), later windows' gestures from the third step and the face from the top
-    (deterministic), no RePaint jumps, the refining pass at the lowest step; the rest (carry,
-    the prior, eta, refine_skip) as the model has them. --steps N gives N even steps."""
-    from diffsheg_core.foppas import FAST_TIMESTEPS, fast_sampling, sampling_settings
+    (deterministic), no RePaint jumps, the refining pass at the lowest step, the prior's draws
+    1.1x as wide; the rest (carry, the prior, eta, refine_skip) as the model has them. --steps N
+    gives N even steps."""
+    from diffsheg_core.foppas import FAST_PRIOR_SPREAD, FAST_TIMESTEPS, fast_sampling, sampling_settings
 
     model = replace(PRESETS["no-resample"], eta=1.0, carry=12, refine=1, refine_skip=3.5)
     fast = fast_sampling(model)
     assert fast.timesteps == FAST_TIMESTEPS and fast.steps == len(FAST_TIMESTEPS)
     assert (fast.later_start, fast.face_start, fast.face_eta, fast.refine) == (2, 4, 0.0, 0)
     assert (fast.eta, fast.carry, fast.refine_skip, fast.prior_start) == (1.0, 12, 3.5, True)
+    assert fast.prior_spread == FAST_PRIOR_SPREAD == 1.1 and model.prior_spread == 1.0  # the fast steps' draws wider
     assert list(Foppas(Schedule.linear(), fast, 34, 4).schedule.timesteps) == list(FAST_TIMESTEPS)
     assert fast_sampling(replace(model, refine=None)).refine is None
     assert sampling_settings(model, "fast") == fast and sampling_settings(model, "quality") == model
@@ -639,6 +641,9 @@ def test_the_fast_sampling_steps_at_its_own_timesteps_and_keeps_the_models_setti
     (dict(face_start=0), "face_start must be None"),
     (dict(face_start=5), "face_start must be None"),
     (dict(face_eta=1.5), "face_eta must be None"),
+    (dict(prior_spread=0), "prior_spread must be a number above 0 and at most 4"),
+    (dict(prior_spread=5.0), "prior_spread must be a number above 0"),
+    (dict(prior_spread=True), "prior_spread must be a number"),
 ])
 def test_bad_fast_settings_are_refused(setting, match):
     from diffsheg_core.foppas import fast_sampling

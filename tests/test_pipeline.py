@@ -310,9 +310,13 @@ def test_later_windows_start_from_the_models_gesture_prior(speech, prior_model, 
     without = generate(speech, model=bundle, steps=3, device="cpu",
                        sampling=replace(bundle.sampling, prior_start=False))
     assert with_prior.meta["prior_start"] and not without.meta["prior_start"]
+    assert with_prior.meta["prior_spread"] == 1.0 and without.meta["prior_spread"] is None
     first = bundle.config.clip_len - bundle.sampling.overlap
     assert np.array_equal(with_prior.rotations[:first], without.rotations[:first])
     assert not np.allclose(with_prior.rotations[first:], without.rotations[first:])
+    wider = generate(speech, model=bundle, steps=3, device="cpu", sampling=replace(bundle.sampling, prior_spread=1.5))
+    assert wider.meta["prior_spread"] == 1.5 and np.array_equal(wider.rotations[:first], with_prior.rotations[:first])
+    assert not np.allclose(wider.rotations[first:], with_prior.rotations[first:])  # the draws reach the windows
 
     path = save_checkpoint(bundle, tmp_path / "with_prior.safetensors")
     loaded = load_model(path)

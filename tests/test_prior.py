@@ -74,6 +74,25 @@ def test_known_frames_kept_and_only_the_gesture_channels_drawn(prior, capture):
     assert shorter.shape == (20, prior.dims)
 
 
+def test_spread_scales_a_draw_about_its_mean_given_the_known_frames(prior, capture):
+    """`spread` (the fast sampling's FoppasConfig.prior_spread) multiplies the new frames'
+    deviation from their conditional mean, drawn with the same numbers; the known frames and
+    where the draw is centred stay as they were."""
+    known = capture[1][:KNOWN].astype(np.float32)
+    draws = {k: prior.propose(known, CLIP, np.random.default_rng(0), spread=k).astype(np.float64)
+             for k in (1.0, 1.1, 2.0)}
+    mean = 2 * draws[1.0] - draws[2.0]  # the conditional mean: the draws are linear in spread
+    assert np.allclose(draws[1.1] - mean, 1.1 * (draws[1.0] - mean), atol=1e-5)
+    assert np.array_equal(draws[1.1][:KNOWN], known[:, : prior.dims])
+    _, one = _continuations(prior, capture[1])
+    real = np.stack([capture[1][s: s + CLIP] for s in range(0, len(capture[1]) - CLIP, 8)])
+    gen = np.random.default_rng(0)  # the numbers _continuations drew
+    wider = np.stack([prior.propose(w[:KNOWN].astype(np.float32), CLIP, gen, spread=1.1) for w in real])
+    ratio = wider[:, KNOWN:].std() / one[:, KNOWN:].std()
+    print(f"the new frames' spread at 1.1: {ratio:.3f}x the fitted draw's")
+    assert 1.02 < ratio < 1.1  # the part the known frames fix is not widened
+
+
 def test_bad_requests_are_refused(prior, capture):
     known = capture[1][:KNOWN].astype(np.float32)
     with pytest.raises(DiffshegError, match="known frames"):
