@@ -3,7 +3,7 @@
 Issue 40, item 4. Keys, through the Ready Player Me preset onto the real avatar
 (../shared/data/rigs/readyplayerme_brunette.glb), the real capture of 2_scott_0_1_1 (its BEAT
 BVH upper body, BEAT2 SMPL-X hips and legs) and the bundled model's takes of the same speech
-(seeds 0-2), and measures on the keyed rig in world space, frame by frame at 24 fps:
+(seeds 0-5), and measures on the keyed rig in world space, frame by frame at 24 fps:
   hands   the mean height of the wrists (the hand bones' heads) above the floor, m
   pitch   the head bone's forward tilt from upright, in the avatar's facing plane (its -Y,
           where the glTF import faces it), degrees, positive down
@@ -11,7 +11,7 @@ over the whole take and over its last 20 s (which the model's training takes did
 Prints a table with each seed's difference from the capture and the goal's bars (within 5 cm
 and 3 degrees).
 
-    python bench/eval_posture.py [--seeds 0 1 2] [--sampling fast]
+    python bench/eval_posture.py [--seeds 0 1 2 3 4 5] [--sampling fast]
 
 Needs bpy. About two minutes a seed on the 2-core CI box.
 """
@@ -74,7 +74,7 @@ def summary(per_frame: dict[str, np.ndarray], fps: float) -> dict[str, tuple[flo
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4, 5])
     p.add_argument("--sampling", default="fast", choices=["fast", "quality"])
     args = p.parse_args()
     print(f"machine: {platform.machine()}, {platform.processor() or platform.platform()}; bpy {bpy.app.version_string}")

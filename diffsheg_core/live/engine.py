@@ -54,11 +54,13 @@ class LiveConfig:
       of 18, the same figures against offline.
     - legs_eta None (the model's eta): less noise sways the hips more, but the first foot
       comes down late and a rig's planted foot strays.
-    - skip_scale 2.6: live's new frames are painted against 31 known ones without the refining
-      pass, so they need more skip guidance to move like offline's; 2.6x keeps wrist speed and
-      jitter nearest their bars (0.9x, 1.2x of offline's). The 25 steps keep the settings'.
-    - legs_skip_scale 3.5: the hips sway about 0.8x offline's (the lower branch's channels of the
-      same passes: no more compute).
+    - skip_scale 2.8: live's new frames are painted against 31 known ones without the refining
+      pass, so they need more skip guidance to move like offline's; 2.8x keeps wrist speed and
+      jitter nearest their bars (0.9x, 1.2x of offline's, whose gesture prior draws are 1.1x as
+      wide since 2026-12-06; 2.6x before them). The 25 steps keep the settings'.
+    - legs_skip_scale 4: the hips sway about 0.85x offline's (the lower branch's channels of the
+      same passes: no more compute); at 3.5x, 0.80x once offline's gesture prior draws widened.
+      More sways more but sets a foot down less often.
     - max_hop 12: a machine too slow for the hop does not fall behind: when more than a hop of
       audio waits, the next window takes it all (a window costs about the same for any hop),
       so the latency stays bounded and no audio is dropped; the status line and the recording
@@ -70,8 +72,8 @@ class LiveConfig:
     context: float = 3.0               # seconds of audio the speech features of a window are computed over
     later_start: Optional[int] = 14    # schedule index later windows start from, at 25 steps (None: the model's)
     legs_eta: Optional[float] = None   # eta of a whole-body model's legs (None: the model's eta)
-    skip_scale: float = 2.6            # the fast sampling's gesture skip guidance live, times the settings'
-    legs_skip_scale: float = 3.5       # ... and that of a whole-body model's hips and legs
+    skip_scale: float = 2.8            # the fast sampling's gesture skip guidance live, times the settings'
+    legs_skip_scale: float = 4.0       # ... and that of a whole-body model's hips and legs
 
     def check(self, clip_len: int) -> None:
         for name, value, (lo, hi) in (("hop", self.hop, HOPS), ("lookahead", self.lookahead, LOOKAHEADS)):
