@@ -93,7 +93,7 @@ class FoppasConfig:
     branch_eta: Optional[float] = None  # the eta of a lower branch's channels (None: eta)
     face_eta: Optional[float] = None   # the eta of the face's channels (None: eta)
     prior_start: bool = True           # later windows start from the model's gesture prior, if it has one
-    prior_spread: float = 1.0          # that draw's spread about its mean, as a multiple of the fitted one's
+    prior_spread: float = 1.0          # its spread about its mean, times the fitted one's (the model's prior draws so)
     candidates: int = 1                # later windows sampled this many times in one batch; the best continues
     carry: int = 0                     # frames the overlap's x0 gap is carried into (0: off, as the official code)
     refine: Optional[int] = None       # schedule index of a last pass over each window's gestures (None: off)
@@ -195,7 +195,8 @@ three, from the gesture prior (from the lowest two their jitter on unseen speech
 25 steps'), low enough to leave no wobble after the refining pass (docs/foppas.md)."""
 
 FAST_PRIOR_SPREAD = 1.1
-"""The fast sampling's gesture prior draws (`FoppasConfig.prior_spread`): its three gesture steps
+"""The fast sampling's gesture prior draws, the hips' and legs' among them
+(`FoppasConfig.prior_spread`, offline and live): its three gesture steps
 calm a draw of the fitted spread (the gestures' window Fréchet distance to the capture 1.18x the
 25 steps', wrist speed on unseen speech 0.94x); 1.1x brings them to 1.01x and 0.99x, jitter
 1.04x (bench/bench_sampling.py, seeds 0-3, 2026-12-06; docs/foppas.md)."""
@@ -214,8 +215,9 @@ def fast_sampling(config: FoppasConfig) -> FoppasConfig:
     overlap) and its face from the top, the face's steps above the gestures' running the
     expression branch alone (`face_start`) and deterministic (`face_eta` 0: with stochastic
     steps this few, the face loses its blinks); no RePaint jumps; the refining pass, if the
-    model has one, at the lowest step. A later window costs three full network calls, two of
-    the expression branch and the refining pass's gesture branch, instead of 18 and the pass."""
+    model has one, at the lowest step; the gesture prior's draws FAST_PRIOR_SPREAD as wide. A
+    later window costs three full network calls, two of the expression branch and the refining
+    pass's gesture branch, instead of 18 and the pass."""
     return replace(config, steps=len(FAST_TIMESTEPS), timesteps=FAST_TIMESTEPS, later_start=2,
                    face_start=len(FAST_TIMESTEPS) - 1, face_eta=0.0, jump_length=1, jump_n_sample=1,
                    refine=None if config.refine is None else 0, prior_spread=FAST_PRIOR_SPREAD)

@@ -6,7 +6,7 @@ thread (the same generation settings, character, preset and checks as Generate),
 the rig once with keying's own mapping (bake.resolve_preset / map_targets) and starts a
 `diffsheg_core.live.LiveSession`, which generates off the main thread. On every tick (the
 modal operator's timer, ~60 per second) `step` poses the newest frame due through the
-channels keying would write for it (bake.bone_channels / face_channels: the bone's own
+channels keying would write for it (bake.body_pose / rotation_channels / face_channels: the bone's own
 rotation mode, the shape keys' slider ranges): nothing is keyed and no Action changes
 while live. On Stop (or when the source ends) the session finishes in a background job;
 `end` then puts the pose back as it was (the Action's, where one plays), and with Record

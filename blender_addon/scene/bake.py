@@ -185,15 +185,6 @@ def map_targets(motion: Motion, options: BakeOptions, preset_notes: list[str] = 
     return TargetMap(options, mapping, faces, list(preset_notes))
 
 
-def bone_channels(armature, mapping: ArmatureMapping, motion: Motion,
-                  smoothing: float = 0.0) -> list[tuple[str, list[Channel]]]:
-    """(bone, its rotation channels in the bone's own rotation mode) for every bone `mapping`
-    drives, one value per frame of `motion`, the legs' with their feet planted on the rig."""
-    quaternions, _ = body_pose(mapping, motion, smoothing)
-    return [(bone, rotation_channels(bone, armature.pose.bones[bone].rotation_mode, quats))
-            for bone, quats in quaternions.items()]
-
-
 def body_pose(mapping: ArmatureMapping, motion: Motion,
               smoothing: float = 0.0) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
     """Per driven bone its (T, 4) local quaternions, and the hips bone's (T, 3) location (None

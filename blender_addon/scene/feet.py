@@ -65,13 +65,19 @@ def plant_feet(legs: list[LegRig], displacement: np.ndarray, quaternions: dict[s
     lowered (eased in and out) where a pinned foot lies beyond its straight leg's reach.
     `quaternions`: local (T, 4) per bone, `hips` the hips bone's."""
     pose = {"hips": quaternions[hips], **{b: quaternions[b] for leg in legs for b in leg.bones}}
-    pins = {}
-    for leg in legs:
-        worlds, heads = _pose(leg, displacement, pose)
-        pins[leg.side] = [(a, b, heads[3][(a + b) // 2], worlds[3][(a + b) // 2]) for a, b in spans.get(leg.side, [])]
+    posed = {leg.side: _pose(leg, displacement, pose) for leg in legs}
+    pins = {side: [(a, b, heads[3][(a + b) // 2], worlds[3][(a + b) // 2]) for a, b in spans.get(side, [])]
+            for side, (worlds, heads) in posed.items()}
     ease = max(1, int(round(EASE_S * fps)))
-    drop = _eased(_reach_drop(legs, displacement, pose, pins, ease), max(1, int(round(DROP_EASE_S * fps))))
-    return _solve_legs(legs, displacement, drop, pose, pins, ease)
+    goals = _goals(posed, pins, ease)
+    drop = _eased(_reach_drop(legs, posed, goals), max(1, int(round(DROP_EASE_S * fps))))
+    return _solve_legs(legs, displacement, drop, pose, posed, goals)
+
+
+def _goals(posed: dict[str, tuple[list, list]], pins: dict[str, list], ease: int) -> dict[str, tuple]:
+    """Per side, where the ankle and the foot should be and how much the pins hold them there
+    (leg_ik.pin_goals), from the leg as posed (`posed`: per side its worlds and heads)."""
+    return {side: pin_goals(heads[3], worlds[3], pins.get(side, []), ease) for side, (worlds, heads) in posed.items()}
 
 
 def _eased(drop: np.ndarray, frames: int) -> np.ndarray:
@@ -86,20 +92,20 @@ def _eased(drop: np.ndarray, frames: int) -> np.ndarray:
 
 
 def _solve_legs(legs: list[LegRig], displacement: np.ndarray, drop: np.ndarray, pose: dict[str, np.ndarray],
-                pins: dict[str, list], ease: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """The legs' bones solved so each ankle and foot are where its `pins` (by side) hold them
-    and, where the hips come down by `drop` along the rig's up, elsewhere where they were before
-    (a free foot is not dragged down with the hips); and the lowered displacement (the same
-    array where `drop` is all 0)."""
+                posed: dict[str, tuple[list, list]], goals: dict[str, tuple]
+                ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The legs' bones (`posed` at `displacement`: per side its worlds and heads) solved so each
+    ankle and foot are at their `goals` (by side) where a pin holds them and, where the hips come
+    down by `drop` along the rig's up, elsewhere where they were before (a free foot is not
+    dragged down with the hips); and the lowered displacement (the same array where `drop` is
+    all 0)."""
     lowered = displacement - np.reshape(drop, (-1, 1)) * _up(legs) if np.any(drop) else displacement
     out = {}
     for leg in legs:
-        worlds, heads = _pose(leg, displacement, pose)
-        goal, goal_rot, weight = pin_goals(heads[3], worlds[3], pins.get(leg.side, []), ease)
+        goal, goal_rot, weight = goals[leg.side]
         held = (weight > 0) | (drop > 0)
         if np.any(held):
-            if lowered is not displacement:
-                worlds, heads = _pose(leg, lowered, pose)
+            worlds, heads = posed[leg.side] if lowered is displacement else _pose(leg, lowered, pose)
             out.update(_solve(leg, worlds, heads, goal, goal_rot, held))
     return out, lowered
 
@@ -138,18 +144,16 @@ def _up(legs: list[LegRig]) -> np.ndarray:
     return up / np.linalg.norm(up)
 
 
-def _reach_drop(legs: list[LegRig], displacement: np.ndarray, pose: dict[str, np.ndarray], pins: dict[str, list],
-                ease: int) -> np.ndarray:
+def _reach_drop(legs: list[LegRig], posed: dict[str, tuple[list, list]], goals: dict[str, tuple]) -> np.ndarray:
     """Per frame, how far along the rig's up (armature units, at most MAX_DROP of the leg) the
-    hips must come down for each leg's hip joint to lie within REACH of where its `pins` (by
-    side) hold the ankle; 0 where no pin holds."""
-    up, drop = _up(legs), np.zeros(len(displacement))
+    hips must come down for each leg's hip joint (as `posed`) to lie within REACH of where a pin
+    holds its ankle (`goals`); 0 where no pin holds."""
+    up, drop = _up(legs), 0.0
     for leg in legs:
-        worlds, heads = _pose(leg, displacement, pose)
-        goal, _, weight = pin_goals(heads[3], worlds[3], pins.get(leg.side, []), ease)
+        goal, _, weight = goals[leg.side]
         length = leg_length(leg)
         reach = REACH * length
-        apart = heads[1] - goal
+        apart = posed[leg.side][1][1] - goal
         along = apart @ up
         inside = along ** 2 - np.einsum("ti,ti->t", apart, apart) + reach ** 2
         # how much nearer the goal the hip must come along up
@@ -186,24 +190,22 @@ class LiveFeet:
         a few millimetres short, and the foot would slide towards the hips); a foot not pinned
         stays where the stream put it while the hips come down."""
         pose = {"hips": quaternions[hips], **{b: quaternions[b] for leg in legs for b in leg.bones}}
+        posed = {leg.side: _pose(leg, displacement, pose) for leg in legs}
         pins = {}
         for leg in legs:
             pin = self._pins.get(leg.side)
             if down.get(leg.side):
                 landed = pin is None or self._shown is None or pin[1] < self._shown or leg.side in self._lifted
-                if landed:
-                    worlds, heads = _pose(leg, displacement, pose)
-                    pin = (index, index, heads[3][0], worlds[3][0])
-                else:
-                    pin = (pin[0], index, pin[2], pin[3])
+                worlds, heads = posed[leg.side]
+                pin = (index, index, heads[3][0], worlds[3][0]) if landed else (pin[0], index, pin[2], pin[3])
                 self._pins[leg.side] = pin
             elif pin is not None and index - pin[1] > self.ease:
                 del self._pins[leg.side]
                 pin = None
             if pin is not None:
                 pins[leg.side] = [(pin[0] - index, pin[1] - index, pin[2], pin[3])]
-        out, displacement = _solve_legs(legs, displacement, _reach_drop(legs, displacement, pose, pins, self.ease),
-                                        pose, pins, self.ease)
+        goals = _goals(posed, pins, self.ease)
+        out, displacement = _solve_legs(legs, displacement, _reach_drop(legs, posed, goals), pose, posed, goals)
         self._shown = index
         self._lifted.clear()
         return out, displacement

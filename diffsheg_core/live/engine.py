@@ -56,8 +56,9 @@ class LiveConfig:
       comes down late and a rig's planted foot strays.
     - skip_scale 2.8: live's new frames are painted against 31 known ones without the refining
       pass, so they need more skip guidance to move like offline's; 2.8x keeps wrist speed and
-      jitter nearest their bars (0.9x, 1.2x of offline's, whose gesture prior draws are 1.1x as
-      wide since 2026-12-06; 2.6x before them). The 25 steps keep the settings'.
+      jitter nearest their bars (0.9x, 1.2x of offline's; 2.6x before the fast sampling's prior
+      draws were 1.1x as wide, 2026-12-06, which moved offline's more than live's). The 25 steps
+      keep the settings'.
     - legs_skip_scale 4: the hips sway about 0.85x offline's (the lower branch's channels of the
       same passes: no more compute); at 3.5x, 0.80x once offline's gesture prior draws widened.
       More sways more but sets a foot down less often.
