@@ -30,11 +30,12 @@ def prior(capture) -> GesturePrior:
     return GesturePrior.fit([capture[0]], capture[0].shape[1] - FACE, CLIP)
 
 
-def _continuations(prior: GesturePrior, held: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def _continuations(prior: GesturePrior, held: np.ndarray, seed: int = 0,
+                   spread: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """(real windows, drawn windows) for every window start in the held-out frames."""
     gen = np.random.default_rng(seed)
     real = np.stack([held[s: s + CLIP] for s in range(0, len(held) - CLIP, 8)])
-    drawn = np.stack([prior.propose(w[:KNOWN].astype(np.float32), CLIP, gen) for w in real])
+    drawn = np.stack([prior.propose(w[:KNOWN].astype(np.float32), CLIP, gen, spread=spread) for w in real])
     return real, drawn
 
 
@@ -85,9 +86,7 @@ def test_spread_scales_a_draw_about_its_mean_given_the_known_frames(prior, captu
     assert np.allclose(draws[1.1] - mean, 1.1 * (draws[1.0] - mean), atol=1e-5)
     assert np.array_equal(draws[1.1][:KNOWN], known[:, : prior.dims])
     _, one = _continuations(prior, capture[1])
-    real = np.stack([capture[1][s: s + CLIP] for s in range(0, len(capture[1]) - CLIP, 8)])
-    gen = np.random.default_rng(0)  # the numbers _continuations drew
-    wider = np.stack([prior.propose(w[:KNOWN].astype(np.float32), CLIP, gen, spread=1.1) for w in real])
+    _, wider = _continuations(prior, capture[1], spread=1.1)  # the same numbers drawn
     ratio = wider[:, KNOWN:].std() / one[:, KNOWN:].std()
     print(f"the new frames' spread at 1.1: {ratio:.3f}x the fitted draw's")
     assert 1.02 < ratio < 1.1  # the part the known frames fix is not widened

@@ -155,10 +155,11 @@ def _reach_drop(legs: list[LegRig], posed: dict[str, tuple[list, list]], goals: 
         reach = REACH * length
         apart = posed[leg.side][1][1] - goal
         along = apart @ up
-        inside = along ** 2 - np.einsum("ti,ti->t", apart, apart) + reach ** 2
+        apart2 = np.einsum("ti,ti->t", apart, apart)
+        inside = along ** 2 - apart2 + reach ** 2
         # how much nearer the goal the hip must come along up
         closer = np.where(inside >= 0, along - np.sqrt(np.clip(inside, 0.0, None)), along)
-        short = (np.linalg.norm(apart, axis=1) > reach) & (weight > 0)
+        short = (apart2 > reach ** 2) & (weight > 0)
         drop = np.maximum(drop, np.where(short, np.clip(closer, 0.0, MAX_DROP * length), 0.0))
     return drop
 
