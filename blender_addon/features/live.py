@@ -84,8 +84,6 @@ class Poser:
     def _values(self, motion, frame=None) -> list[tuple[object, str, tuple]]:
         """(datablock, data path, values by array index) of the first frame of `motion`, the
         stream's `frame` (a LiveFrame) when it is one, with its feet pinned."""
-        import numpy as np
-
         from ..scene.bake import body_pose, face_channels, location_channels, rotation_channels
 
         out = []
@@ -94,12 +92,12 @@ class Poser:
             armature = self.options.armature
             quaternions, location = body_pose(mapping, motion)
             if frame is not None and frame.feet_down and location is not None and mapping.legs:
-                displacement = location @ mapping.root.rest.T
+                displacement = mapping.root.displacement(location)
                 legs, lowered = self.feet.solve(mapping.legs, displacement, quaternions, mapping.root.bone,
                                                 frame.feet_down, frame.index)
                 quaternions.update(legs)
                 if lowered is not displacement:  # the hips came down for a pinned foot to reach
-                    location = np.linalg.solve(mapping.root.rest, lowered.T).T
+                    location = mapping.root.location(lowered)
             groups = [rotation_channels(bone, armature.pose.bones[bone].rotation_mode, quats)
                       for bone, quats in quaternions.items()]
             if location is not None:

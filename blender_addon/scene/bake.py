@@ -205,11 +205,11 @@ def body_pose(mapping: ArmatureMapping, motion: Motion,
     spans = {leg.side: scene_spans(contacts.get(leg.side, []), motion.meta.get("source_fps", motion.fps),
                                    motion.fps, motion.n_frames) for leg in mapping.legs}
     if any(spans.values()):
-        displacement = location @ mapping.root.rest.T
+        displacement = mapping.root.displacement(location)
         legs, lowered = plant_feet(mapping.legs, displacement, quaternions, mapping.root.bone, spans, motion.fps)
         quaternions.update(legs)
         if lowered is not displacement:  # the hips came down for a pinned foot to reach
-            location = np.linalg.solve(mapping.root.rest, lowered.T).T
+            location = mapping.root.location(lowered)
     return quaternions, location
 
 

@@ -118,6 +118,14 @@ class RootTarget:
     matrix: np.ndarray
     rest: np.ndarray   # 3x3: the bone's location to a displacement in armature space
 
+    def displacement(self, location: np.ndarray) -> np.ndarray:
+        """(T, 3) pose-bone locations as displacements in armature space (feet.py works in these)."""
+        return location @ self.rest.T
+
+    def location(self, displacement: np.ndarray) -> np.ndarray:
+        """(T, 3) displacements in armature space back to pose-bone locations."""
+        return np.linalg.solve(self.rest, displacement.T).T
+
 
 @dataclass
 class LegRig:
