@@ -11,7 +11,7 @@ over the whole take and over its last 20 s (which the model's training takes did
 Prints a table with each seed's difference from the capture and the goal's bars (within 5 cm
 and 3 degrees).
 
-    python bench/eval_posture.py [--seeds 0 1 2 3 4 5] [--sampling fast]
+    python bench/eval_posture.py [--seeds 0 1 2 3 4 5] [--sampling fast] [--model FILE]
 
 Needs bpy. About two minutes a seed on the 2-core CI box.
 """
@@ -76,12 +76,13 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4, 5])
     p.add_argument("--sampling", default="fast", choices=["fast", "quality"])
+    p.add_argument("--model", help="model file (default: the bundled one)")
     args = p.parse_args()
     print(f"machine: {platform.machine()}, {platform.processor() or platform.platform()}; bpy {bpy.app.version_string}")
     capture = summary(posture(capture_take(None)[0]), 24.0)
     rows = {"capture": capture}
     for seed in args.seeds:
-        made = generate(str(TAKE_WAV), seed=seed, sampling=args.sampling, device="cpu")
+        made = generate(str(TAKE_WAV), seed=seed, sampling=args.sampling, device="cpu", model=args.model)
         rows[f"seed {seed}"] = summary(posture(made), 24.0)
     print(f"\nReady Player Me avatar, 2_scott_0_1_1 ({args.sampling} sampling); whole take | last {HELD_OUT_S:g} s")
     print("| | hands above floor (m) | hands - capture (cm) | head pitch (deg) | pitch - capture (deg) |")

@@ -22,6 +22,7 @@ normalisation statistics; `load_model` tells the two apart.
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -241,6 +242,7 @@ def _stored_student(teacher: ModelBundle, meta: dict, tensors: dict, graphs: dic
         raise CheckpointError(f"{path}: its distilled student is incomplete (it needs the graphs "
                               f"{', '.join(GRAPH_PREFIX + STUDENT_PREFIX + g for g in NETWORK_GRAPHS)} and the "
                               "metadata 'student' saying what it was distilled at); export it again")
+    _check_posture(record["info"].get("posture"), teacher.config.gesture_dim, path, "its distilled student's posture")
     weights = _network_weights(_prefixed(tensors, STUDENT_PREFIX), own, path, "distilled student")
     if "phonetic" in teacher.graphs:  # the student hears through the teacher's encoder
         own["phonetic"] = teacher.graphs["phonetic"]
@@ -272,6 +274,7 @@ def _load_ours(path: Path) -> ModelBundle:
         raise CheckpointError(f"{path}: its metadata 'info' is a JSON {type(info).__name__}, not an object: "
                               f"the file was edited or damaged; export it again from its training run")
     _check_styles(info, cfg.style_dim, path)
+    _check_posture(info.get("live_posture"), cfg.gesture_dim, path, "its live posture")
     bundle = ModelBundle(
         config=cfg, weights=weights, mean=mean, std=std, sampling=sampling,
         guidance=_json(meta, "guidance", "null", path),
@@ -281,6 +284,15 @@ def _load_ours(path: Path) -> ModelBundle:
         graphs={k: v for k, v in graphs.items() if not k.startswith(STUDENT_PREFIX)}, source=str(path))
     bundle.student = _stored_student(bundle, meta, tensors, graphs, path)
     return bundle
+
+
+def _check_posture(posture, gesture_dim: int, path: Path, what: str) -> None:
+    """A calibrated posture (training.calibrate) is None or one finite number per gesture channel."""
+    if posture is not None and (not isinstance(posture, list) or len(posture) != gesture_dim or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in posture)):
+        raise CheckpointError(f"{path}: {what} must be {gesture_dim} finite numbers, one per gesture channel: the "
+                              "file was edited or damaged; take it again from its training run and calibrate that "
+                              "(python -m diffsheg_core.training.calibrate)")
 
 
 def _check_styles(info: dict, style_dim: int, path: Path) -> None:

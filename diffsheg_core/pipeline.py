@@ -117,6 +117,40 @@ def uses_student(bundle: ModelBundle, sampling: str, config: FoppasConfig, guida
             and replace(config, overlap=fast.overlap, candidates=fast.candidates) == fast)
 
 
+def calibrated_posture(bundle: ModelBundle, live: bool = False) -> Optional[np.ndarray]:
+    """(D,) what a calibrated sampling's frames are moved by after the first window
+    (training.calibrate: the mean its gestures lack there of the 25 steps'), in normalised
+    units, for the distilled student offline (its info["posture"]) or, `live`, for the model's
+    live fast sampling (info["live_posture"]); zero on the face. None where none was calibrated."""
+    info = bundle.info if live else bundle.student.info if bundle.student is not None else {}
+    posture = info.get("live_posture" if live else "posture")
+    if posture is None:
+        return None
+    shift = np.zeros(bundle.config.dim, np.float32)
+    shift[: len(posture)] = posture
+    return shift
+
+
+def posture_weights(start: int, n: int, clip_len: int) -> np.ndarray:
+    """(n,) how much of a calibrated posture frames [start, start + n) of a take get: none in the
+    first window, sampled from noise with no prior draw (a constant for its own offset, measured
+    on other takes, moved the head away from the 25 steps' on unseen speech), eased in
+    (smoothstep) over the next `clip_len` frames, in full from frame 2 * clip_len on."""
+    u = np.clip((np.arange(start, start + n) - clip_len) / clip_len, 0.0, 1.0)
+    return u * u * (3.0 - 2.0 * u)
+
+
+def add_posture(frames: np.ndarray, start: int, shift: Optional[np.ndarray], clip_len: int) -> np.ndarray:
+    """`frames` (n, D), frames [start, start + n) of a take, moved by a calibrated posture's
+    `shift` as `posture_weights` says (in place; a long take's frames are not copied whole)."""
+    if shift is not None:
+        weights = posture_weights(start, len(frames), clip_len)
+        full = int(np.searchsorted(weights, 1.0))
+        frames[:full] += weights[:full, None] * shift
+        frames[full:] += shift
+    return frames
+
+
 def build_sampling(bundle: ModelBundle, network, plan: Plan) -> tuple[Foppas, Callable[[Conditioning], EpsFn]]:
     """The FOPPAS sampler of `plan`, and the factory that binds the network and guidance
     scales to one window's conditioning. Bad settings raise DiffshegError."""
@@ -243,6 +277,8 @@ def _generate(audio: AudioInput, sample_rate: Optional[int], s: GenerateSettings
         parts = [stream.push(chunk) for chunk in chunks]
         normalised = np.concatenate(parts + [stream.finish()])
         del parts  # a long take's motion is held once, not twice
+        if plan.student:
+            add_posture(normalised, 0, calibrated_posture(bundle), bundle.config.clip_len)
     check_finite(bundle, normalised)
     meta = generation_meta(bundle, s, plan, network, speech)
     if pins:
@@ -288,6 +324,7 @@ def generation_meta(bundle: ModelBundle, s: GenerateSettings, plan: Plan, networ
                     speech: Union[Audio, AudioFile]) -> dict:
     """What a Motion records of how it was made."""
     config = plan.config
+    prior = uses_prior(bundle, config)
     return {
         "model_id": bundle.model_id, "trained": bundle.trained, "seed": s.seed, "face_seed": s.face_seed,
         "audio_file": speech.path, "sample_rate": speech.sample_rate,
@@ -295,12 +332,12 @@ def generation_meta(bundle: ModelBundle, s: GenerateSettings, plan: Plan, networ
         "style_at": [[t, named_weights(bundle, weights)] for t, weights in plan.style_at],
         "emotion": s.emotion or {}, "emotion_at": [[t, spec] for t, spec in s.emotion_at or ()],
         "guidance": plan.guidance_scale, "student": bundle.student.model_id if plan.student else None,
+        "student_posture": plan.student and "posture" in bundle.student.info,
         "skip_guidance": plan.guidance.skip,
         "sampling": plan.sampling, "steps": config.steps,
         "timesteps": None if config.timesteps is None else list(config.timesteps),
         "overlap": config.overlap, "candidates": config.candidates,
-        "prior_start": uses_prior(bundle, config),
-        "prior_spread": config.prior_spread if uses_prior(bundle, config) else None, "carry": config.carry,
+        "prior_start": prior, "prior_spread": config.prior_spread if prior else None, "carry": config.carry,
         "refine": config.refine, "refine_skip": config.refine_skip if config.refine is not None else None,
         "clip_len": bundle.config.clip_len, "backend": network.name,
         "warnings": list(getattr(speech, "notes", [])),

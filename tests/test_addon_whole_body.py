@@ -107,8 +107,8 @@ def test_the_hips_come_down_where_a_straightened_rig_leg_cannot_reach_its_plante
     motion = resample_motion(diffsheg_core.generate(str(BEAT_WAV), seed=0, device="cpu"), 24.0)
     mapping = map_armature(rig, load_preset("readyplayerme"), motion)
     quaternions, location = body_pose(mapping, motion)
-    displacement = location @ mapping.root.rest.T
-    swaying = motion.root_translation.astype(np.float64) @ mapping.root.matrix.T @ mapping.root.rest.T
+    displacement = mapping.root.displacement(location)
+    swaying = mapping.root.displacement(motion.root_translation.astype(np.float64) @ mapping.root.matrix.T)
     drop = np.linalg.norm(swaying - displacement, axis=1)
     metres, leg = metres_per_unit(rig), np.mean([leg_length(leg) for leg in mapping.legs])
     as_made = bone_quaternions(motion, mapping)

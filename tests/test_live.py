@@ -333,6 +333,42 @@ def test_live_gestures_move_and_speak_like_offline_ones(model):
     assert mouth >= 0.95, (live, offline)
 
 
+def test_a_live_take_holds_the_posture_of_the_25_steps(model):
+    """Live windows start from the gesture prior's draws, as the offline fast sampling's do, and
+    held the wrists about 0.1 arm lengths higher than the 25 steps'; the model file's live
+    posture (training.calibrate, measured on other takes) is a constant added to the frames
+    live sends out after its first 34 (left as they are), eased in over the next 34. On 30 s of
+    unheard speech, seeds 0-1: the wrists' mean height within 0.05 arm lengths of the 25 steps'
+    offline, the frames the uncalibrated engine's moved by exactly that constant so weighted,
+    and the recording says so."""
+    from dataclasses import replace
+
+    from diffsheg_core.lower_body import upper_body
+    from diffsheg_core.pipeline import calibrated_posture, posture_weights
+    from diffsheg_core.training.calibrate import live_take
+    from diffsheg_core.training.metrics.posture import wrist_positions
+
+    bundle, _ = model
+    raw = replace(bundle, info={k: v for k, v in bundle.info.items() if k != "live_posture"})
+    full = read_audio_file(ROOT.parent / "shared" / "data" / "audio" / "2_scott_0_3_3.wav")
+    audio = Audio(full.samples[: 30 * full.sample_rate], full.sample_rate)
+    takes, height = {}, {}
+    for name, take in (("quality", lambda seed: generate(audio, model=bundle, seed=seed, sampling="quality")),
+                       ("live", lambda seed: live_take(bundle, audio, seed)),
+                       ("raw", lambda seed: live_take(raw, audio, seed))):
+        takes[name] = [upper_body(take(seed)) for seed in (0, 1)]
+        height[name] = np.mean([wrist_positions(t)[..., 1].mean() for t in takes[name]])
+    assert abs(height["live"] - height["quality"]) <= 0.05 <= height["raw"] - height["quality"], height
+    calibrated, made = takes["live"][0], takes["raw"][0]
+    assert calibrated.meta["live"]["posture_calibrated"] is True and made.meta["live"]["posture_calibrated"] is False
+    n = 3 * len(calibrated.joint_names)
+    shift = (calibrated_posture(bundle, live=True) * bundle.std)[:n]
+    weights = posture_weights(0, calibrated.n_frames, bundle.config.clip_len)
+    assert shift.any() and weights[: bundle.config.clip_len].max() == 0 and weights[-1] == 1
+    np.testing.assert_allclose((calibrated.rotations - made.rotations).reshape(calibrated.n_frames, n),
+                               weights[:, None] * shift, atol=1e-5)
+
+
 def test_the_engine_refuses_what_live_cannot_do(model):
     bundle, network = model
     with pytest.raises(DiffshegError, match="style over time"):

@@ -32,7 +32,8 @@ from ..checkpoints import ModelBundle
 from ..conditioning import Conditioning, SpeechFeatures
 from ..errors import DiffshegError
 from ..foppas import Foppas, FoppasConfig, sampling_settings
-from ..pipeline import build_sampling, check_finite, generation_meta, make_plan, to_motion
+from ..pipeline import (add_posture, build_sampling, calibrated_posture, check_finite, generation_meta, make_plan,
+                        to_motion)
 from ..motion import Motion
 from ..settings import GenerateSettings
 from ..speech_features import frame_features, margin_frames
@@ -151,6 +152,8 @@ class LiveEngine:
         self.sampler: Foppas
         self.sampler, self._make_eps_fn = build_sampling(bundle, network, self.plan)
         self.noise = self.sampler.noise(settings.seed, settings.face_seed)
+        # the fast sampling's posture as calibrated for live (training.calibrate), added to frames going out
+        self.posture = calibrated_posture(bundle, live=True) if settings.sampling == "fast" else None
         # a window's features are computed over `_context` frames of audio up to its end (at
         # least its frames and their margin): `_before` frames before its first
         context = max(int(math.ceil(live.context * self.fps)), cfg.clip_len + margin_frames(bundle, self.fps))
@@ -256,13 +259,21 @@ class LiveEngine:
     def motion(self, meta: Optional[dict] = None) -> Motion:
         """Every frame emitted so far, as a Motion."""
         frames = np.concatenate(self._frames) if self._frames else np.zeros((0, self.bundle.config.dim), np.float32)
-        return to_motion(self.bundle, frames, meta=meta or {})
+        return self.to_motion(frames, 0, meta or {})
+
+    def to_motion(self, frames: np.ndarray, start: int, meta: dict) -> Motion:
+        """(n, D) normalised frames as `step` returns them, the session's from frame `start`, as
+        a Motion in the calibrated posture (`pipeline.add_posture`; the frames given stay as they are)."""
+        if self.posture is not None:
+            frames = add_posture(frames.copy(), start, self.posture, self.bundle.config.clip_len)
+        return to_motion(self.bundle, frames, meta=meta)
 
     def meta(self) -> dict:
         """What a recording records of how it was made (as `generate`, plus the live settings)."""
         meta = generation_meta(self.bundle, self.settings, self.plan, self.network, self.audio())
         meta["live"] = {"hop": self.live.hop, "max_hop": self.live.max_hop, "widest_hop": self.widest_hop,
                         "lookahead": self.live.lookahead, "context": self.live.context, "skip_scale": self.live.skip_scale,
+                        "posture_calibrated": self.posture is not None,
                         "legs_skip_scale": self.live.legs_skip_scale if self.sampler.branch else None,
                         "legs_eta": self.sampler.branch_eta if self.sampler.branch else None}
         return meta

@@ -36,7 +36,6 @@ from ..errors import DiffshegError
 from ..lower_body import (JOINTS as LEG_JOINTS, LowerBodyStream, PlantStream, legs_source, upper_body,
                           with_lower_body)
 from ..motion import Motion
-from ..pipeline import to_motion
 from ..runtime.backends import cpu_threads, open_network
 from ..settings import GenerateSettings
 from .engine import LiveConfig, LiveEngine
@@ -364,7 +363,7 @@ class LiveSession:
         if not len(normalised):
             self.compute += time.perf_counter() - started
             return
-        made = to_motion(self.bundle, normalised, meta={})
+        made = self.engine.to_motion(normalised, first, {})
         part = self.emotion.add(upper_body(made))  # the emotion never touches the legs
         self._emotional.append(part)
         rotations, roots, down = part.rotations, [None] * part.n_frames, [None] * part.n_frames
