@@ -286,7 +286,7 @@ def _load_ours(path: Path) -> ModelBundle:
     return bundle
 
 
-def _check_posture(posture, gesture_dim: int, path: Path, what: str) -> None:
+def _check_posture(posture: object, gesture_dim: int, path: Path, what: str) -> None:
     """A calibrated posture (training.calibrate) is None or one finite number per gesture channel."""
     if posture is not None and (not isinstance(posture, list) or len(posture) != gesture_dim or not all(
             isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in posture)):

@@ -333,14 +333,15 @@ def test_live_gestures_move_and_speak_like_offline_ones(model):
     assert mouth >= 0.95, (live, offline)
 
 
-def test_a_live_take_holds_the_posture_of_the_25_steps(model):
+def test_a_live_take_holds_the_posture_of_the_25_steps(tmp_path, model):
     """Live windows start from the gesture prior's draws, as the offline fast sampling's do, and
     held the wrists about 0.1 arm lengths higher than the 25 steps'; the model file's live
     posture (training.calibrate, measured on other takes) is a constant added to the frames
     live sends out after its first 34 (left as they are), eased in over the next 34. On 30 s of
     unheard speech, seeds 0-1: the wrists' mean height within 0.05 arm lengths of the 25 steps'
     offline, the frames the uncalibrated engine's moved by exactly that constant so weighted,
-    and the recording says so."""
+    the same streamed a hop at a time through a session as in its recording, and the recording
+    says so. Other steps or guidance scales than the model's are not calibrated."""
     from dataclasses import replace
 
     from diffsheg_core.lower_body import upper_body
@@ -367,6 +368,20 @@ def test_a_live_take_holds_the_posture_of_the_25_steps(model):
     assert shift.any() and weights[: bundle.config.clip_len].max() == 0 and weights[-1] == 1
     np.testing.assert_allclose((calibrated.rotations - made.rotations).reshape(calibrated.n_frames, n),
                                weights[:, None] * shift, atol=1e-5)
+    clip = tmp_path / "speech.wav"
+    sf.write(clip, audio.samples[: 6 * audio.sample_rate], audio.sample_rate)
+    shown = []
+    session = LiveSession(FileSource(clip, speed=2.0), GenerateSettings(seed=0), live=FIXED_HOP, bundle=bundle,
+                          network=model[1])
+    recorded = session.run_to_end(shown.append).motion
+    assert recorded.meta["live"]["posture_calibrated"] is True and recorded.n_frames > 2 * bundle.config.clip_len
+    np.testing.assert_allclose(np.stack([f.rotations[:len(calibrated.joint_names)] for f in shown]),
+                               recorded.rotations[: len(shown), : len(calibrated.joint_names)], atol=1e-6)
+    np.testing.assert_allclose(recorded.rotations[:, :len(calibrated.joint_names)],
+                               live_take(bundle, Audio(audio.samples[: 6 * audio.sample_rate], audio.sample_rate),
+                                         0).rotations[:, :len(calibrated.joint_names)], atol=1e-5)
+    for settings in (GenerateSettings(steps=10), GenerateSettings(skip_guidance=0.2), GenerateSettings(sampling="quality")):
+        assert LiveEngine(bundle, model[1], settings, 16000).meta()["live"]["posture_calibrated"] is False
 
 
 def test_the_engine_refuses_what_live_cannot_do(model):

@@ -166,8 +166,9 @@ def test_the_student_holds_the_posture_of_the_25_steps(bundle):
     np.testing.assert_allclose((calibrated.rotations - made.rotations).reshape(calibrated.n_frames, n),
                                weights[:, None] * shift, atol=1e-5)
     window = Audio(speech.samples[: 2 * speech.sample_rate], speech.sample_rate)
-    np.testing.assert_array_equal(generate(window, model=bundle, seed=0).rotations,
-                                  generate(window, model=raw, seed=0).rotations)
+    one = generate(window, model=bundle, seed=0)
+    assert one.meta["student"] == bundle.student.model_id and one.meta["student_posture"] is True
+    np.testing.assert_array_equal(one.rotations, generate(window, model=raw, seed=0).rotations)
 
 
 def test_calibrating_measures_what_is_left_and_adds_it(bundle):

@@ -152,8 +152,11 @@ class LiveEngine:
         self.sampler: Foppas
         self.sampler, self._make_eps_fn = build_sampling(bundle, network, self.plan)
         self.noise = self.sampler.noise(settings.seed, settings.face_seed)
-        # the fast sampling's posture as calibrated for live (training.calibrate), added to frames going out
-        self.posture = calibrated_posture(bundle, live=True) if settings.sampling == "fast" else None
+        # the fast sampling's posture as calibrated for live (training.calibrate, at the model's own steps and
+        # guidance scales; any hop, lookahead or live scale), added to the frames going out
+        calibrated = settings.sampling == "fast" and settings.steps is None and settings.guidance is None \
+            and settings.skip_guidance is None
+        self.posture = calibrated_posture(bundle, live=True) if calibrated else None
         # a window's features are computed over `_context` frames of audio up to its end (at
         # least its frames and their margin): `_before` frames before its first
         context = max(int(math.ceil(live.context * self.fps)), cfg.clip_len + margin_frames(bundle, self.fps))

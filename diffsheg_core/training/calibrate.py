@@ -9,17 +9,17 @@ draws: the next few windows after the first hold the most (0.14-0.38 on three ta
 rest about 0.10. A live session's windows start from the prior's draws too (the model's own
 guided steps, a hop at a time): 0.07-0.4 after its first 34 frames. A constant is what is
 wrong there, so a constant puts it right: the mean of each gesture channel the 25 steps make
-minus the mean the sampling makes over the frames from the third window on, over speech and
+minus the mean the sampling makes over the frames from 2 x clip_len (68) on, over speech and
 seeds, stored in the file (normalised units, one value per gesture channel, the upper body's
 and the hips' rotation: the student's info["posture"], the model's info["live_posture"]) and
-added to the frames that sampling makes from the third window on, eased in over the second
-(`pipeline.posture_weights`). It moves where the motion sits, not how it moves.
+added to the frames that sampling makes, in full from frame 68 on, eased in over the 34
+before (`pipeline.posture_weights`). It moves where the motion sits, not how it moves.
 
-The first window, sampled from noise, is left as it is: its own offset does not carry from
-speech to speech. The student's held the wrists 0.15-0.17 arm lengths below the 25 steps' on
-one-window clips of the takes below and of unseen speech alike, but calibrated on the first,
-a constant for it moved the head 1.6 degrees away from the 25 steps' on the second (live's
-first window: no nearer in the wrists, 0.9 degrees further in the head).
+The first window, sampled from noise, is left as it is: its own offset did not carry in the
+head. The student's held the wrists 0.15-0.17 arm lengths below the 25 steps' on one-window
+clips of the takes below and of unseen speech alike, but calibrated on the first, a constant
+for it moved the head 1.6 degrees away from the 25 steps' on the second (live's first window:
+no nearer in the wrists, 0.9 degrees further in the head).
 
 Measured on takes apart from those the sampling, posture and live benches judge (`CALIBRATION`)
 with the model file as it is, so a second run measures what is left and adds it (nothing, on
@@ -42,12 +42,12 @@ from ..errors import DiffshegError
 from ..live.engine import LiveEngine
 from ..lower_body import lower_rotations
 from ..motion import Motion
-from ..pipeline import generate, posture_weights
+from ..pipeline import generate, make_plan, posture_weights
 from ..runtime.backends import cpu_threads, open_network
 from ..settings import GenerateSettings
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "audio"
-# long real speech apart from what the sampling, posture and live benches judge (2_scott_0_1_1, 2_scott_0_3_3,
+# long speech (two real takes, one text-to-speech reading) apart from what the sampling, posture and live benches judge (2_scott_0_1_1, 2_scott_0_3_3,
 # 12_zhao_2_3_3); eval_default_model and eval_languages read some of it
 CALIBRATION = (DATA / "2_scott_0_4_4.wav", DATA / "2_scott_0_103_103_28s.wav", DATA / "Forrest_tts.wav")
 SEEDS = (0, 1, 2, 3)
@@ -55,7 +55,7 @@ SEEDS = (0, 1, 2, 3)
 
 def gesture_means(bundle: ModelBundle, motion: Motion) -> np.ndarray:
     """(gesture_dim,) the mean of each gesture channel of `motion` over the frames a posture
-    moves in full (`pipeline.posture_weights`: from the third window on), in the model's
+    moves in full (`pipeline.posture_weights`: from frame 2 x clip_len on), in the model's
     normalised units."""
     layout = bundle.layout
     full = posture_weights(0, motion.n_frames, bundle.config.clip_len) == 1.0
@@ -96,21 +96,20 @@ def calibrated_channels(bundle: ModelBundle) -> np.ndarray:
 
 
 def _student_take(bundle: ModelBundle, audio: Audio, seed: int) -> Motion:
-    take = generate(audio, model=bundle, seed=seed, sampling="fast", device="cpu")
-    if take.meta["student"] is None:
-        raise DiffshegError(f"{bundle.source}: its fast sampling does not run its distilled student (the "
-                            "file's sampling settings or guidance scales differ from those it was distilled "
-                            "at), so a posture calibrated for the student would never apply")
-    return take
+    return generate(audio, model=bundle, seed=seed, sampling="fast", device="cpu")
 
 
 def posture_offsets(bundle: ModelBundle, speeches: Sequence[Path], seeds: Sequence[int] = SEEDS,
                     live: bool = True) -> dict[str, np.ndarray]:
     """(gesture_dim,) what the fast sampling's gestures lack of the 25 steps' (the quality
-    sampling's minus its own) from the third window on, on average over `speeches` and `seeds`,
+    sampling's minus its own) from frame 2 x clip_len on, on average over `speeches` and `seeds`,
     on the `calibrated_channels` (zero elsewhere): per sampling calibrated, keyed as the file
     stores them, "posture" (the distilled student's, offline) and "live_posture" (a live
     session's; with `live`)."""
+    if bundle.student is not None and not make_plan(bundle, GenerateSettings(model=bundle)).student:
+        raise DiffshegError(f"{bundle.source}: its fast sampling does not run its distilled student (the file's "
+                            "sampling settings or guidance scales differ from those it was distilled at), so a "
+                            "posture calibrated for the student would never apply")
     takes = {"posture": _student_take} if bundle.student is not None else {}
     if live:
         takes["live_posture"] = live_take
@@ -148,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
                                                  "and live's) to the model's own 25 steps.")
     parser.add_argument("model", help="model file (.safetensors) of this project")
     parser.add_argument("--speech", nargs="+", type=Path, default=list(CALIBRATION),
-                        help="long real speech to measure on (default: three shared takes apart from those the "
+                        help="long speech to measure on (default: three shared takes apart from those the "
                              "sampling, posture and live benches judge)")
     parser.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))
     parser.add_argument("--no-live", action="store_true", help="calibrate the distilled student only")
