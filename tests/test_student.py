@@ -209,3 +209,33 @@ def test_a_calibrated_posture_that_does_not_fit_is_refused_naming_the_fix(tmp_pa
     path = write_safetensors(tensors, meta, tmp_path / "bent.safetensors")
     with pytest.raises(CheckpointError, match=f"{what} must be 171 finite numbers.*training.calibrate"):
         load_model(path)
+
+
+def test_calibrating_on_missing_or_too_short_speech_is_refused_and_leaves_the_file(tmp_path):
+    """The calibration command names what is wrong and how to fix it, never writes half a file,
+    and leaves the model as it was: speech that is not there, and speech shorter than the two
+    windows before the frames it measures."""
+    import shutil
+    import subprocess
+    import sys
+
+    import soundfile as sf
+
+    from diffsheg_core.errors import DiffshegError
+    from diffsheg_core.training.calibrate import main as calibrate_main
+
+    model = tmp_path / "model.safetensors"
+    shutil.copyfile(DEFAULT_WEIGHTS, model)
+    before = model.read_bytes()
+    run = subprocess.run([sys.executable, "-m", "diffsheg_core.training.calibrate", str(model),
+                          "--speech", str(tmp_path / "nothing.wav")], capture_output=True, text=True)
+    assert run.returncode != 0 and "Traceback" not in run.stderr
+    assert "error: speech to calibrate on not found:" in run.stderr and "nothing.wav" in run.stderr
+    audio = load_audio(UNSEEN)
+    short = tmp_path / "short.wav"
+    sf.write(short, audio.samples[: 3 * audio.sample_rate], audio.sample_rate)
+    with pytest.raises(DiffshegError, match=r"3\.0 s is too short to calibrate a posture on: give speech longer "
+                                            r"than 4\.5 s"):
+        calibrate_main([str(model), "--speech", str(short), "--seeds", "0", "--no-live"])
+    assert model.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["model.safetensors",
+                                                                                            "short.wav"]

@@ -155,7 +155,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     missing = [str(p) for p in args.speech if not Path(p).is_file()]
     if missing:
-        raise DiffshegError(f"speech to calibrate on not found: {', '.join(missing)}")
+        raise DiffshegError(f"speech to calibrate on not found: {', '.join(missing)}: give --speech the paths of "
+                            "speech recordings (wav, flac, ...), the longer the better")
     bundle = load_model(args.model)
     added = calibrate(bundle, args.speech, args.seeds, live=not args.no_live)
     path = save_checkpoint(bundle, args.out or args.model)
