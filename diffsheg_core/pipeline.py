@@ -392,7 +392,7 @@ def _regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int], s
     cond = Conditioning.join(conditioned(speech_chunks(bundle, network, speech), plan.style))
     laid = take_emotion(motion)
     base = motion if laid is None else remove_emotion(motion, laid)  # what the take's emotion was laid over
-    normalised, hold = _known(bundle, base, whole)
+    normalised, hold = known_values(bundle, base, whole)
     if hold_face:
         hold[start:end, layout.gesture_dim:] = True
     _hold_pins(bundle, normalised, hold, pins, start, end)
@@ -419,7 +419,7 @@ def _regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int], s
                    meta={**motion.meta, "regenerated": list(motion.meta.get("regenerated", [])) + [record]})
 
 
-def _known(bundle: ModelBundle, upper: Motion, whole: Motion) -> tuple[np.ndarray, np.ndarray]:
+def known_values(bundle: ModelBundle, upper: Motion, whole: Motion) -> tuple[np.ndarray, np.ndarray]:
     """(T, D) normalised model input of a take being regenerated (its `upper` body, without
     the emotion, and face), and which of it is held inside the range: nothing, except that
     a whole-body model holds the take's own hips and legs (`whole`'s), which stay as they

@@ -40,9 +40,9 @@ from ..audio import Audio, load_audio
 from ..checkpoints import ModelBundle, load_model, save_checkpoint
 from ..errors import DiffshegError
 from ..live.engine import LiveEngine
-from ..lower_body import lower_rotations
+from ..lower_body import upper_body
 from ..motion import Motion
-from ..pipeline import generate, make_plan, posture_weights
+from ..pipeline import generate, known_values, make_plan, posture_weights
 from ..runtime.backends import cpu_threads, open_network
 from ..settings import GenerateSettings
 
@@ -57,18 +57,13 @@ def gesture_means(bundle: ModelBundle, motion: Motion) -> np.ndarray:
     """(gesture_dim,) the mean of each gesture channel of `motion` over the frames a posture
     moves in full (`pipeline.posture_weights`: from frame 2 x clip_len on), in the model's
     normalised units."""
-    layout = bundle.layout
     full = posture_weights(0, motion.n_frames, bundle.config.clip_len) == 1.0
     if not full.any():
         raise DiffshegError(f"speech of {motion.n_frames / motion.fps:.1f} s is too short to calibrate a posture "
                             f"on: give speech longer than {2 * bundle.config.clip_len / motion.fps:.1f} s (the "
                             "longer the better; the defaults are 29-119 s)")
-    rotations = motion.rotations[full, : len(bundle.rig_layout.joint_names)]
-    if layout.root_translation:
-        rotations = np.concatenate([rotations, lower_rotations(motion)[full]], axis=1)
-    root = None if motion.root_translation is None else motion.root_translation[full]
-    values = bundle.normalise(layout.join(rotations, motion.face[full], root))
-    return values[:, : layout.gesture_dim].mean(axis=0)
+    values, _ = known_values(bundle, upper_body(motion), motion)
+    return values[full, : bundle.layout.gesture_dim].mean(axis=0)
 
 
 def live_take(bundle: ModelBundle, audio: Audio, seed: int) -> Motion:
