@@ -242,7 +242,8 @@ def _stored_student(teacher: ModelBundle, meta: dict, tensors: dict, graphs: dic
         raise CheckpointError(f"{path}: its distilled student is incomplete (it needs the graphs "
                               f"{', '.join(GRAPH_PREFIX + STUDENT_PREFIX + g for g in NETWORK_GRAPHS)} and the "
                               "metadata 'student' saying what it was distilled at); export it again")
-    _check_posture(record["info"].get("posture"), teacher.config.gesture_dim, path, "its distilled student's posture")
+    for key, what in (("posture", "posture"), ("first_posture", "first window's posture")):
+        _check_posture(record["info"].get(key), teacher.config.gesture_dim, path, f"its distilled student's {what}")
     weights = _network_weights(_prefixed(tensors, STUDENT_PREFIX), own, path, "distilled student")
     if "phonetic" in teacher.graphs:  # the student hears through the teacher's encoder
         own["phonetic"] = teacher.graphs["phonetic"]

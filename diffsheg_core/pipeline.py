@@ -117,37 +117,67 @@ def uses_student(bundle: ModelBundle, sampling: str, config: FoppasConfig, guida
             and replace(config, overlap=fast.overlap, candidates=fast.candidates) == fast)
 
 
-def calibrated_posture(bundle: ModelBundle, live: bool = False) -> Optional[np.ndarray]:
-    """(D,) what a calibrated sampling's frames are moved by after the first window
-    (training.calibrate: the mean its gestures lack there of the 25 steps'), in normalised
-    units, for the distilled student offline (its info["posture"]) or, `live`, for the model's
-    live fast sampling (info["live_posture"]); zero on the face. None where none was calibrated."""
+@dataclass(frozen=True, eq=False)
+class Posture:
+    """What a calibrated sampling's frames are moved by (training.calibrate: the mean its
+    gestures lack of the model's own 25 steps'), (D,) each in normalised units, zero on the face
+    and wherever nothing was calibrated."""
+
+    later: np.ndarray  # from the third window on, eased in over the second (`posture_weights`)
+    first: np.ndarray  # in the first window, eased out as the second begins (`first_window_weights`)
+
+
+def calibrated_posture(bundle: ModelBundle, live: bool = False) -> Optional[Posture]:
+    """The calibrated posture of the distilled student offline (its info["posture"] and
+    info["first_posture"]) or, `live`, of the model's live fast sampling (info["live_posture"];
+    a session's first window is not calibrated). None where none was calibrated."""
     info = bundle.info if live else bundle.student.info if bundle.student is not None else {}
-    posture = info.get("live_posture" if live else "posture")
-    if posture is None:
+    later, first = info.get("live_posture" if live else "posture"), None if live else info.get("first_posture")
+    if later is None and first is None:
         return None
+    return Posture(_shift(bundle, later), _shift(bundle, first))
+
+
+def _shift(bundle: ModelBundle, posture: Optional[list]) -> np.ndarray:
     shift = np.zeros(bundle.config.dim, np.float32)
-    shift[: len(posture)] = posture
+    if posture is not None:
+        shift[: len(posture)] = posture
     return shift
 
 
-def posture_weights(start: int, n: int, clip_len: int) -> np.ndarray:
-    """(n,) how much of a calibrated posture frames [start, start + n) of a take get: none in the
-    first window, sampled from noise with no prior draw (a constant for its own offset, measured
-    on other takes, moved the head away from the 25 steps' on unseen speech), eased in
-    (smoothstep) over the next `clip_len` frames, in full from frame 2 * clip_len on."""
-    u = np.clip((np.arange(start, start + n) - clip_len) / clip_len, 0.0, 1.0)
+def _smoothstep(u: np.ndarray) -> np.ndarray:
+    u = np.clip(u, 0.0, 1.0)
     return u * u * (3.0 - 2.0 * u)
 
 
-def add_posture(frames: np.ndarray, start: int, shift: Optional[np.ndarray], clip_len: int) -> np.ndarray:
-    """`frames` (n, D), frames [start, start + n) of a take, moved by a calibrated posture's
-    `shift` as `posture_weights` says (in place; a long take's frames are not copied whole)."""
-    if shift is not None:
-        weights = posture_weights(start, len(frames), clip_len)
-        full = int(np.searchsorted(weights, 1.0))
-        frames[:full] += weights[:full, None] * shift
-        frames[full:] += shift
+def posture_weights(start: int, n: int, clip_len: int) -> np.ndarray:
+    """(n,) how much of a calibrated posture's `later` frames [start, start + n) of a take get:
+    none in the first window, eased in (smoothstep) over the next `clip_len` frames, in full
+    from frame 2 * clip_len on."""
+    return _smoothstep((np.arange(start, start + n) - clip_len) / clip_len)
+
+
+def first_window_weights(start: int, n: int, clip_len: int) -> np.ndarray:
+    """(n,) how much of a calibrated posture's `first` frames [start, start + n) of a take get:
+    in full in the first window, eased out (smoothstep) over 2 * (clip_len // 8) frames (at least
+    2) about its end, where the second window's offset (the other way: the wrists high) begins."""
+    ease = max(1, clip_len // 8)
+    return 1.0 - _smoothstep((np.arange(start, start + n) - (clip_len - ease)) / (2 * ease))
+
+
+def add_posture(frames: np.ndarray, start: int, posture: Optional[Posture], clip_len: int) -> np.ndarray:
+    """`frames` (n, D), frames [start, start + n) of a take, moved by a calibrated `posture` as
+    `posture_weights` and `first_window_weights` say (in place; a long take's frames are not
+    copied whole)."""
+    if posture is None:
+        return frames
+    first = first_window_weights(start, len(frames), clip_len)
+    until = int(np.count_nonzero(first))
+    frames[:until] += first[:until, None] * posture.first
+    weights = posture_weights(start, len(frames), clip_len)
+    full = int(np.searchsorted(weights, 1.0))
+    frames[:full] += weights[:full, None] * posture.later
+    frames[full:] += posture.later
     return frames
 
 
@@ -332,7 +362,7 @@ def generation_meta(bundle: ModelBundle, s: GenerateSettings, plan: Plan, networ
         "style_at": [[t, named_weights(bundle, weights)] for t, weights in plan.style_at],
         "emotion": s.emotion or {}, "emotion_at": [[t, spec] for t, spec in s.emotion_at or ()],
         "guidance": plan.guidance_scale, "student": bundle.student.model_id if plan.student else None,
-        "student_posture": plan.student and "posture" in bundle.student.info,
+        "student_posture": plan.student and calibrated_posture(bundle) is not None,
         "skip_guidance": plan.guidance.skip,
         "sampling": plan.sampling, "steps": config.steps,
         "timesteps": None if config.timesteps is None else list(config.timesteps),

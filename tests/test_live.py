@@ -308,8 +308,9 @@ def test_live_gestures_move_and_speak_like_offline_ones(model):
     """Issue 39's bar for live quality, on the real take and two seeds: the default live
     session's wrists move at least 0.9x as fast as offline generation's of the same speech
     (the distilled student), jitter at most 1.2x as much, and its mouth follows the voice as
-    well (within 5 %). Asserted with room for two seeds (four: 0.94x, 1.18x, and the mouth 1.07x
-    in bench/bench_live.py; docs/live.md has other speech)."""
+    well (within 5 %). The seeds spread widely (one seed's wrists 0.76-1.39x offline's), so two
+    seeds are held to 0.85x and 1.2x (seeds 0-1: 0.87x, 1.10x; seeds 0-7: 0.91x, 1.16x, and the
+    mouth 1.06x; docs/live.md has other speech)."""
     from diffsheg_core.training.metrics.posture import naturalness
 
     bundle, network = model
@@ -328,8 +329,8 @@ def test_live_gestures_move_and_speak_like_offline_ones(model):
                                   _mouth_voice(motion, audio)))
     live, offline = (np.mean(figures[name], axis=0) for name in ("live", "offline"))
     speed, jitter, mouth = live / offline
-    assert speed >= 0.87, (live, offline)
-    assert jitter <= 1.25, (live, offline)
+    assert speed >= 0.85, (live, offline)
+    assert jitter <= 1.2, (live, offline)
     assert mouth >= 0.95, (live, offline)
 
 
@@ -363,7 +364,9 @@ def test_a_live_take_holds_the_posture_of_the_25_steps(tmp_path, model):
     calibrated, made = takes["live"][0], takes["raw"][0]
     assert calibrated.meta["live"]["posture_calibrated"] is True and made.meta["live"]["posture_calibrated"] is False
     n = 3 * len(calibrated.joint_names)
-    shift = (calibrated_posture(bundle, live=True) * bundle.std)[:n]
+    posture = calibrated_posture(bundle, live=True)
+    assert not posture.first.any()  # a session's first window is left as sampled
+    shift = (posture.later * bundle.std)[:n]
     weights = posture_weights(0, calibrated.n_frames, bundle.config.clip_len)
     assert shift.any() and weights[: bundle.config.clip_len].max() == 0 and weights[-1] == 1
     np.testing.assert_allclose((calibrated.rotations - made.rotations).reshape(calibrated.n_frames, n),

@@ -17,9 +17,10 @@ from diffsheg_core.audio import Audio, load_audio
 from diffsheg_core.checkpoints import (DEFAULT_WEIGHTS, MODEL_PREFIX, CheckpointError, graph_weights, load_model,
                                        read_safetensors, write_safetensors)
 from diffsheg_core.lower_body import upper_body
-from diffsheg_core.pipeline import Pin, calibrated_posture, generate, posture_weights, regenerate
+from diffsheg_core.pipeline import (Pin, calibrated_posture, first_window_weights, generate, posture_weights,
+                                   regenerate)
 from diffsheg_core.runtime import backends
-from diffsheg_core.training.calibrate import CALIBRATION, calibrate, calibrated_channels
+from diffsheg_core.training.calibrate import CALIBRATION, arm_channels, calibrate, calibrated_channels, first_windows
 from diffsheg_core.training.metrics import envelope_correlation, mouth_opening
 from diffsheg_core.training.metrics.posture import wrist_positions
 
@@ -29,7 +30,8 @@ UNSEEN = DATA / "audio" / "2_scott_0_3_3.wav"
 
 def uncalibrated(bundle):
     """`bundle` with its student's posture never calibrated (training.calibrate)."""
-    info = {k: v for k, v in bundle.student.info.items() if not k.startswith("posture")}
+    info = {k: v for k, v in bundle.student.info.items()
+            if k not in ("posture", "first_posture", "posture_measured_on")}
     return replace(bundle, student=replace(bundle.student, info=info))
 
 
@@ -143,10 +145,10 @@ def test_the_student_holds_the_posture_of_the_25_steps(bundle):
     """The fast sampling's later windows held the wrists about 0.1 arm lengths higher than the
     model's own 25 steps on every long speech (issue 40's posture); the file's calibrated
     posture (training.calibrate, measured on other takes) is a constant added to the frames the
-    student makes from its third window on, eased in over the second; the first, sampled from
-    noise, is left as it is. On 30 s of unheard speech, seeds 0-1: the wrists' mean height within
-    0.05 arm lengths of the 25 steps' (uncalibrated: 0.08 above), the motion the uncalibrated
-    student's moved by exactly that constant so weighted, and a clip of one window not moved."""
+    student makes from its third window on, eased in over the second, and one for the arms and
+    hands alone added to the first, eased out about its end. On 30 s of unheard speech, seeds
+    0-1: the wrists' mean height within 0.05 arm lengths of the 25 steps' (uncalibrated: 0.08
+    above), the motion the uncalibrated student's moved by exactly those constants so weighted."""
     audio = load_audio(UNSEEN)
     speech = Audio(audio.samples[: 30 * audio.sample_rate], audio.sample_rate)
     raw = uncalibrated(bundle)
@@ -159,24 +161,45 @@ def test_the_student_holds_the_posture_of_the_25_steps(bundle):
     assert abs(height["fast"] - height["quality"]) <= 0.05 <= height["raw"] - height["quality"], height
     calibrated, made = takes["fast"][0], takes["raw"][0]
     assert calibrated.meta["student_posture"] is True and made.meta["student_posture"] is False
-    n = 3 * len(calibrated.joint_names)
-    shift = (calibrated_posture(bundle) * bundle.std)[:n]
-    weights = posture_weights(0, calibrated.n_frames, bundle.config.clip_len)
-    assert weights[: bundle.config.clip_len].max() == 0 and weights[-1] == 1
+    n, clip_len = 3 * len(calibrated.joint_names), bundle.config.clip_len
+    posture = calibrated_posture(bundle)
+    later, first = (posture.later * bundle.std)[:n], (posture.first * bundle.std)[:n]
+    weights = posture_weights(0, calibrated.n_frames, clip_len)
+    first_weights = first_window_weights(0, calibrated.n_frames, clip_len)
+    assert weights[:clip_len].max() == 0 and weights[-1] == 1
+    assert first_weights[: clip_len - 4].min() == 1 and first_weights[clip_len + 4:].max() == 0
     np.testing.assert_allclose((calibrated.rotations - made.rotations).reshape(calibrated.n_frames, n),
-                               weights[:, None] * shift, atol=1e-5)
-    window = Audio(speech.samples[: 2 * speech.sample_rate], speech.sample_rate)
-    one = generate(window, model=bundle, seed=0)
-    assert one.meta["student"] == bundle.student.model_id and one.meta["student_posture"] is True
-    np.testing.assert_array_equal(one.rotations, generate(window, model=raw, seed=0).rotations)
+                               weights[:, None] * later + first_weights[:, None] * first, atol=1e-5)
+
+
+def test_the_students_first_window_holds_the_arms_of_the_25_steps_and_leaves_the_head(bundle):
+    """The student's first window, sampled from noise, held the wrists about 0.15 arm lengths
+    below the 25 steps' on one-window clips; the file's first-window posture moves the
+    shoulders, arms and hands alone (a whole-pose constant moved the head away from the 25
+    steps' on unseen speech). On eight one-window clips of unheard speech, seeds 0-1: the
+    wrists within 0.07 arm lengths of the 25 steps' (uncalibrated: 0.1 or more below), and the
+    spine, neck and head exactly as the uncalibrated student's."""
+    raw = uncalibrated(bundle)
+    clips = first_windows(load_audio(UNSEEN), bundle.config.clip_len, bundle.config.fps)[:8]
+    takes, height = {}, {}
+    for name, model, sampling in (("quality", bundle, "quality"), ("fast", bundle, "fast"), ("raw", raw, "fast")):
+        takes[name] = [upper_body(generate(clip, model=model, seed=seed, sampling=sampling))
+                       for clip in clips for seed in (0, 1)]
+        height[name] = np.mean([wrist_positions(t)[..., 1].mean() for t in takes[name]])
+    assert abs(height["fast"] - height["quality"]) <= 0.07 and height["quality"] - height["raw"] >= 0.1, height
+    arms = arm_channels(bundle)[: 3 * len(bundle.rig_layout.joint_names)].reshape(-1, 3).all(axis=1)
+    assert sorted(np.array(bundle.rig_layout.joint_names)[~arms]) == ["Neck", "Neck1", "Spine"]
+    for calibrated, made in zip(takes["fast"], takes["raw"]):
+        np.testing.assert_array_equal(calibrated.rotations[:, ~arms], made.rotations[:, ~arms])
+        assert np.abs(calibrated.rotations[:, arms] - made.rotations[:, arms]).max() > 0.01
 
 
 def test_calibrating_measures_what_is_left_and_adds_it(bundle):
     """`calibrate` measures the model file as it is and adds what it finds: run again on the
-    same speech and seed, it finds nothing left, for the student and for live (the constant
-    moves the frames it is measured on exactly). It moves the upper body and the hips' rotation
-    only: the legs and the hips' translation are planted after it, which would undo a constant
-    there."""
+    same speech and seed, it finds nothing left, for the student (its first window too) and for
+    live (the constant moves the frames it is measured on exactly). It moves the upper body and
+    the hips' rotation only (the first window the arms and hands): the legs and the hips'
+    translation are planted after it, which would undo a constant there."""
     speech = [DATA / "audio" / "2_scott_0_103_103_28s.wav"]
     raw = uncalibrated(bundle)
     raw = replace(raw, info={k: v for k, v in raw.info.items() if k != "live_posture"})
@@ -185,22 +208,44 @@ def test_calibrating_measures_what_is_left_and_adds_it(bundle):
     assert moved.sum() == 3 * len(bundle.rig_layout.joint_names) + 3
     for key, values in first.items():  # something to calibrate
         assert np.abs(values[moved]).max() > 0.1 and not values[~moved].any(), key
+    assert not first["first_posture"][~arm_channels(bundle)].any()
     assert raw.student.info["posture"] == pytest.approx(first["posture"], abs=1e-6)
+    assert raw.student.info["first_posture"] == pytest.approx(first["first_posture"], abs=1e-6)
     assert raw.info["live_posture"] == pytest.approx(first["live_posture"], abs=1e-6)
     second = calibrate(raw, speech, seeds=(0,))
-    assert set(second) == {"posture", "live_posture"}
+    assert set(second) == {"posture", "first_posture", "live_posture"}
     left = {key: np.abs(values).max() for key, values in second.items()}
     assert max(left.values()) < 1e-3, left  # the hips pass through the planting all but exactly
 
 
-@pytest.mark.parametrize("where", ["student", "live"])
+@pytest.mark.parametrize("rig, head", [("beat_body", ["Neck", "Neck1", "Spine"]), ("beat", ["Neck", "Neck1", "Spine"]),
+                                       ("smplx", ["head", "neck", "spine1", "spine2", "spine3"])])
+def test_the_first_windows_posture_moves_the_arms_of_every_rig_and_never_the_head(rig, head):
+    """The first window's posture moves the upper body's joints off the chain from the spine to
+    the head, on the bundled whole-body layout and on upper-body models' (BEAT, SMPL-X) alike."""
+    from types import SimpleNamespace
+
+    from diffsheg_core.rigs import get_layout
+
+    layout = get_layout(rig)
+    model = SimpleNamespace(layout=layout, rig_layout=get_layout(layout.rig), source=rig)
+    joints = np.array(model.rig_layout.joint_names)
+    moved = arm_channels(model)
+    assert moved.shape == (layout.gesture_dim,) and not moved[3 * len(joints):].any()
+    per_joint = moved[: 3 * len(joints)].reshape(-1, 3)  # SMPL-X's jaw turns with the face, past the gestures
+    assert (per_joint.all(axis=1) | ~per_joint.any(axis=1)).all()
+    assert sorted(joints[: len(per_joint)][~per_joint.all(axis=1)]) == head
+
+
+@pytest.mark.parametrize("where", ["student", "first window", "live"])
 def test_a_calibrated_posture_that_does_not_fit_is_refused_naming_the_fix(tmp_path, where):
     meta, tensors = read_safetensors(DEFAULT_WEIGHTS, "")
-    if where == "student":
+    if where != "live":
+        key, what = ("posture", "posture") if where == "student" else ("first_posture", "first window's posture")
         student = json.loads(meta["student"])
-        student["info"]["posture"] = student["info"]["posture"][:-1]
+        student["info"][key] = student["info"][key][:-1]
         meta = {**meta, "student": json.dumps(student)}
-        what = "its distilled student's posture"
+        what = f"its distilled student's {what}"
     else:
         info = json.loads(meta["info"])
         info["live_posture"] = [float("nan")] * len(info["live_posture"])
