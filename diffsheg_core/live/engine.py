@@ -56,12 +56,11 @@ class LiveConfig:
     - legs_eta None (the model's eta): less noise sways the hips more, but the first foot
       comes down late and a rig's planted foot strays.
     - skip_scale 2.2: live's new frames are painted against 31 known ones without the refining
-      pass, so they need more skip guidance to move like offline's. Over seeds 0-7 (on the
-      2-core box about twice as fast as the CI box; docs/live.md, "Measured: quality against
-      offline, latency"; the take,
-      its held-out 20 s, unseen speech) 2.2x holds wrist speed and jitter within their bars
-      (0.9x, 1.2x of offline's) on every piece of speech: 0.91x, 1.16-1.19x; 2.8x, tuned on
-      seeds 0-3 (2026-12-06), gave 0.96-0.98x and 1.24-1.25x over eight.
+      pass, so they need more skip guidance to move like offline's. Over seeds 0-7 (the take,
+      its held-out 20 s, unseen speech; on the 2-core box about twice as fast as the CI box;
+      docs/live.md, "Measured: quality against offline, latency") 2.2x holds wrist speed and
+      jitter within their bars (0.9x, 1.2x of offline's) on every piece of speech: 0.91x,
+      1.16-1.19x; 2.8x, tuned on seeds 0-3 (2026-12-06), gave 0.96-0.98x and 1.24-1.25x over eight.
     - legs_skip_scale 4: the hips sway about 0.85x offline's (the lower branch's channels of the
       same passes: no more compute); at 3.5x, 0.80x once offline's gesture prior draws widened.
       More sways more but sets a foot down less often.

@@ -140,7 +140,7 @@ def posture_offsets(bundle: ModelBundle, speeches: Sequence[Path], seeds: Sequen
         takes["live_posture"] = live_take
     if not takes:
         raise DiffshegError(f"{bundle.source} has no distilled student, and live is not calibrated: nothing to do")
-    channels = {"posture": calibrated_channels(bundle), "live_posture": calibrated_channels(bundle)}
+    channels = {key: calibrated_channels(bundle) for key in takes}
     if first and bundle.student is not None:
         channels["first_posture"] = arm_channels(bundle)
     differences: dict[str, list] = {key: [] for key in channels}
@@ -157,7 +157,7 @@ def posture_offsets(bundle: ModelBundle, speeches: Sequence[Path], seeds: Sequen
                         gesture_means(bundle, generate(clip, model=bundle, seed=seed, sampling="quality",
                                                        device="cpu"), first=True)
                         - gesture_means(bundle, _student_take(bundle, clip, seed), first=True))
-    return {key: np.where(channels[key], np.mean(found, axis=0), 0.0) for key, found in differences.items() if found}
+    return {key: np.where(channels[key], np.mean(found, axis=0), 0.0) for key, found in differences.items()}
 
 
 def calibrate(bundle: ModelBundle, speeches: Sequence[Path], seeds: Sequence[int] = SEEDS,
