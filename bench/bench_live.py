@@ -22,6 +22,7 @@ For each hop H tried (and the diffusion steps), on one real take with its phone 
     python bench/bench_live.py --realtime --seconds 20 --busy
     python bench/bench_live.py --realtime --seconds 600 --hops 3 --lookaheads 2 --no-quality --no-legs   # 10 minutes
     python bench/bench_live.py --model ../runs/default-v8.safetensors   # another model
+    python bench/bench_live.py --low-latency --hops 2 --lookaheads 1 --realtime --seconds 30 --busy   # --low-latency
 
 One thread (DIFFSHEG_THREADS=1, the default). Say which machine the figures came from.
 """
@@ -35,6 +36,7 @@ import os
 import platform
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -168,9 +170,13 @@ def _contact_cells(lower, trans, spans: dict, fps: float) -> str:
             f"{'never' if first is None else f'{first / fps:.1f} s'}, contact foot moves <= {100 * worst:.2f} cm")
 
 
+LIVE_OPTIONS = ("legs_eta", "skip_scale", "legs_skip_scale", "face_scale", "through_lookahead", "candidates")
+
+
 def live_config(args, hop: int, lookahead: int = LiveConfig.lookahead) -> LiveConfig:
-    return LiveConfig(hop=hop, lookahead=lookahead, legs_eta=args.legs_eta, skip_scale=args.skip_scale,
-                      legs_skip_scale=args.legs_skip_scale)
+    """The default LiveConfig, or --low-latency's, at `hop` and `lookahead`, with the options given."""
+    given = {name: getattr(args, name) for name in LIVE_OPTIONS if getattr(args, name) is not None}
+    return replace(LiveConfig.chosen(args.low_latency, hop, lookahead), **given)
 
 
 def settings_tried(args) -> list[tuple]:
@@ -238,13 +244,21 @@ def main() -> int:
     p.add_argument("--no-quality", action="store_true")
     p.add_argument("--no-legs", action="store_true")
     p.add_argument("--model", help="checkpoint (default: the bundled model)")
-    p.add_argument("--legs-eta", type=float, default=LiveConfig.legs_eta,
-                   help="DDIM eta of a whole-body model's legs live (LiveConfig.legs_eta)")
-    p.add_argument("--skip-scale", type=float, default=LiveConfig.skip_scale,
+    p.add_argument("--low-latency", action="store_true",
+                   help="LiveConfig.low_latency() (as `diffsheg live --low-latency`) at the hops and lookaheads "
+                        "tried; the options below replace its")
+    p.add_argument("--legs-eta", type=float, help="DDIM eta of a whole-body model's legs live (LiveConfig.legs_eta)")
+    p.add_argument("--skip-scale", type=float,
                    help="live gesture skip guidance, times the settings' (LiveConfig.skip_scale)")
-    p.add_argument("--legs-skip-scale", type=float, default=LiveConfig.legs_skip_scale,
+    p.add_argument("--legs-skip-scale", type=float,
                    help="live skip guidance of a whole-body model's legs, times the settings' "
                         "(LiveConfig.legs_skip_scale)")
+    p.add_argument("--face-scale", type=float,
+                   help="live face classifier-free guidance, times the settings' (LiveConfig.face_scale)")
+    p.add_argument("--through-lookahead", action=argparse.BooleanOptionalAction,
+                   help="windows run on through their lookahead frames (LiveConfig.through_lookahead)")
+    p.add_argument("--candidates", type=int,
+                   help="best of this many samplings of each live window (LiveConfig.candidates)")
     p.add_argument("--out", default="/tmp")
     args = p.parse_args()
     args.steps = [s or None for s in args.steps]

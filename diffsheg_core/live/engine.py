@@ -6,10 +6,12 @@ model, 2 s): a frame waits up to that long for its window. Here every window add
 already emitted, held as FOPPAS holds its overlap (painted in at every step, the gap at
 the seam carried into the new frames' x0). A window is sampled as soon as the audio of its
 new frames (and `lookahead` frames past them) has arrived, over speech features computed
-from the last `context` seconds of audio. So a frame is emitted at most about
-hop / fps + lookahead / fps + one window's compute after its audio arrived, and the
-compute per second of speech is fps / hop windows' worth. bench/bench_live.py measures
-both, and the cost in quality against offline generation, for each hop tried.
+from the last `context` seconds of audio; with `through_lookahead` it ends at the
+lookahead's last frame instead, whose motion is thrown away (`LiveConfig.low_latency`). So a
+frame is emitted at most about hop / fps + lookahead / fps + one window's compute after its
+audio arrived, and the compute per second of speech is fps / hop windows' worth.
+bench/bench_live.py measures both, and the cost in quality against offline generation, for
+each hop tried.
 
 The first window has nothing to continue and is sampled in full from noise; the ones
 after it run FOPPAS's shorter later-window schedule. Each window's known frames stay
@@ -32,11 +34,13 @@ from ..checkpoints import ModelBundle
 from ..conditioning import Conditioning, SpeechFeatures
 from ..errors import DiffshegError
 from ..foppas import Foppas, FoppasConfig, sampling_settings
+from ..guidance import Guidance
 from ..pipeline import (add_posture, build_sampling, calibrated_posture, check_finite, generation_meta, make_plan,
                         to_motion)
 from ..motion import Motion
 from ..settings import GenerateSettings
 from ..speech_features import frame_features, margin_frames
+from ..validate import CANDIDATES
 
 HOPS = (1, 16)  # new frames per window: below 1 nothing moves, above 16 (>1 s at 15 fps) it is not live
 LOOKAHEADS = (0, 15)
@@ -64,6 +68,9 @@ class LiveConfig:
     - legs_skip_scale 4: the hips sway about 0.85x offline's (the lower branch's channels of the
       same passes: no more compute); at 3.5x, 0.80x once offline's gesture prior draws widened.
       More sways more but sets a foot down less often.
+    - face_scale 1, through_lookahead off, candidates None (the settings'): what
+      `low_latency()` changes to wait less for the audio; at the default's hop and lookahead
+      the mouth needs none of them.
     - max_hop 12: a machine too slow for the hop does not fall behind: when more than a hop of
       audio waits, the next window takes it all (a window costs about the same for any hop),
       so the latency stays bounded and no audio is dropped; the status line and the recording
@@ -77,6 +84,37 @@ class LiveConfig:
     legs_eta: Optional[float] = None   # eta of a whole-body model's legs (None: the model's eta)
     skip_scale: float = 2.2            # the fast sampling's gesture skip guidance live, times the settings'
     legs_skip_scale: float = 4.0       # ... and that of a whole-body model's hips and legs
+    face_scale: float = 1.0            # ... and its face's classifier-free guidance, times the settings'
+    through_lookahead: bool = False    # a window runs on through its lookahead frames (their motion thrown away)
+    candidates: Optional[int] = None   # best of this many samplings of each window (None: the settings')
+
+    @classmethod
+    def low_latency(cls, **changes) -> "LiveConfig":
+        """About 0.1 s less latency than the default, for gestures that jitter more (`diffsheg live
+        --low-latency`; `changes` replace any field). A frame waits for (hop + lookahead) / 15 s of
+        audio: 0.2 s at hop 2 and lookahead 1, 0.33 s at the default's 3 and 2. At lookahead 1
+        the jaw barely closed for bilabials (open vowels over bilabials 0.87x offline's); each
+        window running on through its lookahead frame and the face's guidance at 1.5x bring it
+        back to 0.99x, and the best of two samplings of each window holds the jitter of seams
+        every two frames (1.21x offline's without, 1.13x with, seeds 0-1). The hips' skip
+        guidance is 3.2x: at 4x they swayed 1.07x offline's and a foot was down 86-91 % of frames.
+        Measured (docs/live.md, "Low latency"; the 2-core box twice as fast as the CI box): p95
+        0.29 s idle and with the other core busy (the default 0.39 s), 0.43 s of compute a second
+        of speech (0.19 s); the mouth as offline's; the wrists 0.87-0.91x offline's speed and
+        1.19-1.26x its jitter over seeds 0-7 (the default 0.91x, 1.16-1.19x); the hips 0.92x
+        offline's sway, a foot down 92-95 % of frames."""
+        return cls(**{"hop": 2, "lookahead": 1, "face_scale": 1.5, "through_lookahead": True, "candidates": 2,
+                      "legs_skip_scale": 3.2, **changes})
+
+    @classmethod
+    def chosen(cls, low_latency: bool = False, hop: Optional[int] = None,
+               lookahead: Optional[int] = None) -> "LiveConfig":
+        """What a user chose: the default or `low_latency()`, with their hop and lookahead when
+        given (a hop wider than the default's widest is its own widest)."""
+        given = {name: value for name, value in (("hop", hop), ("lookahead", lookahead)) if value is not None}
+        if hop is not None and isinstance(hop, int) and hop > cls.max_hop:
+            given["max_hop"] = hop
+        return cls.low_latency(**given) if low_latency else cls(**given)
 
     def check(self, clip_len: int) -> None:
         for name, value, (lo, hi) in (("hop", self.hop, HOPS), ("lookahead", self.lookahead, LOOKAHEADS)):
@@ -99,10 +137,17 @@ class LiveConfig:
                                           or not 0 <= self.legs_eta <= 1):
             raise DiffshegError(f"live legs_eta must be None (the model's eta) or a number from 0 to 1, "
                                 f"got {self.legs_eta!r}")
-        for name in ("skip_scale", "legs_skip_scale"):
+        for name in ("skip_scale", "legs_skip_scale", "face_scale"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 10:
                 raise DiffshegError(f"live {name} must be a number from 0 to 10, got {value!r}")
+        if self.through_lookahead and self.max_hop + self.lookahead >= clip_len:
+            raise DiffshegError(f"live max_hop plus lookahead must be shorter than the model's {clip_len}-frame "
+                                f"window when windows run through their lookahead, got {self.max_hop} + {self.lookahead}")
+        if self.candidates is not None and (isinstance(self.candidates, bool) or not isinstance(self.candidates, int)
+                                            or not CANDIDATES[0] <= self.candidates <= CANDIDATES[1]):
+            raise DiffshegError(f"live candidates must be None (the settings') or a whole number from "
+                                f"{CANDIDATES[0]} to {CANDIDATES[1]}, got {self.candidates!r}")
         if not isinstance(self.context, (int, float)) or not 0 < self.context <= 60:
             raise DiffshegError(f"live context must be a number of seconds above 0 and at most 60, "
                                 f"got {self.context!r}")
@@ -144,11 +189,8 @@ class LiveEngine:
         # the plan's style covers one window's frames: live, one style holds throughout (style_at is refused above)
         plan = make_plan(bundle, settings, replace(_live_sampling(sampling, live), blend=False, refine=None),
                          n_frames=cfg.clip_len)
-        skip = plan.guidance.skip
-        guidance = plan.guidance if skip is None or settings.sampling != "fast" else \
-            replace(plan.guidance, skip=skip * live.skip_scale, legs_skip=skip * live.legs_skip_scale,
-                    lower=cfg.lower_dim)
-        self.plan = replace(plan, sampling=settings.sampling, guidance=guidance)
+        self.plan = replace(plan, sampling=settings.sampling, guidance=_live_guidance(plan.guidance, settings, live,
+                                                                                   cfg.lower_dim))
         self.config: FoppasConfig = self.plan.config
         self.sampler: Foppas
         self.sampler, self._make_eps_fn = build_sampling(bundle, network, self.plan)
@@ -224,13 +266,15 @@ class LiveEngine:
         return np.concatenate(parts)
 
     def _window(self, end: int) -> np.ndarray:
-        """Sample the window ending at frame `end`, holding the emitted frames before the new ones."""
-        first = max(0, end - self.bundle.config.clip_len)
+        """Sample the new frames up to frame `end`, holding the emitted frames before them: a window
+        ending there, or with `through_lookahead` at the last frame heard of the lookahead's."""
+        last = min(end + self.live.lookahead, self.heard_frames) if self.live.through_lookahead else end
+        first = max(0, last - self.bundle.config.clip_len)
         n_known = self.emitted - first
-        cond = Conditioning(self._features(first, end), self.plan.style.frames(0, end - first))
+        cond = Conditioning(self._features(first, last, end), self.plan.style.frames(0, last - first))
         known = self._known(first) if n_known else None
-        window = self.sampler.sample_window(self._make_eps_fn(cond), end - first, known, self.noise)
-        new = window[0, n_known:]
+        window = self.sampler.sample_window(self._make_eps_fn(cond), last - first, known, self.noise)
+        new = window[0, n_known: n_known + end - self.emitted]
         check_finite(self.bundle, new)
         self._frames.append(new)
         self.emitted = end
@@ -247,13 +291,13 @@ class LiveEngine:
                 break
         return np.concatenate(parts)[None, -(self.emitted - first):]
 
-    def _features(self, first: int, end: int) -> SpeechFeatures:
-        """The speech features of frames [first, end), computed over the audio
+    def _features(self, first: int, last: int, end: int) -> SpeechFeatures:
+        """The speech features of frames [first, last), computed over the audio
         from `_before` frames before `first` (the window's `context`, back to a whole sample) to
-        `lookahead` frames after `end`, never more: so they do not depend on how much audio has
-        arrived when the window is sampled, and the same speech gives the same frames on any machine."""
+        `lookahead` frames after the new frames' `end`, never more: so they do not depend on how much
+        audio has arrived when the window is sampled, and the same speech gives the same frames on any machine."""
         stop = samples_for_frames(end + self.live.lookahead, self.sample_rate, self.fps)  # arrived: ready()
-        return frame_features(self.bundle, self.network, Audio(self._buffer[: self._n], self.sample_rate), first, end,
+        return frame_features(self.bundle, self.network, Audio(self._buffer[: self._n], self.sample_rate), first, last,
                               before=self._before, stop=stop)
 
     # --- what was made ---------------------------------------------------------------
@@ -277,18 +321,33 @@ class LiveEngine:
         meta = generation_meta(self.bundle, self.settings, self.plan, self.network, self.audio())
         meta["live"] = {"hop": self.live.hop, "max_hop": self.live.max_hop, "widest_hop": self.widest_hop,
                         "lookahead": self.live.lookahead, "context": self.live.context, "skip_scale": self.live.skip_scale,
+                        "face_scale": self.live.face_scale, "through_lookahead": self.live.through_lookahead,
+                        "candidates": self.config.candidates,
                         "posture_calibrated": self.posture is not None,
                         "legs_skip_scale": self.live.legs_skip_scale if self.sampler.branch else None,
                         "legs_eta": self.sampler.branch_eta if self.sampler.branch else None}
         return meta
 
 
+def _live_guidance(guidance: Guidance, settings: GenerateSettings, live: LiveConfig, lower: int) -> Guidance:
+    """The guidance scales with the fast sampling's live ones: its gesture skip guidance (a lower
+    branch's `lower` channels at their own) and the face's classifier-free guidance, times live's
+    (with skip guidance off the classifier-free guidance is the gestures' too, and stays)."""
+    if settings.sampling != "fast" or guidance.skip is None:
+        return guidance
+    return replace(guidance, skip=guidance.skip * live.skip_scale, legs_skip=guidance.skip * live.legs_skip_scale,
+                   lower=lower, scale=None if guidance.scale is None else guidance.scale * live.face_scale)
+
+
 def _live_sampling(sampling: FoppasConfig, live: LiveConfig) -> FoppasConfig:
     """The sampling settings with later windows starting at `live.later_start` (of LIVE_STEPS
     evenly spaced steps, rescaled to the sampling's; the fast sampling's own steps keep their
-    start) and a lower branch's channels stepped with `live.legs_eta`."""
+    start), a lower branch's channels stepped with `live.legs_eta` and `live.candidates`
+    (the settings' candidates, when they give them, replace these in `make_plan`)."""
     if live.legs_eta is not None:
         sampling = replace(sampling, branch_eta=live.legs_eta)
+    if live.candidates is not None:
+        sampling = replace(sampling, candidates=live.candidates)
     if live.later_start is None or sampling.timesteps is not None:
         return sampling
     return replace(sampling.with_steps(LIVE_STEPS), later_start=live.later_start).with_steps(sampling.steps)
