@@ -124,19 +124,19 @@ def bench_legs(args, bundle, network, audio: Audio) -> None:
     """Live legs against offline's: a whole-body model's own legs as the live engine makes
     them, planted as they come (PlantStream); a `beat` model's cut from the capture to go
     with the offline arms (LowerBodyStream)."""
-    from dataclasses import replace
-
     from diffsheg_core import lower_body as lb
 
     capture = lb.read_capture(TAKE.with_suffix(".npz"), bundle.config.fps)
     fps, own = bundle.config.fps, bool(bundle.layout.root_translation)
     print(f"\nlegs ({'the model' if own else 'the capture'}'s), {audio.duration:.1f} s of speech, seeds "
-          f"{list(range(args.seeds))}, hops of {args.hops[0]} (capture: {_legs_cells(lb.figures(capture[0], capture[1], fps))})")
+          f"{list(range(args.seeds))}, hops of {args.hops[0]}, lookahead {args.lookaheads[0]} "
+          f"(capture: {_legs_cells(lb.figures(capture[0], capture[1], fps))})")
     for seed in range(args.seeds):
         settings = GenerateSettings(model=bundle, seed=seed, threads=1, sampling=args.sampling[0])
         offline = generate(audio, settings=settings)
         hop = args.hops[0]
-        made = run_live(bundle, network, audio, live_config(args, hop), settings)[0] if own else lb.upper_body(offline)
+        live = live_config(args, hop, args.lookaheads[0])
+        made = run_live(bundle, network, audio, live, settings)[0] if own else lb.upper_body(offline)
         stream, started = lb.PlantStream(fps) if own else lb.LowerBodyStream(fps, seed), time.perf_counter()
         for i in range(0, made.n_frames, hop):
             root = None if made.root_translation is None else made.root_translation[i:i + hop]
@@ -173,7 +173,7 @@ def _contact_cells(lower, trans, spans: dict, fps: float) -> str:
 LIVE_OPTIONS = ("legs_eta", "skip_scale", "legs_skip_scale", "face_scale", "through_lookahead", "candidates")
 
 
-def live_config(args, hop: int, lookahead: int = LiveConfig.lookahead) -> LiveConfig:
+def live_config(args, hop: int, lookahead: int) -> LiveConfig:
     """The default LiveConfig, or --low-latency's, at `hop` and `lookahead`, with the options given."""
     given = {name: getattr(args, name) for name in LIVE_OPTIONS if getattr(args, name) is not None}
     return replace(LiveConfig.chosen(args.low_latency, hop, lookahead), **given)

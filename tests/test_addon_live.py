@@ -368,6 +368,7 @@ def test_a_socket_producer_that_breaks_off_keeps_what_was_performed(speech, tmp_
     low = LiveConfig.low_latency()
     recorded = takes.source_of(outcome.take).motion.meta["live"]
     assert (recorded["hop"], recorded["lookahead"], recorded["through_lookahead"]) == (low.hop, low.lookahead, True)
+    assert takes.source_of(outcome.take).motion.meta["candidates"] == low.candidates  # not the panel's default 1
 
 
 def test_quitting_right_after_a_session_is_discarded_does_not_abort(speech, tmp_path):

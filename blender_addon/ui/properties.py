@@ -255,7 +255,7 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
     live_low_latency: BoolProperty(name="Low", default=False,
                                    description="Frames about 0.1 s sooner (2 at a time, each window run on through "
                                                "the audio after it, the best of two): the mouth as in sync, the "
-                                               "gestures jitter more and it needs twice the computing")
+                                               "gestures jitter more and it needs about 2.3x the computing")
     live_record: BoolProperty(name="Record", default=True,
                               description="On Stop, keep the performance as a take, keyed as Generate keys, with "
                                           "its audio as a sound strip from the frame Live started on")

@@ -38,8 +38,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     low = LiveConfig.low_latency()
     p.add_argument("--low-latency", action="store_true",
                    help=f"about 0.1 s less latency (hop {low.hop}, lookahead {low.lookahead}, each window run through "
-                        "its lookahead, the best of two): the mouth as in sync as the default's; the gestures "
-                        "jitter more and it takes twice the compute")
+                        f"its lookahead, the best of {low.candidates}): the mouth as in sync as the default's; the "
+                        "gestures jitter more and it takes about 2.3x the compute")
     p.add_argument("--hop", type=int,
                    help=f"new frames per window, {HOPS[0]}-{HOPS[1]}: fewer, lower latency and more compute "
                         f"(default {LiveConfig.hop}; {low.hop} with --low-latency)")

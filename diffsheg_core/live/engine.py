@@ -3,7 +3,7 @@
 Offline FOPPAS adds `clip_len - overlap` frames per window (30 of 34 for the bundled
 model, 2 s): a frame waits up to that long for its window. Here every window adds only
 `hop` new frames at its end; the `clip_len - hop` frames before them are the motion
-already emitted, held as FOPPAS holds its overlap (painted in at every step, the gap at
+already emitted (less the lookahead's with `through_lookahead`, below), held as FOPPAS holds its overlap (painted in at every step, the gap at
 the seam carried into the new frames' x0). A window is sampled as soon as the audio of its
 new frames (and `lookahead` frames past them) has arrived, over speech features computed
 from the last `context` seconds of audio; with `through_lookahead` it ends at the
@@ -96,15 +96,13 @@ class LiveConfig:
         the jaw barely closed for bilabials (open vowels over bilabials 0.87x offline's); each
         window running on through its lookahead frame and the face's guidance at 1.5x bring it
         back to 0.99x, and the best of two samplings of each window holds the jitter of seams
-        every two frames (1.21x offline's without, 1.13x with, seeds 0-1). The hips' skip
-        guidance is 3.2x: at 4x they swayed 1.07x offline's and a foot was down 86-91 % of frames.
-        Measured (docs/live.md, "Low latency"; the 2-core box twice as fast as the CI box): p95
+        every two frames (1.21x offline's without, 1.13x with, seeds 0-1). Measured (docs/live.md, "Low latency"; the 2-core box twice as fast as the CI box): p95
         0.29 s idle and with the other core busy (the default 0.39 s), 0.43 s of compute a second
         of speech (0.19 s); the mouth as offline's; the wrists 0.87-0.91x offline's speed and
-        1.19-1.26x its jitter over seeds 0-7 (the default 0.91x, 1.16-1.19x); the hips 0.92x
-        offline's sway, a foot down 92-95 % of frames."""
+        1.19-1.26x its jitter over seeds 0-7 (the default 0.91x, 1.16-1.19x); the hips 0.96x
+        offline's sway, a foot down 90-93 % of frames."""
         return cls(**{"hop": 2, "lookahead": 1, "face_scale": 1.5, "through_lookahead": True, "candidates": 2,
-                      "legs_skip_scale": 3.2, **changes})
+                      **changes})
 
     @classmethod
     def chosen(cls, low_latency: bool = False, hop: Optional[int] = None,
@@ -139,11 +137,17 @@ class LiveConfig:
                                 f"got {self.legs_eta!r}")
         for name in ("skip_scale", "legs_skip_scale", "face_scale"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 10:
-                raise DiffshegError(f"live {name} must be a number from 0 to 10, got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 10 \
+                    or (name == "face_scale" and value == 0):
+                raise DiffshegError(f"live {name} must be a number from 0 to 10"
+                                    f"{' (above 0: at 0 the face hears no speech)' if name == 'face_scale' else ''}, "
+                                    f"got {value!r}")
+        if not isinstance(self.through_lookahead, bool):
+            raise DiffshegError(f"live through_lookahead must be True or False, got {self.through_lookahead!r}")
         if self.through_lookahead and self.max_hop + self.lookahead >= clip_len:
-            raise DiffshegError(f"live max_hop plus lookahead must be shorter than the model's {clip_len}-frame "
-                                f"window when windows run through their lookahead, got {self.max_hop} + {self.lookahead}")
+            raise DiffshegError(f"live windows run through their lookahead must hold a frame shown: the widest hop "
+                                f"({self.max_hop}) plus the lookahead ({self.lookahead}) must be under the model's "
+                                f"{clip_len}-frame window; choose a smaller hop or lookahead")
         if self.candidates is not None and (isinstance(self.candidates, bool) or not isinstance(self.candidates, int)
                                             or not CANDIDATES[0] <= self.candidates <= CANDIDATES[1]):
             raise DiffshegError(f"live candidates must be None (the settings') or a whole number from "
@@ -247,7 +251,8 @@ class LiveEngine:
         """Sample the next `hop` frames (default the live hop; at most `waiting`); (hop, D)
         normalised frames, final."""
         hop = self.live.hop if hop is None else hop
-        if not self.ready() or not 1 <= hop <= min(self.waiting, self.bundle.config.clip_len - 1):
+        widest = self.bundle.config.clip_len - 1 - (self.live.lookahead if self.live.through_lookahead else 0)
+        if not self.ready() or not 1 <= hop <= min(self.waiting, widest):
             raise DiffshegError(f"live: the audio of the next {hop} frames has not arrived yet")
         return self._window(self.emitted + hop)
 
@@ -322,7 +327,6 @@ class LiveEngine:
         meta["live"] = {"hop": self.live.hop, "max_hop": self.live.max_hop, "widest_hop": self.widest_hop,
                         "lookahead": self.live.lookahead, "context": self.live.context, "skip_scale": self.live.skip_scale,
                         "face_scale": self.live.face_scale, "through_lookahead": self.live.through_lookahead,
-                        "candidates": self.config.candidates,
                         "posture_calibrated": self.posture is not None,
                         "legs_skip_scale": self.live.legs_skip_scale if self.sampler.branch else None,
                         "legs_eta": self.sampler.branch_eta if self.sampler.branch else None}
