@@ -331,6 +331,8 @@ def test_windows_run_through_their_lookahead_and_keep_only_the_new_frames(speech
     assert later[:2] == (clip, clip - hop - lookahead)
     np.testing.assert_array_equal(sent[-1], later[2][0, clip - hop - lookahead: clip - lookahead])
     assert engine.emitted + lookahead <= engine.heard_frames
+    with pytest.raises(DiffshegError, match="a window takes 1 to 32 new frames"):  # 34, less one shown and L
+        engine.step(33)
 
 
 def test_live_fast_sampling_scales_the_face_guidance_and_takes_its_candidates(model):

@@ -252,7 +252,10 @@ class LiveEngine:
         normalised frames, final."""
         hop = self.live.hop if hop is None else hop
         widest = self.bundle.config.clip_len - 1 - (self.live.lookahead if self.live.through_lookahead else 0)
-        if not self.ready() or not 1 <= hop <= min(self.waiting, widest):
+        if isinstance(hop, bool) or not isinstance(hop, int) or not 1 <= hop <= widest:
+            raise DiffshegError(f"live: a window takes 1 to {widest} new frames (the model's window holds a frame "
+                                f"shown{' and the lookahead' if self.live.through_lookahead else ''}), got {hop!r}")
+        if not self.ready() or hop > self.waiting:
             raise DiffshegError(f"live: the audio of the next {hop} frames has not arrived yet")
         return self._window(self.emitted + hop)
 
