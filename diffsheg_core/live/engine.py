@@ -1,17 +1,17 @@
 """The low-latency streaming sampler: FOPPAS with a hop of a few frames.
 
-Offline FOPPAS adds `clip_len - overlap` frames per window (30 of 34 for the bundled
-model, 2 s): a frame waits up to that long for its window. Here every window adds only
-`hop` new frames at its end; the `clip_len - hop` frames before them are the motion
-already emitted (less the lookahead's with `through_lookahead`, below), held as FOPPAS holds its overlap (painted in at every step, the gap at
-the seam carried into the new frames' x0). A window is sampled as soon as the audio of its
-new frames (and `lookahead` frames past them) has arrived, over speech features computed
-from the last `context` seconds of audio; with `through_lookahead` it ends at the
-lookahead's last frame instead, whose motion is thrown away (`LiveConfig.low_latency`). So a
-frame is emitted at most about hop / fps + lookahead / fps + one window's compute after its
-audio arrived, and the compute per second of speech is fps / hop windows' worth.
-bench/bench_live.py measures both, and the cost in quality against offline generation, for
-each hop tried.
+Offline FOPPAS adds `clip_len - overlap` frames per window (30 of 34 for the bundled model,
+2 s): a frame waits up to that long for its window. Here every window adds only `hop` new
+frames at its end; the `clip_len - hop` frames before them are the motion already emitted
+(less the lookahead's with `through_lookahead`, below), held as FOPPAS holds its overlap
+(painted in at every step, the gap at the seam carried into the new frames' x0). A window is
+sampled as soon as the audio of its new frames (and `lookahead` frames past them) has
+arrived, over speech features computed from the last `context` seconds of audio; with
+`through_lookahead` it ends at the lookahead's last frame instead, whose motion is thrown
+away (`LiveConfig.low_latency`). So a frame is emitted at most about hop / fps + lookahead /
+fps + one window's compute after its audio arrived, and the compute per second of speech is
+fps / hop windows' worth. bench/bench_live.py measures both, and the cost in quality against
+offline generation, for each hop tried.
 
 The first window has nothing to continue and is sampled in full from noise; the ones
 after it run FOPPAS's shorter later-window schedule. Each window's known frames stay
@@ -40,7 +40,7 @@ from ..pipeline import (add_posture, build_sampling, calibrated_posture, check_f
 from ..motion import Motion
 from ..settings import GenerateSettings
 from ..speech_features import frame_features, margin_frames
-from ..validate import CANDIDATES
+from ..validate import CANDIDATES, check_number
 
 HOPS = (1, 16)  # new frames per window: below 1 nothing moves, above 16 (>1 s at 15 fps) it is not live
 LOOKAHEADS = (0, 15)
@@ -92,15 +92,16 @@ class LiveConfig:
     def low_latency(cls, **changes) -> "LiveConfig":
         """About 0.1 s less latency than the default, for gestures that jitter more (`diffsheg live
         --low-latency`; `changes` replace any field). A frame waits for (hop + lookahead) / 15 s of
-        audio: 0.2 s at hop 2 and lookahead 1, 0.33 s at the default's 3 and 2. At lookahead 1
-        the jaw barely closed for bilabials (open vowels over bilabials 0.87x offline's); each
-        window running on through its lookahead frame and the face's guidance at 1.5x bring it
-        back to 0.99x, and the best of two samplings of each window holds the jitter of seams
-        every two frames (1.21x offline's without, 1.13x with, seeds 0-1). Measured (docs/live.md, "Low latency"; the 2-core box twice as fast as the CI box): p95
-        0.29 s idle and with the other core busy (the default 0.39 s), 0.43 s of compute a second
-        of speech (0.19 s); the mouth as offline's; the wrists 0.87-0.91x offline's speed and
-        1.19-1.26x its jitter over seeds 0-7 (the default 0.91x, 1.16-1.19x); the hips 0.96x
-        offline's sway, a foot down 90-93 % of frames."""
+        audio: 0.2 s at hop 2 and lookahead 1, 0.33 s at the default's 3 and 2. At lookahead 1 the
+        jaw barely closed for bilabials (open vowels over bilabials 0.87x offline's); each window
+        running on through its lookahead frame and the face's guidance at 1.5x bring it back to
+        0.99x, and the best of two samplings of each window holds the jitter of seams every two
+        frames (1.21x offline's without, 1.13x with, seeds 0-1). Measured (docs/live.md, "Low
+        latency"; the 2-core box twice as fast as the CI box): p95 0.29 s idle and with the other
+        core busy (the default 0.39 s), 0.43 s of compute a second of speech (0.19 s); the mouth as
+        offline's; the wrists 0.87-0.91x offline's speed and 1.19-1.26x its jitter over seeds 0-7
+        (the default 0.91x, 1.16-1.19x); the hips 0.96x offline's sway, a foot down 90-93 % of
+        frames."""
         return cls(**{"hop": 2, "lookahead": 1, "face_scale": 1.5, "through_lookahead": True, "candidates": 2,
                       **changes})
 
@@ -135,23 +136,22 @@ class LiveConfig:
                                           or not 0 <= self.legs_eta <= 1):
             raise DiffshegError(f"live legs_eta must be None (the model's eta) or a number from 0 to 1, "
                                 f"got {self.legs_eta!r}")
-        for name in ("skip_scale", "legs_skip_scale", "face_scale"):
+        for name in ("skip_scale", "legs_skip_scale"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 10 \
-                    or (name == "face_scale" and value == 0):
-                raise DiffshegError(f"live {name} must be a number from 0 to 10"
-                                    f"{' (above 0: at 0 the face hears no speech)' if name == 'face_scale' else ''}, "
-                                    f"got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 10:
+                raise DiffshegError(f"live {name} must be a number from 0 to 10, got {value!r}")
+        if isinstance(self.face_scale, bool) or not isinstance(self.face_scale, (int, float)) \
+                or not 0 < self.face_scale <= 10:
+            raise DiffshegError(f"live face_scale must be a number from 0 to 10 (above 0: at 0 the face hears no "
+                                f"speech), got {self.face_scale!r}")
         if not isinstance(self.through_lookahead, bool):
             raise DiffshegError(f"live through_lookahead must be True or False, got {self.through_lookahead!r}")
         if self.through_lookahead and self.max_hop + self.lookahead >= clip_len:
             raise DiffshegError(f"live windows run through their lookahead must hold a frame shown: the widest hop "
                                 f"({self.max_hop}) plus the lookahead ({self.lookahead}) must be under the model's "
                                 f"{clip_len}-frame window; choose a smaller hop or lookahead")
-        if self.candidates is not None and (isinstance(self.candidates, bool) or not isinstance(self.candidates, int)
-                                            or not CANDIDATES[0] <= self.candidates <= CANDIDATES[1]):
-            raise DiffshegError(f"live candidates must be None (the settings') or a whole number from "
-                                f"{CANDIDATES[0]} to {CANDIDATES[1]}, got {self.candidates!r}")
+        if self.candidates is not None:
+            check_number("live candidates (None: the settings')", self.candidates, CANDIDATES, whole=True)
         if not isinstance(self.context, (int, float)) or not 0 < self.context <= 60:
             raise DiffshegError(f"live context must be a number of seconds above 0 and at most 60, "
                                 f"got {self.context!r}")
