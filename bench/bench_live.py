@@ -17,12 +17,14 @@ For each hop H tried (and the diffusion steps), on one real take with its phone 
   the file played at real time through a `LiveSession` (as `diffsheg live` runs it), idle
   and with another process keeping one core busy (--busy).
 
-    python bench/bench_live.py                         # quality and compute, hops 3 4 6, lookahead 0 2
-    python bench/bench_live.py --sampling fast quality --hops 3 --lookaheads 2   # both samplings
-    python bench/bench_live.py --realtime --seconds 20 --busy
-    python bench/bench_live.py --realtime --seconds 600 --hops 3 --lookaheads 2 --no-quality --no-legs   # 10 minutes
+    python bench/bench_live.py                         # quality and compute, hops 2 3, lookahead 1 2
+    python bench/bench_live.py --hops 2 --lookaheads 1 --seeds 8   # the defaults, eight seeds
+    python bench/bench_live.py --sampling fast quality --hops 2 --lookaheads 1   # both samplings
+    python bench/bench_live.py --hops 2 --lookaheads 1 --realtime --seconds 30 --busy
+    python bench/bench_live.py --realtime --seconds 600 --hops 2 --lookaheads 1 --no-quality --no-legs   # 10 minutes
+    python bench/bench_live.py --hops 3 --lookaheads 2 --no-through-lookahead --face-scale 1 --skip-scale 2.2 \
+        --no-match-velocity                             # live's defaults before 2026-12-06
     python bench/bench_live.py --model ../runs/default-v8.safetensors   # another model
-    python bench/bench_live.py --low-latency --hops 2 --lookaheads 1 --realtime --seconds 30 --busy   # --low-latency
 
 One thread (DIFFSHEG_THREADS=1, the default). Say which machine the figures came from.
 """
@@ -170,13 +172,14 @@ def _contact_cells(lower, trans, spans: dict, fps: float) -> str:
             f"{'never' if first is None else f'{first / fps:.1f} s'}, contact foot moves <= {100 * worst:.2f} cm")
 
 
-LIVE_OPTIONS = ("legs_eta", "skip_scale", "legs_skip_scale", "face_scale", "through_lookahead", "candidates")
+LIVE_OPTIONS = ("legs_eta", "skip_scale", "legs_skip_scale", "face_scale", "through_lookahead", "candidates",
+                "match_velocity")
 
 
 def live_config(args, hop: int, lookahead: int) -> LiveConfig:
-    """The default LiveConfig, or --low-latency's, at `hop` and `lookahead`, with the options given."""
+    """The default LiveConfig at `hop` and `lookahead`, with the options given."""
     given = {name: getattr(args, name) for name in LIVE_OPTIONS if getattr(args, name) is not None}
-    return replace(LiveConfig.chosen(args.low_latency, hop, lookahead), **given)
+    return replace(LiveConfig.chosen(hop, lookahead), **given)
 
 
 def settings_tried(args) -> list[tuple]:
@@ -230,11 +233,11 @@ def bench_latency(args, audio_path: Path) -> None:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--hops", type=int, nargs="+", default=[3, 4, 6])
+    p.add_argument("--hops", type=int, nargs="+", default=[2, 3])
     p.add_argument("--sampling", nargs="+", default=["fast"], choices=["fast", "quality"],
                    help="samplings tried (default: fast, the default)")
     p.add_argument("--steps", type=int, nargs="+", default=[0], help="diffusion steps (0: the sampling's)")
-    p.add_argument("--lookaheads", type=int, nargs="+", default=[0, 2], help="frames of lookahead tried")
+    p.add_argument("--lookaheads", type=int, nargs="+", default=[1, 2], help="frames of lookahead tried")
     p.add_argument("--seeds", type=int, default=2)
     p.add_argument("--seconds", type=float, default=20.0,
                    help="audio played in the real-time runs (the take again from its start past its end; "
@@ -244,9 +247,6 @@ def main() -> int:
     p.add_argument("--no-quality", action="store_true")
     p.add_argument("--no-legs", action="store_true")
     p.add_argument("--model", help="checkpoint (default: the bundled model)")
-    p.add_argument("--low-latency", action="store_true",
-                   help="LiveConfig.low_latency() (as `diffsheg live --low-latency`) at the hops and lookaheads "
-                        "tried; the options below replace its")
     p.add_argument("--legs-eta", type=float, help="DDIM eta of a whole-body model's legs live (LiveConfig.legs_eta)")
     p.add_argument("--skip-scale", type=float,
                    help="live gesture skip guidance, times the settings' (LiveConfig.skip_scale)")
@@ -259,6 +259,8 @@ def main() -> int:
                    help="windows run on through their lookahead frames (LiveConfig.through_lookahead)")
     p.add_argument("--candidates", type=int,
                    help="best of this many samplings of each live window (LiveConfig.candidates)")
+    p.add_argument("--match-velocity", action=argparse.BooleanOptionalAction,
+                   help="a window's new gestures continue the frames shown in velocity too (LiveConfig.match_velocity)")
     p.add_argument("--out", default="/tmp")
     args = p.parse_args()
     args.steps = [s or None for s in args.steps]

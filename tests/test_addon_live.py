@@ -321,12 +321,12 @@ def test_a_source_that_fails_is_a_report_and_changes_nothing(speech, tmp_path):
 def test_a_socket_producer_that_breaks_off_keeps_what_was_performed(speech, tmp_path, monkeypatch):
     """A producer sends real speech over the socket at real time, then its connection is reset:
     the session ends by itself, the report says why, and Record keeps what was performed (in
-    the temporary folder, the .blend being unsaved, which the report says too). The panel's
-    Low latency on, the session ran LiveConfig.low_latency() (its recording says so)."""
+    the temporary folder, the .blend being unsaved, which the report says too). The session ran
+    the panel's Hop with live's other defaults (its recording says so)."""
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     scene, ob, face = _beat_scene(speech, record=True)
     s = scene.diffsheg
-    s.live_source, s.live_low_latency, s.live_hop = "SOCKET", True, 5
+    s.live_source, s.live_hop = "SOCKET", 3
     with socket.socket() as probe:  # a free port
         probe.bind(("127.0.0.1", 0))
         s.live_port = probe.getsockname()[1]
@@ -365,9 +365,10 @@ def test_a_socket_producer_that_breaks_off_keeps_what_was_performed(speech, tmp_
     assert 1.3 < read_audio_file(wav).duration <= 1.55
     from diffsheg_core.live.engine import LiveConfig
 
-    low = LiveConfig.low_latency()
+    default = LiveConfig()
     recorded = takes.source_of(outcome.take).motion.meta["live"]
-    assert (recorded["hop"], recorded["lookahead"], recorded["through_lookahead"]) == (low.hop, low.lookahead, True)
+    assert (recorded["hop"], recorded["lookahead"], recorded["through_lookahead"], recorded["match_velocity"]) \
+        == (3, default.lookahead, True, True)
     assert takes.source_of(outcome.take).motion.meta["candidates"] == low.candidates  # not the panel's default 1
 
 
@@ -444,11 +445,7 @@ def test_the_live_panel_and_the_preferences():
             assert description[0].isupper() and not description.endswith("."), name
     assert shown["FILE"][:3] == ["live_source", "live_file", "live_speed"]
     assert shown["SOCKET"][:2] == ["live_source", "live_port"] and "live_mic" in shown["MIC"]
-    assert {"live_low_latency", "live_hop", "live_record", "live_vmc"} <= set(shown["MIC"])
-    assert "live_vmc_address" not in shown["MIC"] and not s.live_low_latency
-    s.live_low_latency = True  # its own hop: the Hop field goes
-    assert "live_hop" not in [e[1] for e in draw(DIFFSHEG_PT_live) if e[0] == "prop"]
-    s.live_low_latency = False
+    assert {"live_hop", "live_record", "live_vmc"} <= set(shown["MIC"]) and "live_vmc_address" not in shown["MIC"]
     s.live_vmc = True  # the address, on a row of its own, the whole width: it is read whole
     assert [e[1:4] for e in draw(DIFFSHEG_PT_live) if e[1] == "live_vmc_address"] == [("live_vmc_address", "To", False)]
 

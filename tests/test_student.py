@@ -197,9 +197,10 @@ def test_the_students_first_window_holds_the_arms_of_the_25_steps_and_leaves_the
 def test_calibrating_measures_what_is_left_and_adds_it(bundle):
     """`calibrate` measures the model file as it is and adds what it finds: run again on the
     same speech and seed, it finds nothing left, for the student (its first window too) and for
-    live (the constant moves the frames it is measured on exactly). It moves the upper body and
-    the hips' rotation only (the first window the arms and hands): the legs and the hips'
-    translation are planted after it, which would undo a constant there."""
+    live (the constant moves the frames it is measured on exactly; live alone leaves the student's
+    as they are). It moves the upper body and the hips' rotation only (the first window the arms
+    and hands): the legs and the hips' translation are planted after it, which would undo a
+    constant there."""
     speech = [DATA / "audio" / "2_scott_0_103_103_28s.wav"]
     raw = uncalibrated(bundle)
     raw = replace(raw, info={k: v for k, v in raw.info.items() if k != "live_posture"})
@@ -216,6 +217,9 @@ def test_calibrating_measures_what_is_left_and_adds_it(bundle):
     assert set(second) == {"posture", "first_posture", "live_posture"}
     left = {key: np.abs(values).max() for key, values in second.items()}
     assert max(left.values()) < 1e-3, left  # the hips pass through the planting all but exactly
+    student = dict(raw.student.info)
+    assert set(calibrate(raw, speech, seeds=(0,), student=False)) == {"live_posture"}  # after live's defaults change
+    assert raw.student.info == student
 
 
 @pytest.mark.parametrize("rig, head", [("beat_body", ["Neck", "Neck1", "Spine"]), ("beat", ["Neck", "Neck1", "Spine"]),

@@ -180,7 +180,7 @@ def feet(render: bool = False) -> list[Path]:
 # area's right edge, bottom from its top): set for Debian's Blender 3.4 at these screen sizes
 SHOTS = (
     ("panel.png", "1600x1200x24", (), (600, 0, 822)),
-    ("panel-open.png", "1600x1900x24", ("--open",), (262, 50, 1668)),
+    ("panel-open.png", "1600x1900x24", ("--open",), (262, 50, 1640)),
 )
 
 

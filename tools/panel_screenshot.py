@@ -11,8 +11,8 @@ its default width with the panel (before 4.1 on the first tab, see show_tab) and
 3D view area as OUT.png, then quits. With --open the
 sub-panels (Sampling, Keys, Live) are registered open (Blender has no Python switch for a
 panel's open state); with --range the other choices are drawn (a range of frames, a custom
-preset, a style mix, an emotion (Sad at 0.6), Quality sampling, GPU; Live from a socket at low
-latency with VMC out).
+preset, a style mix, an emotion (Sad at 0.6), Quality sampling, GPU; Live from a socket with VMC
+out).
 Open sub-panels need a taller screen (1600x1900) to be seen whole.
 """
 
@@ -75,7 +75,7 @@ def character():
         s.emotion, s.emotion_intensity = "sad", 0.6
         s.device, s.key_mode, s.use_face_seed, s.hold_face = "GPU", "EVERY_FRAME", True, True
         s.sampling = "QUALITY"  # the greyed-out Steps shows its 25
-        s.live_source, s.live_vmc, s.live_low_latency = "SOCKET", True, True
+        s.live_source, s.live_vmc = "SOCKET", True
 
 
 def sidebar():

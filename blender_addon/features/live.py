@@ -266,11 +266,7 @@ class LiveRun:
         self.vmc = None
         self.source = make_source(settings)
         try:
-            low = settings.live_low_latency  # its own hop: the panel hides its Hop
-            live = LiveConfig.chosen(low, None if low else settings.live_hop)
-            if low and generation.candidates == 1:  # the panel's default, not a choice: low latency's own
-                generation = replace(generation, candidates=None)
-            self.session = LiveSession(self.source, generation, live, bundle=bundle)
+            self.session = LiveSession(self.source, generation, LiveConfig.chosen(settings.live_hop), bundle=bundle)
             legs = self.session.legs is not None
             self.poser = Poser(bundle, replace(options, start_frame=self.start_frame, add_sound=True), legs)
             self.vmc = _vmc_sender(settings, bundle, legs) if settings.live_vmc else None

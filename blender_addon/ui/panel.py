@@ -274,9 +274,7 @@ class DIFFSHEG_PT_live(_Panel, bpy.types.Panel):
             col.prop(s, "live_port")
             rate = f"{live.SOCKET_RATE / 1000:g}\u00a0kHz"  # a non-breaking space: "16 kHz" on one line
             wrapped_label(col, context, f"Listens on {live.SOCKET_HOST}:{s.live_port} for 16-bit mono PCM at {rate}")
-        col.row(heading="Latency").prop(s, "live_low_latency")
-        if not s.live_low_latency:  # low latency has a hop of its own
-            col.prop(s, "live_hop")
+        col.prop(s, "live_hop")
         col.row(heading="Take").prop(s, "live_record")
         col.row(heading="VMC").prop(s, "live_vmc", text="Send")
         if s.live_vmc:  # the whole width: an address is longer than the value column shows

@@ -15,7 +15,7 @@ from ..features.generate import CUSTOM_PRESET, DEFAULT_STYLE, NEUTRAL, NO_MIX
 from ..features.live import SOCKET_HOST as LIVE_HOST  # the VMC receiver's default host too
 from ..scene import preset
 
-LIVE_HOP, LIVE_HOPS = 3, (1, 16)  # diffsheg_core.live.engine: LiveConfig.hop, HOPS (numpy-free here)
+LIVE_HOP, LIVE_HOPS = 2, (1, 16)  # diffsheg_core.live.engine: LiveConfig.hop, HOPS (numpy-free here)
 
 SAMPLING_ITEMS = [
     ("FAST", "Fast", "Five steps a window, each one pass of the model's distilled student: about 5.5 times faster "
@@ -252,10 +252,6 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
     live_hop: IntProperty(name="Hop", default=LIVE_HOP, min=LIVE_HOPS[0], max=LIVE_HOPS[1],
                           description="Frames made at a time: fewer follow the speech sooner but need a faster "
                                       "computer, more need less computing and lag more")
-    live_low_latency: BoolProperty(name="Low", default=False,
-                                   description="Frames about 0.1 s sooner (2 at a time, each window run on through "
-                                               "the audio after it, the best of two): the mouth as in sync, the "
-                                               "gestures jitter more and it needs about 2.3x the computing")
     live_record: BoolProperty(name="Record", default=True,
                               description="On Stop, keep the performance as a take, keyed as Generate keys, with "
                                           "its audio as a sound strip from the frame Live started on")

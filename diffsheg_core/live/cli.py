@@ -35,17 +35,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="write the performance as a Motion .npz, with the audio beside it as OUT.wav")
     p.add_argument("--latency-log", metavar="LOG.json",
                    help="write each shown frame's time in the audio and its latency (s) as JSON")
-    low = LiveConfig.low_latency()
-    p.add_argument("--low-latency", action="store_true",
-                   help=f"about 0.1 s less latency (hop {low.hop}, lookahead {low.lookahead}, each window run through "
-                        f"its lookahead, the best of {low.candidates}): the mouth as in sync as the default's; the "
-                        "gestures jitter more and it takes about 2.3x the compute")
     p.add_argument("--hop", type=int,
                    help=f"new frames per window, {HOPS[0]}-{HOPS[1]}: fewer, lower latency and more compute "
-                        f"(default {LiveConfig.hop}; {low.hop} with --low-latency)")
+                        f"(default {LiveConfig.hop})")
     p.add_argument("--lookahead", type=int,
                    help=f"frames of audio a window waits for past its new frames, {LOOKAHEADS[0]}-{LOOKAHEADS[1]} "
-                        f"(default {LiveConfig.lookahead}; {low.lookahead} with --low-latency)")
+                        f"(default {LiveConfig.lookahead})")
     add_arguments(p)
 
 
@@ -67,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
                             "live and comes as fast as it is spoken: leave --speed out")
     check_outputs([record, audio_out, args.latency_log], inputs=[getattr(source, "path", None), *files_read(args.model)])
     settings = from_arguments(args)
-    live = LiveConfig.chosen(args.low_latency, args.hop, args.lookahead)
+    live = LiveConfig.chosen(args.hop, args.lookahead)
     session = LiveSession(source, settings, live)
     sender = _vmc_sender(args.osc, session) if args.osc else None
     emotion = ", ".join(f"{k} {v:g}" for k, v in (settings.emotion or {}).items()) or "neutral"
@@ -76,8 +71,7 @@ def run(args: argparse.Namespace) -> int:
         """Say what runs once the source has started: a socket's port is then known (port 0)."""
         where = (f"listening on {source.description} for raw 16-bit mono PCM" if isinstance(source, TcpSource)
                  else f"live from {source.description}")
-        low = " (low latency)" if args.low_latency else ""
-        print(f"{where}, model {session.bundle.model_id}, hop {live.hop} frames{low}, "
+        print(f"{where}, model {session.bundle.model_id}, hop {live.hop} frames, lookahead {live.lookahead}, "
               f"{'upper body only' if session.legs is None else 'whole body'}, emotion {emotion}"
               f"{f', VMC to {args.osc}' if sender else ''}; Ctrl-C ends, a line (sad, happy=0.5, neutral) "
               "changes the emotion", file=sys.stderr, flush=True)

@@ -7,15 +7,16 @@ frames at its end; the `clip_len - hop` frames before them are the motion alread
 (painted in at every step, the gap at the seam carried into the new frames' x0). A window is
 sampled as soon as the audio of its new frames (and `lookahead` frames past them) has
 arrived, over speech features computed from the last `context` seconds of audio; with
-`through_lookahead` it ends at the lookahead's last frame instead, whose motion is thrown
-away (`LiveConfig.low_latency`). So a frame is emitted at most about hop / fps + lookahead /
-fps + one window's compute after its audio arrived, and the compute per second of speech is
-fps / hop windows' worth. bench/bench_live.py measures both, and the cost in quality against
-offline generation, for each hop tried.
+`through_lookahead` (the default) it ends at the lookahead's last frame instead, whose motion
+is thrown away. So a frame is emitted at most about hop / fps + lookahead / fps + one window's
+compute after its audio arrived, and the compute per second of speech is fps / hop windows'
+worth. bench/bench_live.py measures both, and the cost in quality against offline
+generation, for each hop tried.
 
 The first window has nothing to continue and is sampled in full from noise; the ones
 after it run FOPPAS's shorter later-window schedule. Each window's known frames stay
-exactly as emitted (no cross-fade, `blend` off): they are on screen already. The
+exactly as emitted (no cross-fade, `blend` off): they are on screen already; its new
+gestures are moved to continue them in velocity too (`continue_velocity`). The
 refining pass is off: run on every hop it left the wrists at 0.65x offline's speed and
 1.6x its jitter (bundled model, 30 s of real speech, hop 4); without it 0.87x and 1.08x,
 for a third less compute.
@@ -49,71 +50,60 @@ LIVE_STEPS = 25  # the schedule `LiveConfig.later_start` counts in (rescaled to 
 
 @dataclass(frozen=True)
 class LiveConfig:
-    """How the stream is sampled. Each default was chosen by measurement (bench/bench_live.py on
-    the 2-core CI box; the figures are on docs/live.md, "The defaults, measured").
-    - hop 3: a third of a core with the fast sampling; smaller hops wait less but cost the
-      lip-sync (a window's new frames sit at its edge) and compute.
-    - lookahead 2: the phonetic encoder hears the phone after a frame; at 1 the jaw opens at
-      open vowels over bilabials only 0.79x as much as offline.
+    """How the stream is sampled. Each default was chosen by measurement (bench/bench_live.py;
+    the figures, and the box they came from, are on docs/live.md, "The defaults, measured").
+    A frame waits for (hop + lookahead) / fps of audio, then a window's compute.
+    - hop 2, lookahead 1: 0.2 s of audio, against 0.33 s at hop 3 and lookahead 2 (live's
+      defaults until 2026-12-06); smaller hops cost compute, a frame of lookahead less cost the
+      lip-sync, which the next three bring back.
+    - through_lookahead: each window ends at its lookahead frame (its motion thrown away), so
+      the new frames are not the window's last. With face_scale 1.5 (the face's
+      classifier-free guidance, times the settings'), the jaw opens at open vowels over
+      bilabials as offline's does (0.99x; at lookahead 1 without either, 0.87x).
+    - match_velocity: each window's new gestures are moved so that the seam's change of velocity
+      is shared with the first new frame (`continue_velocity`). With a seam every other frame
+      the wrists jittered 1.14-1.20x offline's (the best of two samplings a window, 2.2x skip
+      guidance, seeds 0-3); with it (one sampling a window, 2.7x, the same seeds) 0.97-1.00x and
+      their jerk 0.88-0.92x, for less speed (0.81-0.84x), which the skip guidance buys back. So
+      one sampling a window does (candidates).
+    - skip_scale 3.8: live's new frames are painted against the known ones without the refining
+      pass, so they need more skip guidance to move like offline's. Over seeds 0-7 (the take,
+      its held-out 20 s, unseen speech) the wrists move 0.93-0.96x offline's speed, jitter
+      1.12-1.14x and jerk 1.01-1.04x (bars 0.9x, 1.2x); at 3.4x (seeds 0-3) 0.85-0.90x.
     - later_start 14 of 25 steps (FOPPAS's published value): 15 network calls a window instead
       of 18, the same figures against offline.
     - legs_eta None (the model's eta): less noise sways the hips more, but the first foot
       comes down late and a rig's planted foot strays.
-    - skip_scale 2.2: live's new frames are painted against 31 known ones without the refining
-      pass, so they need more skip guidance to move like offline's. Over seeds 0-7 (the take,
-      its held-out 20 s, unseen speech; on the 2-core box about twice as fast as the CI box;
-      docs/live.md, "Measured: quality against offline, latency") 2.2x holds wrist speed and
-      jitter within their bars (0.9x, 1.2x of offline's) on every piece of speech: 0.91x,
-      1.16-1.19x; 2.8x, tuned on seeds 0-3 (2026-12-06), gave 0.96-0.98x and 1.24-1.25x over eight.
-    - legs_skip_scale 4: the hips sway about 0.85x offline's (the lower branch's channels of the
-      same passes: no more compute); at 3.5x, 0.80x once offline's gesture prior draws widened.
-      More sways more but sets a foot down less often.
-    - face_scale 1, through_lookahead off, candidates None (the settings'): what
-      `low_latency()` changes to wait less for the audio; at the default's hop and lookahead
-      the mouth needs none of them.
+    - legs_skip_scale 4: the hips sway about as offline's (0.89-1.06x, seeds 0-1; the lower
+      branch's channels of the same passes: no more compute); at 3.2x, 0.83x. More sways more
+      but sets a foot down less often.
+    - candidates None: the settings' (one, unless a job asks for more).
     - max_hop 12: a machine too slow for the hop does not fall behind: when more than a hop of
       audio waits, the next window takes it all (a window costs about the same for any hop),
       so the latency stays bounded and no audio is dropped; the status line and the recording
       say so. `max_hop` = `hop` turns that off."""
 
-    hop: int = 3                       # new frames per window
+    hop: int = 2                       # new frames per window
     max_hop: int = 12                  # frames a window may take when more are waiting: a slow machine keeps up
-    lookahead: int = 2                 # frames of audio a window waits for past its new frames
+    lookahead: int = 1                 # frames of audio a window waits for past its new frames
     context: float = 3.0               # seconds of audio the speech features of a window are computed over
     later_start: Optional[int] = 14    # schedule index later windows start from, at 25 steps (None: the model's)
     legs_eta: Optional[float] = None   # eta of a whole-body model's legs (None: the model's eta)
-    skip_scale: float = 2.2            # the fast sampling's gesture skip guidance live, times the settings'
+    skip_scale: float = 3.8            # the fast sampling's gesture skip guidance live, times the settings'
     legs_skip_scale: float = 4.0       # ... and that of a whole-body model's hips and legs
-    face_scale: float = 1.0            # ... and its face's classifier-free guidance, times the settings'
-    through_lookahead: bool = False    # a window runs on through its lookahead frames (their motion thrown away)
+    face_scale: float = 1.5            # ... and its face's classifier-free guidance, times the settings'
+    through_lookahead: bool = True     # a window runs on through its lookahead frames (their motion thrown away)
     candidates: Optional[int] = None   # best of this many samplings of each window (None: the settings')
+    match_velocity: bool = True        # a window's new gestures continue the frames shown in velocity too
 
     @classmethod
-    def low_latency(cls, **changes) -> "LiveConfig":
-        """About 0.1 s less latency than the default, for gestures that jitter more (`diffsheg live
-        --low-latency`; `changes` replace any field). A frame waits for (hop + lookahead) / 15 s of
-        audio: 0.2 s at hop 2 and lookahead 1, 0.33 s at the default's 3 and 2. At lookahead 1 the
-        jaw barely closed for bilabials (open vowels over bilabials 0.87x offline's); each window
-        running on through its lookahead frame and the face's guidance at 1.5x bring it back to
-        0.99x, and the best of two samplings of each window holds the jitter of seams every two
-        frames (1.21x offline's without, 1.13x with, seeds 0-1). Measured (docs/live.md, "Low
-        latency"; the 2-core box twice as fast as the CI box): p95 0.29 s idle and with the other
-        core busy (the default 0.39 s), 0.43 s of compute a second of speech (0.19 s); the mouth as
-        offline's; the wrists 0.87-0.91x offline's speed and 1.19-1.26x its jitter over seeds 0-7
-        (the default 0.91x, 1.16-1.19x); the hips 0.96x offline's sway, a foot down 90-93 % of
-        frames."""
-        return cls(**{"hop": 2, "lookahead": 1, "face_scale": 1.5, "through_lookahead": True, "candidates": 2,
-                      **changes})
-
-    @classmethod
-    def chosen(cls, low_latency: bool = False, hop: Optional[int] = None,
-               lookahead: Optional[int] = None) -> "LiveConfig":
-        """What a user chose: the default or `low_latency()`, with their hop and lookahead when
-        given (a hop wider than the default's widest is its own widest)."""
+    def chosen(cls, hop: Optional[int] = None, lookahead: Optional[int] = None) -> "LiveConfig":
+        """The defaults with a user's hop and lookahead when given (a hop wider than the
+        default's widest is its own widest)."""
         given = {name: value for name, value in (("hop", hop), ("lookahead", lookahead)) if value is not None}
         if hop is not None and isinstance(hop, int) and hop > cls.max_hop:
             given["max_hop"] = hop
-        return cls.low_latency(**given) if low_latency else cls(**given)
+        return cls(**given)
 
     def check(self, clip_len: int) -> None:
         for name, value, (lo, hi) in (("hop", self.hop, HOPS), ("lookahead", self.lookahead, LOOKAHEADS)):
@@ -144,8 +134,9 @@ class LiveConfig:
                 or not 0 < self.face_scale <= 10:
             raise DiffshegError(f"live face_scale must be a number from 0 to 10 (above 0: at 0 the face hears no "
                                 f"speech), got {self.face_scale!r}")
-        if not isinstance(self.through_lookahead, bool):
-            raise DiffshegError(f"live through_lookahead must be True or False, got {self.through_lookahead!r}")
+        for name in ("through_lookahead", "match_velocity"):
+            if not isinstance(getattr(self, name), bool):
+                raise DiffshegError(f"live {name} must be True or False, got {getattr(self, name)!r}")
         if self.through_lookahead and self.max_hop + self.lookahead >= clip_len:
             raise DiffshegError(f"live windows run through their lookahead must hold a frame shown: the widest hop "
                                 f"({self.max_hop}) plus the lookahead ({self.lookahead}) must be under the model's "
@@ -283,6 +274,8 @@ class LiveEngine:
         known = self._known(first) if n_known else None
         window = self.sampler.sample_window(self._make_eps_fn(cond), last - first, known, self.noise)
         new = window[0, n_known: n_known + end - self.emitted]
+        if self.live.match_velocity and self.emitted >= 2:
+            new = continue_velocity(new, self._known(self.emitted - 2)[0], self.sampler.upper)
         check_finite(self.bundle, new)
         self._frames.append(new)
         self.emitted = end
@@ -330,10 +323,33 @@ class LiveEngine:
         meta["live"] = {"hop": self.live.hop, "max_hop": self.live.max_hop, "widest_hop": self.widest_hop,
                         "lookahead": self.live.lookahead, "context": self.live.context, "skip_scale": self.live.skip_scale,
                         "face_scale": self.live.face_scale, "through_lookahead": self.live.through_lookahead,
+                        "match_velocity": self.live.match_velocity,
                         "posture_calibrated": self.posture is not None,
                         "legs_skip_scale": self.live.legs_skip_scale if self.sampler.branch else None,
                         "legs_eta": self.sampler.branch_eta if self.sampler.branch else None}
         return meta
+
+
+def continue_velocity(new: np.ndarray, shown: np.ndarray, channels: int) -> np.ndarray:
+    """`new` (k, D) frames with their first `channels` channels (the gestures a lower branch
+    does not make) moved by one offset, so that the step from the last of the two frames `shown`
+    (2, D) to the first new one is the mean of the velocity it arrived with and the new frames'
+    own next step: the seam's change of velocity is shared between the seam and the first new
+    frame, and the new frames keep their shape.
+
+    Why: a live window's new frames continue the known ones in position (the sampler carries the
+    gap at the seam into their x0, `foppas.carry_overlap`) but not in velocity, and at a hop of
+    two frames every other frame is a seam. There the wrists accelerated 1.2-1.3x as hard as
+    between a hop's own frames (1.5-1.6x at a hop of three), most of live's jitter above
+    offline's. Matching the velocity at the seam exactly left all the change at the first new
+    frame: the jitter fell, but the wrists' jerk doubled (1.9x offline's, motion in straight
+    pieces two frames long); shared, it is offline's. Carried into x0 at every step instead, a
+    velocity term fed back through the network and ran away (the wrists 2.8x offline's speed)."""
+    arrived = shown[1, :channels] - shown[0, :channels]
+    step = new[1, :channels] - new[0, :channels] if len(new) > 1 else new[0, :channels] - shown[1, :channels]
+    out = new.copy()
+    out[:, :channels] += shown[1, :channels] + (arrived + step) / 2 - new[0, :channels]
+    return out
 
 
 def _live_guidance(guidance: Guidance, settings: GenerateSettings, live: LiveConfig, lower: int) -> Guidance:

@@ -31,7 +31,7 @@ with the model file as it is, so a second run measures what is left and adds it 
 the same speech and seeds):
 
     python -m diffsheg_core.training.calibrate MODEL [--speech a.wav ...] [--seeds 0 1 2 3] [--no-live] [--no-first]
-        [--out FILE]
+        [--no-student] [--out FILE]
 """
 
 from __future__ import annotations
@@ -124,24 +124,27 @@ def _student_take(bundle: ModelBundle, audio: Audio, seed: int) -> Motion:
 
 
 def posture_offsets(bundle: ModelBundle, speeches: Sequence[Path], seeds: Sequence[int] = SEEDS,
-                    live: bool = True, first: bool = True) -> dict[str, np.ndarray]:
+                    live: bool = True, first: bool = True, student: bool = True) -> dict[str, np.ndarray]:
     """(gesture_dim,) what the fast sampling's gestures lack of the 25 steps' (the quality
     sampling's minus its own) on average over `speeches` and `seeds`, per sampling calibrated,
     keyed as the file stores them: "posture" (the distilled student's, offline, from frame
     2 x clip_len on, on the `calibrated_channels`), "first_posture" (the student's first window,
     on one-window clips of the speech, on the `arm_channels`; with `first`) and "live_posture"
-    (a live session's, as "posture"; with `live`); zero on the other channels."""
-    if bundle.student is not None and not make_plan(bundle, GenerateSettings(model=bundle)).student:
+    (a live session's, as "posture"; with `live`); zero on the other channels. Without
+    `student` only live is measured (after live's defaults change: the student's are left)."""
+    student = student and bundle.student is not None
+    if student and not make_plan(bundle, GenerateSettings(model=bundle)).student:
         raise DiffshegError(f"{bundle.source}: its fast sampling does not run its distilled student (the file's "
                             "sampling settings or guidance scales differ from those it was distilled at), so a "
                             "posture calibrated for the student would never apply")
-    takes = {"posture": _student_take} if bundle.student is not None else {}
+    takes = {"posture": _student_take} if student else {}
     if live:
         takes["live_posture"] = live_take
     if not takes:
-        raise DiffshegError(f"{bundle.source} has no distilled student, and live is not calibrated: nothing to do")
+        raise DiffshegError(f"{bundle.source}: nothing to calibrate: live is left out and the distilled student is "
+                            "too or the file has none; leave out --no-live")
     channels = {key: calibrated_channels(bundle) for key in takes}
-    if first and bundle.student is not None:
+    if first and student:
         channels["first_posture"] = arm_channels(bundle)
     differences: dict[str, list] = {key: [] for key in channels}
     for path in speeches:
@@ -161,11 +164,11 @@ def posture_offsets(bundle: ModelBundle, speeches: Sequence[Path], seeds: Sequen
 
 
 def calibrate(bundle: ModelBundle, speeches: Sequence[Path], seeds: Sequence[int] = SEEDS,
-              live: bool = True, first: bool = True) -> dict[str, np.ndarray]:
+              live: bool = True, first: bool = True, student: bool = True) -> dict[str, np.ndarray]:
     """Add what each calibrated sampling's posture lacks to the file's (in place: the student's
     info["posture"] and info["first_posture"], the model's info["live_posture"]) and note what
     it was measured on; returns what was added to each."""
-    added = posture_offsets(bundle, speeches, seeds, live, first)
+    added = posture_offsets(bundle, speeches, seeds, live, first, student)
     measured = {"speech": [Path(p).name for p in speeches], "seeds": list(seeds)}
     for key, values in added.items():
         info = bundle.info if key == "live_posture" else bundle.student.info
@@ -185,6 +188,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))
     parser.add_argument("--no-live", action="store_true", help="calibrate the distilled student only")
     parser.add_argument("--no-first", action="store_true", help="leave the student's first window as it is")
+    parser.add_argument("--no-student", action="store_true",
+                        help="leave the distilled student's posture as it is: calibrate live only (after live's "
+                             "defaults change)")
     parser.add_argument("--out", help="where to write it (default: over the input, atomically)")
     args = parser.parse_args(argv)
     missing = [str(p) for p in args.speech if not Path(p).is_file()]
@@ -192,7 +198,8 @@ def main(argv: list[str] | None = None) -> int:
         raise DiffshegError(f"speech to calibrate on not found: {', '.join(missing)}: give --speech the paths of "
                             "speech recordings (wav, flac, ...), the longer the better")
     bundle = load_model(args.model)
-    added = calibrate(bundle, args.speech, args.seeds, live=not args.no_live, first=not args.no_first)
+    added = calibrate(bundle, args.speech, args.seeds, live=not args.no_live, first=not args.no_first,
+                      student=not args.no_student)
     path = save_checkpoint(bundle, args.out or args.model)
     print(f"wrote {path}, measured over {len(args.speech)} speeches, seeds {' '.join(map(str, args.seeds))}:")
     for key, values in added.items():
