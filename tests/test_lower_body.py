@@ -227,7 +227,7 @@ def _feed(stream, motion, hop: int, down_out: dict | None = None):
 
 
 def test_live_legs_plant_the_feet_and_move_as_offline_ones_do(take):
-    """Live (LowerBodyStream, hops of 3 frames as the live engine emits them) against the
+    """Live (LowerBodyStream, hops of 3 frames, as the live engine may emit them) against the
     legs cut offline for the same upper body: feet planted the same way, figures alike."""
     _, motions = take
     library = lb.LowerBodyLibrary.load()
@@ -301,7 +301,7 @@ def _feet_against_the_capture(motion, capture_figures: dict, capture_sway: float
 def test_the_feet_stand_or_step_and_never_glide(take, unseen, capture):
     """The bundled model's legs on the real take's last 30 s (its held-out 20 s and the 10 s
     before) and on speech it never heard, two seeds each, and live (PlantStream fed the
-    model's legs three frames at a time, as the live session does)."""
+    model's legs three frames at a time, as a live session may)."""
     lower, trans, _ = capture
     figures = lb.feet_figures(lower, trans, FPS)
     sway = _figures(lower, trans)["sway speed"]

@@ -263,7 +263,7 @@ def test_a_calibrated_posture_that_does_not_fit_is_refused_naming_the_fix(tmp_pa
 def test_calibrating_on_missing_or_too_short_speech_is_refused_and_leaves_the_file(tmp_path):
     """The calibration command names what is wrong and how to fix it, never writes half a file,
     and leaves the model as it was: speech that is not there, and speech shorter than the two
-    windows before the frames it measures."""
+    windows before the frames it measures; and nothing to calibrate at all."""
     import shutil
     import subprocess
     import sys
@@ -286,5 +286,8 @@ def test_calibrating_on_missing_or_too_short_speech_is_refused_and_leaves_the_fi
     with pytest.raises(DiffshegError, match=r"3\.0 s is too short to calibrate a posture on: give speech longer "
                                             r"than 4\.5 s"):
         calibrate_main([str(model), "--speech", str(short), "--seeds", "0", "--no-live"])
+    with pytest.raises(DiffshegError, match=r"nothing to calibrate: live is left out \(--no-live\) and so is the "
+                                            r"distilled student \(--no-student\); leave out either"):
+        calibrate_main([str(model), "--speech", str(short), "--no-live", "--no-student"])
     assert model.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["model.safetensors",
                                                                                             "short.wav"]

@@ -51,11 +51,13 @@ LIVE_STEPS = 25  # the schedule `LiveConfig.later_start` counts in (rescaled to 
 @dataclass(frozen=True)
 class LiveConfig:
     """How the stream is sampled. Each default was chosen by measurement (bench/bench_live.py;
-    the figures, and the box they came from, are on docs/live.md, "The defaults, measured").
+    the figures, and the box they came from, are on docs/live.md, "Hop 2 and lookahead 1" and
+    "The defaults, measured").
     A frame waits for (hop + lookahead) / fps of audio, then a window's compute.
     - hop 2, lookahead 1: 0.2 s of audio, against 0.33 s at hop 3 and lookahead 2 (live's
-      defaults until 2026-12-06); smaller hops cost compute, a frame of lookahead less cost the
-      lip-sync, which the next three bring back.
+      defaults until 2026-12-06); smaller hops cost compute and jitter at the seams (brought
+      back by match_velocity), a frame of lookahead less cost the lip-sync (brought back by
+      through_lookahead with face_scale).
     - through_lookahead: each window ends at its lookahead frame (its motion thrown away), so
       the new frames are not the window's last. With face_scale 1.5 (the face's
       classifier-free guidance, times the settings'), the jaw opens at open vowels over
@@ -334,8 +336,9 @@ def continue_velocity(new: np.ndarray, shown: np.ndarray, channels: int) -> np.n
     """`new` (k, D) frames with their first `channels` channels (the gestures a lower branch
     does not make) moved by one offset, so that the step from the last of the two frames `shown`
     (2, D) to the first new one is the mean of the velocity it arrived with and the new frames'
-    own next step: the seam's change of velocity is shared between the seam and the first new
-    frame, and the new frames keep their shape.
+    own next step (a single new frame: the step it was sampled with): the seam's change of
+    velocity is shared between the seam and the first new frame, and the new frames keep their
+    shape.
 
     Why: a live window's new frames continue the known ones in position (the sampler carries the
     gap at the seam into their x0, `foppas.carry_overlap`) but not in velocity, and at a hop of

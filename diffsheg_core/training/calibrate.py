@@ -132,7 +132,8 @@ def posture_offsets(bundle: ModelBundle, speeches: Sequence[Path], seeds: Sequen
     on one-window clips of the speech, on the `arm_channels`; with `first`) and "live_posture"
     (a live session's, as "posture"; with `live`); zero on the other channels. Without
     `student` only live is measured (after live's defaults change: the student's are left)."""
-    student = student and bundle.student is not None
+    has_student = bundle.student is not None
+    student = student and has_student
     if student and not make_plan(bundle, GenerateSettings(model=bundle)).student:
         raise DiffshegError(f"{bundle.source}: its fast sampling does not run its distilled student (the file's "
                             "sampling settings or guidance scales differ from those it was distilled at), so a "
@@ -141,8 +142,9 @@ def posture_offsets(bundle: ModelBundle, speeches: Sequence[Path], seeds: Sequen
     if live:
         takes["live_posture"] = live_take
     if not takes:
-        raise DiffshegError(f"{bundle.source}: nothing to calibrate: live is left out and the distilled student is "
-                            "too or the file has none; leave out --no-live")
+        raise DiffshegError(f"{bundle.source}: nothing to calibrate: live is left out (--no-live) and "
+                            + ("so is the distilled student (--no-student); leave out either" if has_student
+                               else "the file has no distilled student; leave out --no-live"))
     channels = {key: calibrated_channels(bundle) for key in takes}
     if first and student:
         channels["first_posture"] = arm_channels(bundle)
