@@ -409,7 +409,20 @@ def test_each_window_shares_the_change_of_velocity_at_its_seam(speech, model):
     assert max(kinks[True]) < 1e-4 and np.median(kinks[False]) > 0.05, kinks
 
 
-def test_live_gestures_move_and_speak_like_offline_ones(model):
+@pytest.fixture(scope="module")
+def default_takes(model):
+    """The real take made live at the defaults (`training.calibrate.live_take`: the engine fed it
+    all at once, its hop held) and offline, seeds 0 and 1: (audio, {"live": [...], "offline": [...]})."""
+    from diffsheg_core.training.calibrate import live_take
+
+    bundle, _ = model
+    audio = read_audio_file(SPEECH)
+    return audio, {"live": [live_take(bundle, audio, seed) for seed in (0, 1)],
+                   "offline": [generate(audio, settings=GenerateSettings(model=bundle, seed=seed, threads=1))
+                               for seed in (0, 1)]}
+
+
+def test_live_gestures_move_and_speak_like_offline_ones(default_takes):
     """Issue 39's bar for live quality, on the real take and two seeds: the default live
     session's wrists move at least 0.9x as fast as offline generation's of the same speech
     (the distilled student), jitter at most 1.2x as much, and its mouth follows the voice as
@@ -418,20 +431,13 @@ def test_live_gestures_move_and_speak_like_offline_ones(model):
     0.94x, 1.08x; seeds 0-7: 0.96x, 1.14x, and the mouth 1.00x; docs/live.md has other speech)."""
     from diffsheg_core.training.metrics.posture import naturalness
 
-    bundle, network = model
-    audio = read_audio_file(SPEECH)
-    figures = {"live": [], "offline": []}
-    for seed in (0, 1):
-        settings = GenerateSettings(model=bundle, seed=seed, threads=1)
-        engine = LiveEngine(bundle, network, settings, audio.sample_rate, FIXED_HOP)
-        engine.push(audio.samples)
-        while engine.ready():
-            engine.step()
-        engine.finish()
-        for name, motion in (("live", engine.motion()), ("offline", generate(audio, settings=settings))):
-            nat = naturalness(motion)
-            figures[name].append((nat["wrist speed (arm lengths/s)"], nat["wrist jitter (arm lengths/s^2)"],
-                                  _mouth_voice(motion, audio)))
+    audio, takes = default_takes
+
+    def measured(motion):
+        nat = naturalness(motion)
+        return nat["wrist speed (arm lengths/s)"], nat["wrist jitter (arm lengths/s^2)"], _mouth_voice(motion, audio)
+
+    figures = {name: [measured(motion) for motion in motions] for name, motions in takes.items()}
     live, offline = (np.mean(figures[name], axis=0) for name in ("live", "offline"))
     speed, jitter, mouth = live / offline
     assert speed >= 0.85, (live, offline)
@@ -439,7 +445,7 @@ def test_live_gestures_move_and_speak_like_offline_ones(model):
     assert mouth >= 0.95, (live, offline)
 
 
-def test_live_keeps_the_mouth_in_sync(model):
+def test_live_keeps_the_mouth_in_sync(default_takes):
     """Live waits for one frame of audio past a hop of two: at that lookahead the jaw barely
     closed for bilabials (open vowels over bilabials 0.87x offline's on these two seeds); windows
     run through their lookahead with the face's guidance at 1.5x (the defaults), it opens and
@@ -448,20 +454,10 @@ def test_live_keeps_the_mouth_in_sync(model):
     from diffsheg_core.training.metrics.lipsync import phoneme_contrast
     from diffsheg_core.training.metrics.textgrid import phone_tier, read_textgrid
 
-    bundle, network = model
-    audio = read_audio_file(SPEECH)
+    audio, takes = default_takes
     phones = phone_tier(read_textgrid(SPEECH.with_suffix(".TextGrid")))
-    figures = {"live": [], "offline": []}
-    for seed in (0, 1):
-        settings = GenerateSettings(model=bundle, seed=seed, threads=1)
-        engine = LiveEngine(bundle, network, settings, audio.sample_rate, FIXED_HOP)
-        engine.push(audio.samples)
-        while engine.ready():
-            engine.step()
-        engine.finish()
-        for name, motion in (("live", engine.motion()), ("offline", generate(audio, settings=settings))):
-            figures[name].append((phoneme_contrast(face_channel(motion, "jawOpen"), motion.fps, phones)["ratio"],
-                                  _mouth_voice(motion, audio)))
+    figures = {name: [(phoneme_contrast(face_channel(motion, "jawOpen"), motion.fps, phones)["ratio"],
+                       _mouth_voice(motion, audio)) for motion in motions] for name, motions in takes.items()}
     live, offline = (np.mean(figures[name], axis=0) for name in ("live", "offline"))
     assert (live / offline >= 0.95).all(), (live, offline)
 
