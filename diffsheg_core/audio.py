@@ -596,8 +596,12 @@ def n_motion_frames(audio, fps: float = 15.0) -> int:
 
 
 def _frames_of(n_samples: int, sample_rate: int, fps: float) -> int:
-    n_load = resampled_length(n_samples, sample_rate, LOAD_RATE)
-    return resampled_length(n_load, LOAD_RATE, MEL_RATE) // mel_hop(fps)
+    return _mel_samples(n_samples, sample_rate) // mel_hop(fps)
+
+
+def _mel_samples(n_samples: int, sample_rate: int) -> int:
+    """Samples at MEL_RATE that `n_samples` at `sample_rate` become (through LOAD_RATE, as `mel_frames`)."""
+    return resampled_length(resampled_length(n_samples, sample_rate, LOAD_RATE), LOAD_RATE, MEL_RATE)
 
 
 def samples_for_frames(n_frames: int, sample_rate: int, fps: float = 15.0) -> int:
@@ -606,6 +610,19 @@ def samples_for_frames(n_frames: int, sample_rate: int, fps: float = 15.0) -> in
     while n > 0 and _frames_of(n - 1, sample_rate, fps) >= n_frames:
         n -= 1
     while _frames_of(n, sample_rate, fps) < n_frames:
+        n += 1
+    return n
+
+
+def samples_for_mel_frame(frame: int, sample_rate: int, fps: float = 15.0) -> int:
+    """The fewest samples at `sample_rate` that hold all the audio mel frame `frame` reads: its
+    window reaches MEL_N_FFT // 2 samples at MEL_RATE past its centre at frame / fps (57 ms),
+    short of the next frame's start (67 ms at 15 fps), where `samples_for_frames(frame + 1)` is."""
+    need = frame * mel_hop(fps) + MEL_N_FFT // 2
+    n = int(need * sample_rate // MEL_RATE)
+    while n > 0 and _mel_samples(n - 1, sample_rate) >= need:
+        n -= 1
+    while _mel_samples(n, sample_rate) < need:
         n += 1
     return n
 

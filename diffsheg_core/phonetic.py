@@ -134,10 +134,15 @@ def log_mel(audio: Audio, cfg: PhoneticConfig, level: np.ndarray | None = None) 
 
     `level`: (n_mels, 1) band means to take off instead of `audio`'s own (a piece of a long
     recording takes off the whole recording's)."""
-    mel = raw_log_mel(audio, cfg)
+    return normalised(raw_log_mel(audio, cfg), cfg, level)
+
+
+def normalised(raw: np.ndarray, cfg: PhoneticConfig, level: np.ndarray | None = None) -> np.ndarray:
+    """`raw_log_mel`'s (n_mels, N) frames as the encoder takes them (`log_mel`): with
+    `normalise = "utterance"` less `level`, or their own band means when None."""
     if cfg.normalise == "utterance":
-        mel = mel - (mel.mean(axis=1, keepdims=True) if level is None else level)
-    return mel.astype(np.float32)
+        raw = raw - (raw.mean(axis=1, keepdims=True) if level is None else level)
+    return raw.astype(np.float32)
 
 
 def receptive_field(cfg: PhoneticConfig) -> int:

@@ -19,7 +19,8 @@ import pytest
 import soundfile as sf
 from conftest import blas_threads
 
-from diffsheg_core.audio import Audio, n_motion_frames, read_audio_file
+from diffsheg_core.audio import (MEL_N_FFT, MEL_RATE, Audio, mel_frames, n_motion_frames, read_audio_file,
+                                  samples_for_frames, samples_for_mel_frame)
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.checkpoints import load_model
 from diffsheg_core.live.engine import LiveConfig, LiveEngine
@@ -335,6 +336,67 @@ def test_windows_run_through_their_lookahead_and_keep_only_the_new_frames(speech
     assert engine.emitted + lookahead <= engine.heard_frames
     with pytest.raises(DiffshegError, match="a window takes 1 to 32 new frames"):  # 34, less one shown and L
         engine.step(33)
+
+
+def test_a_window_waits_only_for_the_audio_its_lookahead_frames_mel_reads(speech, model):
+    """A window is sampled once the audio that its last lookahead frame's mel frame reads has
+    arrived (57 ms past the frame's centre), 10 ms before that frame is heard (the next frame's
+    start). Its features stop there, so the frames are those of a session that had all the
+    audio in, and that mel frame is the one the whole recording gives."""
+    bundle, network = model
+    fps, rate = bundle.config.fps, speech.sample_rate
+    needed = samples_for_mel_frame(2, rate, fps)  # hop 2 and lookahead 1: the first window's lookahead is frame 2
+    assert (samples_for_frames(3, rate, fps) - needed) / rate == pytest.approx(1 / fps - MEL_N_FFT / 2 / MEL_RATE,
+                                                                               abs=2 / rate)
+    read = mel_frames(Audio(speech.samples[:needed], rate), fps)
+    np.testing.assert_allclose(read[2], mel_frames(speech, fps)[2], rtol=1e-3, atol=1e-6)
+    live = LiveConfig(max_hop=2)
+    early = LiveEngine(bundle, network, GenerateSettings(), rate, live)
+    early.push(speech.samples[: needed - 1])
+    assert not early.ready() and early.readable_frames == 2
+    early.push(speech.samples[needed - 1: needed])
+    assert early.ready() and early.heard_frames == 2 and early.readable_frames == 3
+    made = [early.step()]
+    for i in range(needed, 3 * rate, 320):  # on in 20 ms chunks, each window as soon as it can be
+        early.push(speech.samples[i: i + 320])
+        while early.ready():
+            made.append(early.step())
+    late = LiveEngine(bundle, network, GenerateSettings(), rate, live)
+    late.push(speech.samples[: 4 * rate])
+    while late.emitted < early.emitted:
+        late.step()
+    np.testing.assert_array_equal(np.concatenate(made), np.concatenate(late._frames))
+
+
+def test_live_windows_take_off_the_level_of_the_session_heard_so_far(speech, model):
+    """The phonetic encoder's input is the log-mel less each band's mean level. Offline that is
+    the whole recording's; live it is the mean over every whole recogniser frame heard up to
+    the window (`speech_features.RunningLevel`), each counted once, not the window's own few
+    seconds (whose mean moved with the frame at the edge of the audio it read)."""
+    from diffsheg_core.phonetic import raw_log_mel
+    from diffsheg_core.speech_features import LEVEL_EDGE_S, RunningLevel
+
+    bundle, network = model
+    audio = Audio(speech.samples[: 6 * speech.sample_rate], speech.sample_rate)
+    engine = LiveEngine(bundle, network, GenerateSettings(), audio.sample_rate)
+    engine.push(audio.samples)
+    stops = []
+    read = engine._features
+    engine._features = lambda first, last, end: stops.append(samples_for_mel_frame(
+        end - 1 + engine.live.lookahead, audio.sample_rate, bundle.config.fps)) or read(first, last, end)
+    while engine.ready():
+        engine.step()
+    per_second = bundle.phonetic.fps * bundle.phonetic.subframes
+    counted = engine._level.count
+    assert counted == engine._level.next == int((stops[-1] / audio.sample_rate - LEVEL_EDGE_S) * per_second) + 1
+    whole = raw_log_mel(audio, bundle.phonetic)[:, :counted].mean(axis=1)
+    np.testing.assert_allclose(engine._level.total / counted, whole, atol=1e-3)
+    level = RunningLevel(2)  # frames read twice (overlapping windows) are counted once, skipped ones not at all
+    frames = np.arange(40.0).reshape(2, 20)
+    level.add(frames[:, :6], 0, 4)
+    np.testing.assert_allclose(level.add(frames[:, 2:], 2, 8)[:, 0], frames[:, :8].mean(axis=1))
+    np.testing.assert_allclose(level.add(frames[:, 12:], 12, 30)[:, 0],
+                               np.concatenate([frames[:, :8], frames[:, 12:]], axis=1).mean(axis=1))
 
 
 def test_live_fast_sampling_scales_the_face_guidance_and_takes_its_candidates(model):

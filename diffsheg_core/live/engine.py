@@ -30,7 +30,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..audio import MIN_SAMPLE_RATE, Audio, n_motion_frames, samples_for_frames
+from ..audio import MIN_SAMPLE_RATE, Audio, n_motion_frames, samples_for_mel_frame
 from ..checkpoints import ModelBundle
 from ..conditioning import Conditioning, SpeechFeatures
 from ..errors import DiffshegError
@@ -40,7 +40,7 @@ from ..pipeline import (add_posture, build_sampling, calibrated_posture, check_f
                         to_motion)
 from ..motion import Motion
 from ..settings import GenerateSettings
-from ..speech_features import frame_features, margin_frames
+from ..speech_features import RunningLevel, frame_features, margin_frames
 from ..validate import CANDIDATES, check_number
 
 HOPS = (1, 16)  # new frames per window: below 1 nothing moves, above 16 (>1 s at 15 fps) it is not live
@@ -53,8 +53,9 @@ class LiveConfig:
     """How the stream is sampled. Each default was chosen by measurement (bench/bench_live.py;
     the figures, and the box they came from, are on docs/live.md, "Hop 2 and lookahead 1" and
     "The defaults, measured").
-    A frame waits for (hop + lookahead) / fps of audio, then a window's compute.
-    - hop 2, lookahead 1: 0.2 s of audio, against 0.33 s at hop 3 and lookahead 2 (live's
+    A frame waits for the audio of its hop and lookahead, to the end of what the last lookahead
+    frame's mel reads ((hop + lookahead - 1) / fps + 57 ms), then a window's compute.
+    - hop 2, lookahead 1: 0.19 s of audio, against 0.32 s at hop 3 and lookahead 2 (live's
       defaults until 2026-12-06); smaller hops cost compute and jitter at the seams (brought
       back by match_velocity), a frame of lookahead less cost the lip-sync (brought back by
       through_lookahead with face_scale).
@@ -201,6 +202,8 @@ class LiveEngine:
         # least its frames and their margin): `_before` frames before its first
         context = max(int(math.ceil(live.context * self.fps)), cfg.clip_len + margin_frames(bundle, self.fps))
         self._before = context - cfg.clip_len
+        # the phonetic encoder's level over the session heard so far (not each window's own: see RunningLevel)
+        self._level = RunningLevel(bundle.phonetic.n_mels) if cfg.phonetic_input else None
         self._buffer = np.zeros(self.sample_rate * 10, np.float32)  # every sample heard, in [: _n]
         self._n = 0
         self._frames: list[np.ndarray] = []  # emitted (k, D) normalised frames, in order
@@ -230,6 +233,14 @@ class LiveEngine:
         agree, and a range of it can be regenerated from that audio."""
         return n_motion_frames(Audio(self._buffer[: self._n], self.sample_rate), self.fps)
 
+    @property
+    def readable_frames(self) -> int:
+        """Frames whose speech features the audio heard so far holds whole: every frame heard,
+        and the next one once the audio its mel frame reads has arrived (`samples_for_mel_frame`,
+        57 ms past its centre; it is heard 10 ms later, at the next frame's start)."""
+        heard = self.heard_frames
+        return heard + int(self._n >= samples_for_mel_frame(heard, self.sample_rate, self.fps))
+
     def ready(self) -> bool:
         """Whether the audio of the next hop and its lookahead has arrived."""
         return self.waiting >= self.live.hop
@@ -237,7 +248,7 @@ class LiveEngine:
     @property
     def waiting(self) -> int:
         """Frames not emitted yet whose audio and lookahead have arrived."""
-        return self.heard_frames - self.live.lookahead - self.emitted
+        return self.readable_frames - self.live.lookahead - self.emitted
 
     # --- frames out ------------------------------------------------------------------
     def step(self, hop: Optional[int] = None) -> np.ndarray:
@@ -269,7 +280,7 @@ class LiveEngine:
     def _window(self, end: int) -> np.ndarray:
         """Sample the new frames up to frame `end`, holding the emitted frames before them: a window
         ending there, or with `through_lookahead` at the last frame heard of the lookahead's."""
-        last = min(end + self.live.lookahead, self.heard_frames) if self.live.through_lookahead else end
+        last = min(end + self.live.lookahead, self.readable_frames) if self.live.through_lookahead else end
         first = max(0, last - self.bundle.config.clip_len)
         n_known = self.emitted - first
         cond = Conditioning(self._features(first, last, end), self.plan.style.frames(0, last - first))
@@ -296,12 +307,13 @@ class LiveEngine:
 
     def _features(self, first: int, last: int, end: int) -> SpeechFeatures:
         """The speech features of frames [first, last), computed over the audio
-        from `_before` frames before `first` (the window's `context`, back to a whole sample) to
-        `lookahead` frames after the new frames' `end`, never more: so they do not depend on how much
-        audio has arrived when the window is sampled, and the same speech gives the same frames on any machine."""
-        stop = samples_for_frames(end + self.live.lookahead, self.sample_rate, self.fps)  # arrived: ready()
+        from `_before` frames before `first` (the window's `context`, back to a whole sample) to the
+        end of what the mel frame `lookahead` frames after the new frames' last reads, never more: so
+        they do not depend on how much audio has arrived when the window is sampled, and the same
+        speech gives the same frames on any machine."""
+        stop = samples_for_mel_frame(end - 1 + self.live.lookahead, self.sample_rate, self.fps)  # arrived: ready()
         return frame_features(self.bundle, self.network, Audio(self._buffer[: self._n], self.sample_rate), first, last,
-                              before=self._before, stop=stop)
+                              before=self._before, stop=stop, running=self._level)
 
     # --- what was made ---------------------------------------------------------------
     def audio(self) -> Audio:
