@@ -604,20 +604,11 @@ def _mel_samples(n_samples: int, sample_rate: int) -> int:
     return resampled_length(resampled_length(n_samples, sample_rate, LOAD_RATE), LOAD_RATE, MEL_RATE)
 
 
-def samples_for_frames(n_frames: int, sample_rate: int, fps: float = 15.0) -> int:
-    """The fewest samples at `sample_rate` that make `n_frames` motion frames (n_motion_frames)."""
-    n = int(n_frames * sample_rate // fps)
-    while n > 0 and _frames_of(n - 1, sample_rate, fps) >= n_frames:
-        n -= 1
-    while _frames_of(n, sample_rate, fps) < n_frames:
-        n += 1
-    return n
-
-
 def samples_for_mel_frame(frame: int, sample_rate: int, fps: float = 15.0) -> int:
-    """The fewest samples at `sample_rate` that hold all the audio mel frame `frame` reads: its
-    window reaches MEL_N_FFT // 2 samples at MEL_RATE past its centre at frame / fps (57 ms),
-    short of the next frame's start (67 ms at 15 fps), where `samples_for_frames(frame + 1)` is."""
+    """The fewest samples at `sample_rate` that reach the end of mel frame `frame`'s window:
+    MEL_N_FFT // 2 samples at MEL_RATE past its centre at frame / fps (57 ms; at 15 fps short of
+    the next frame's start, 67 ms). The resampler's own reach past that is left out: the frame's
+    Hann window is near zero there."""
     need = frame * mel_hop(fps) + MEL_N_FFT // 2
     n = int(need * sample_rate // MEL_RATE)
     while n > 0 and _mel_samples(n - 1, sample_rate) >= need:

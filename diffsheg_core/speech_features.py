@@ -95,7 +95,7 @@ def frame_features(bundle: ModelBundle, network, speech: Union[Audio, AudioFile]
             mel_in = log_mel(audio, phonetic, None if recording is None else recording.level)
         else:
             raw, per_second = raw_log_mel(audio, phonetic), phonetic.fps * phonetic.subframes
-            upto = int(((sample + audio.n_samples) / rate - LEVEL_EDGE_S) * per_second) + 1
+            upto = math.floor(((sample + audio.n_samples) / rate - LEVEL_EDGE_S) * per_second) + 1
             mel_in = normalised(raw, phonetic, running.add(raw, round(start / cfg.fps * per_second), upto))
         posteriors = network.phone_posteriors(mel_in)
         if recording is None:

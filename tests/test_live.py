@@ -20,7 +20,7 @@ import soundfile as sf
 from conftest import blas_threads
 
 from diffsheg_core.audio import (MEL_N_FFT, MEL_RATE, Audio, mel_frames, n_motion_frames, read_audio_file,
-                                  samples_for_frames, samples_for_mel_frame)
+                                  samples_for_mel_frame)
 from diffsheg_core.errors import DiffshegError
 from diffsheg_core.checkpoints import load_model
 from diffsheg_core.live.engine import LiveConfig, LiveEngine
@@ -346,8 +346,8 @@ def test_a_window_waits_only_for_the_audio_its_lookahead_frames_mel_reads(speech
     bundle, network = model
     fps, rate = bundle.config.fps, speech.sample_rate
     needed = samples_for_mel_frame(2, rate, fps)  # hop 2 and lookahead 1: the first window's lookahead is frame 2
-    assert (samples_for_frames(3, rate, fps) - needed) / rate == pytest.approx(1 / fps - MEL_N_FFT / 2 / MEL_RATE,
-                                                                               abs=2 / rate)
+    assert needed / rate == pytest.approx(2 / fps + MEL_N_FFT / 2 / MEL_RATE, abs=2 / rate)
+    assert n_motion_frames(Audio(speech.samples[:needed], rate), fps) == 2  # frame 2 is not heard yet
     read = mel_frames(Audio(speech.samples[:needed], rate), fps)
     np.testing.assert_allclose(read[2], mel_frames(speech, fps)[2], rtol=1e-3, atol=1e-6)
     live = LiveConfig(max_hop=2)
@@ -366,6 +366,30 @@ def test_a_window_waits_only_for_the_audio_its_lookahead_frames_mel_reads(speech
     while late.emitted < early.emitted:
         late.step()
     np.testing.assert_array_equal(np.concatenate(made), np.concatenate(late._frames))
+
+
+def test_a_frame_not_heard_yet_is_never_emitted_nor_a_mel_frame_read_past_the_audio(speech, model):
+    """Without a lookahead, the frame whose mel frame has arrived but which is not heard yet is
+    not one of the recording's: a session emits the frames heard, as many as its audio makes.
+    Above 17.6 fps a mel frame reaches past the next frame's start, and a window waits for it."""
+    bundle, network = model
+    rate, fps = speech.sample_rate, bundle.config.fps
+    n = samples_for_mel_frame(37, rate, fps)  # 57-67 ms past frame 37's centre: it is readable, not heard
+    audio = Audio(speech.samples[:n], rate)
+    engine = LiveEngine(bundle, network, GenerateSettings(), rate, LiveConfig(hop=2, lookahead=0))
+    engine.push(audio.samples)
+    assert engine.heard_frames == 37 and engine.readable_frames == 38
+    while engine.ready():
+        engine.step()
+    assert engine.emitted == 36
+    engine.finish()
+    assert engine.emitted == engine.heard_frames == n_motion_frames(audio, fps) == engine.motion().n_frames
+    fast = LiveEngine(bundle, network, GenerateSettings(), rate)
+    fast.fps = 30  # as a 30 fps model counts: each mel frame reads past the next frame's start
+    fast.push(speech.samples[: rate])
+    assert fast.readable_frames < fast.heard_frames
+    assert samples_for_mel_frame(fast.readable_frames - 1, rate, 30) <= rate < samples_for_mel_frame(
+        fast.readable_frames, rate, 30)
 
 
 def test_live_windows_take_off_the_level_of_the_session_heard_so_far(speech, model):

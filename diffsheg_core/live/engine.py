@@ -6,11 +6,12 @@ frames at its end; the `clip_len - hop` frames before them are the motion alread
 (less the lookahead's with `through_lookahead`, below), held as FOPPAS holds its overlap
 (painted in at every step, the gap at the seam carried into the new frames' x0). A window is
 sampled as soon as the audio of its new frames (and `lookahead` frames past them) has
-arrived, over speech features computed from the last `context` seconds of audio; with
-`through_lookahead` (the default) it ends at the lookahead's last frame instead, whose motion
-is thrown away. So a frame is emitted at most about hop / fps + lookahead / fps + one window's
-compute after its audio arrived, and the compute per second of speech is fps / hop windows'
-worth. bench/bench_live.py measures both, and the cost in quality against offline
+arrived, to the end of what the last one's mel frame reads, over speech features computed
+from the last `context` seconds of audio (the phonetic encoder's level from all of the session
+heard so far); with `through_lookahead` (the default) it ends at the lookahead's last frame
+instead, whose motion is thrown away. So a frame is emitted about (hop + lookahead - 1) / fps
++ 57 ms + one window's compute after its audio arrived, and the compute per second of speech
+is fps / hop windows' worth. bench/bench_live.py measures both, and the cost in quality against offline
 generation, for each hop tried.
 
 The first window has nothing to continue and is sampled in full from noise; the ones
@@ -55,8 +56,8 @@ class LiveConfig:
     "The defaults, measured").
     A frame waits for the audio of its hop and lookahead, to the end of what the last lookahead
     frame's mel reads ((hop + lookahead - 1) / fps + 57 ms), then a window's compute.
-    - hop 2, lookahead 1: 0.19 s of audio, against 0.32 s at hop 3 and lookahead 2 (live's
-      defaults until 2026-12-06); smaller hops cost compute and jitter at the seams (brought
+    - hop 2, lookahead 1: 0.19 s of audio, against 0.33 s at hop 3 and lookahead 2 (live's
+      defaults until 2026-12-06, when a window waited for whole frames); smaller hops cost compute and jitter at the seams (brought
       back by match_velocity), a frame of lookahead less cost the lip-sync (brought back by
       through_lookahead with face_scale).
     - through_lookahead: each window ends at its lookahead frame (its motion thrown away), so
@@ -203,7 +204,9 @@ class LiveEngine:
         context = max(int(math.ceil(live.context * self.fps)), cfg.clip_len + margin_frames(bundle, self.fps))
         self._before = context - cfg.clip_len
         # the phonetic encoder's level over the session heard so far (not each window's own: see RunningLevel)
-        self._level = RunningLevel(bundle.phonetic.n_mels) if cfg.phonetic_input else None
+        phonetic = bundle.phonetic if cfg.phonetic_input else None  # none with phonetic input: frame_features says so
+        self._level = RunningLevel(phonetic.n_mels) if phonetic is not None and phonetic.normalise == "utterance" \
+            else None
         self._buffer = np.zeros(self.sample_rate * 10, np.float32)  # every sample heard, in [: _n]
         self._n = 0
         self._frames: list[np.ndarray] = []  # emitted (k, D) normalised frames, in order
@@ -235,11 +238,13 @@ class LiveEngine:
 
     @property
     def readable_frames(self) -> int:
-        """Frames whose speech features the audio heard so far holds whole: every frame heard,
-        and the next one once the audio its mel frame reads has arrived (`samples_for_mel_frame`,
-        57 ms past its centre; it is heard 10 ms later, at the next frame's start)."""
-        heard = self.heard_frames
-        return heard + int(self._n >= samples_for_mel_frame(heard, self.sample_rate, self.fps))
+        """Frames whose mel frames the audio heard so far holds whole (`samples_for_mel_frame`,
+        57 ms past a frame's centre): at 15 fps every frame heard, and the next one 10 ms before
+        it is heard (at the next frame's start); above 17.6 fps a mel frame reaches past that."""
+        frames = self.heard_frames + 1
+        while frames and samples_for_mel_frame(frames - 1, self.sample_rate, self.fps) > self._n:
+            frames -= 1
+        return frames
 
     def ready(self) -> bool:
         """Whether the audio of the next hop and its lookahead has arrived."""
@@ -247,8 +252,9 @@ class LiveEngine:
 
     @property
     def waiting(self) -> int:
-        """Frames not emitted yet whose audio and lookahead have arrived."""
-        return self.readable_frames - self.live.lookahead - self.emitted
+        """Frames not emitted yet whose audio and lookahead have arrived (frames heard: without a
+        lookahead the frame not heard yet is not one of the recording's)."""
+        return min(self.readable_frames - self.live.lookahead, self.heard_frames) - self.emitted
 
     # --- frames out ------------------------------------------------------------------
     def step(self, hop: Optional[int] = None) -> np.ndarray:
@@ -280,7 +286,7 @@ class LiveEngine:
     def _window(self, end: int) -> np.ndarray:
         """Sample the new frames up to frame `end`, holding the emitted frames before them: a window
         ending there, or with `through_lookahead` at the last frame heard of the lookahead's."""
-        last = min(end + self.live.lookahead, self.readable_frames) if self.live.through_lookahead else end
+        last = max(end, min(end + self.live.lookahead, self.readable_frames)) if self.live.through_lookahead else end
         first = max(0, last - self.bundle.config.clip_len)
         n_known = self.emitted - first
         cond = Conditioning(self._features(first, last, end), self.plan.style.frames(0, last - first))
