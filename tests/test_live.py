@@ -347,7 +347,8 @@ def test_a_window_waits_only_for_the_audio_its_lookahead_frames_mel_reads(speech
     fps, rate = bundle.config.fps, speech.sample_rate
     needed = samples_for_mel_frame(2, rate, fps)  # hop 2 and lookahead 1: the first window's lookahead is frame 2
     assert needed / rate == pytest.approx(2 / fps + MEL_N_FFT / 2 / MEL_RATE, abs=2 / rate)
-    assert n_motion_frames(Audio(speech.samples[:needed], rate), fps) == 2  # frame 2 is not heard yet
+    assert n_motion_frames(Audio(speech.samples[:needed], rate), fps) == 2  # frame 2 is not heard yet ...
+    assert n_motion_frames(Audio(speech.samples[:needed + int(0.010 * rate)], rate), fps) == 3  # ... for 10 ms
     read = mel_frames(Audio(speech.samples[:needed], rate), fps)
     np.testing.assert_allclose(read[2], mel_frames(speech, fps)[2], rtol=1e-3, atol=1e-6)
     live = LiveConfig(max_hop=2)
@@ -390,6 +391,7 @@ def test_a_frame_not_heard_yet_is_never_emitted_nor_a_mel_frame_read_past_the_au
     assert fast.readable_frames < fast.heard_frames
     assert samples_for_mel_frame(fast.readable_frames - 1, rate, 30) <= rate < samples_for_mel_frame(
         fast.readable_frames, rate, 30)
+    assert fast.waiting == fast.readable_frames - fast.live.lookahead  # what the window would read has arrived
 
 
 def test_live_windows_take_off_the_level_of_the_session_heard_so_far(speech, model):

@@ -9,9 +9,10 @@ sampled as soon as the audio of its new frames (and `lookahead` frames past them
 arrived, to the end of what the last one's mel frame reads, over speech features computed
 from the last `context` seconds of audio (the phonetic encoder's level from all of the session
 heard so far); with `through_lookahead` (the default) it ends at the lookahead's last frame
-instead, whose motion is thrown away. So a frame is emitted about (hop + lookahead - 1) / fps
-+ 57 ms + one window's compute after its audio arrived, and the compute per second of speech
-is fps / hop windows' worth. bench/bench_live.py measures both, and the cost in quality against offline
+instead, whose motion is thrown away. So at 15 fps a frame is emitted about (hop + lookahead
+- 1) / fps + 57 ms + one window's compute after its audio arrived (without a lookahead, once
+its hop's last frame is heard: hop / fps), and the compute per second of speech is fps / hop
+windows' worth. bench/bench_live.py measures both, and the cost in quality against offline
 generation, for each hop tried.
 
 The first window has nothing to continue and is sampled in full from noise; the ones
@@ -55,11 +56,12 @@ class LiveConfig:
     the figures, and the box they came from, are on docs/live.md, "Hop 2 and lookahead 1" and
     "The defaults, measured").
     A frame waits for the audio of its hop and lookahead, to the end of what the last lookahead
-    frame's mel reads ((hop + lookahead - 1) / fps + 57 ms), then a window's compute.
+    frame's mel reads ((hop + lookahead - 1) / fps + 57 ms at 15 fps; without a lookahead until
+    the hop's last frame is heard), then a window's compute.
     - hop 2, lookahead 1: 0.19 s of audio, against 0.33 s at hop 3 and lookahead 2 (live's
-      defaults until 2026-12-06, when a window waited for whole frames); smaller hops cost compute and jitter at the seams (brought
-      back by match_velocity), a frame of lookahead less cost the lip-sync (brought back by
-      through_lookahead with face_scale).
+      defaults until 2026-12-06, when a window waited for whole frames); smaller hops cost
+      compute and jitter at the seams (brought back by match_velocity), a frame of lookahead
+      less cost the lip-sync (brought back by through_lookahead with face_scale).
     - through_lookahead: each window ends at its lookahead frame (its motion thrown away), so
       the new frames are not the window's last. With face_scale 1.5 (the face's
       classifier-free guidance, times the settings'), the jaw opens at open vowels over
@@ -285,7 +287,8 @@ class LiveEngine:
 
     def _window(self, end: int) -> np.ndarray:
         """Sample the new frames up to frame `end`, holding the emitted frames before them: a window
-        ending there, or with `through_lookahead` at the last frame heard of the lookahead's."""
+        ending there, or with `through_lookahead` at the last readable frame of the lookahead's
+        (never before `end`)."""
         last = max(end, min(end + self.live.lookahead, self.readable_frames)) if self.live.through_lookahead else end
         first = max(0, last - self.bundle.config.clip_len)
         n_known = self.emitted - first
