@@ -32,11 +32,12 @@ LEVEL_EDGE_S = 0.03  # a running level counts the recogniser frames centred this
 
 
 class RunningLevel:
-    """The phonetic encoder's level (`phonetic.log_mel`'s band means) over a live session's
-    recogniser frames heard so far. Offline, a recording's level is its whole own (a long
-    one's summed piece by piece, `_phonetic_level`); a live window took its own few seconds',
-    whose mean moved with the frames at the edge of the audio it read: a window read one
-    sample shorter moved a phone's probability in its middle from 0.82 to 0.95, and with
+    """The phonetic encoder's level (`phonetic.log_mel`'s band means) over a recording's
+    recogniser frames counted so far, each once, from reads that overlap: a long recording's
+    piece by piece (`_phonetic_level`, the whole recording's level), a live session's window by
+    window (the level of what it heard so far). A live window took its own few seconds' until
+    2026-12-06, whose mean moved with the frames at the edge of the audio it read: a window read
+    one sample shorter moved a phone's probability in its middle from 0.82 to 0.95, and with
     every window reading 10 ms less the jaw's open vowels over bilabials fell from 2.45 to 2.34
     (seeds 0-7). Counted over every whole frame heard, the level no longer depends on where a
     window's audio ends."""
@@ -44,11 +45,11 @@ class RunningLevel:
     def __init__(self, n_mels: int):
         self.total = np.zeros(n_mels)  # summed over the recogniser frames counted
         self.count = 0
-        self.next = 0  # the first frame of the session not counted yet
+        self.next = 0  # the first frame of the recording not counted yet
 
     def add(self, raw: np.ndarray, offset: int, upto: int) -> np.ndarray:
         """Count the frames of `raw` ((n_mels, N) `raw_log_mel`, recogniser frames from `offset`
-        of the session) not counted yet, up to frame `upto`; the (n_mels, 1) mean so far (before
+        of the recording) not counted yet, up to frame `upto`; the (n_mels, 1) mean so far (before
         any is counted, `raw`'s own)."""
         first, upto = max(self.next, offset), min(upto, offset + raw.shape[1])
         if upto > first:
@@ -91,17 +92,18 @@ def frame_features(bundle: ModelBundle, network, speech: Union[Audio, AudioFile]
     mel, second = mel_frames(audio, cfg.fps)[first - start: end - start], None
     if cfg.phonetic_input:
         phonetic = _phonetic(bundle)
+        per_second = phonetic.fps * phonetic.subframes
+        offset = round(start / cfg.fps * per_second)  # the recording's recogniser frame the read starts at
         if running is None:
             mel_in = log_mel(audio, phonetic, None if recording is None else recording.level)
         else:
-            raw, per_second = raw_log_mel(audio, phonetic), phonetic.fps * phonetic.subframes
+            raw = raw_log_mel(audio, phonetic)
             upto = math.floor(((sample + audio.n_samples) / rate - LEVEL_EDGE_S) * per_second) + 1
-            mel_in = normalised(raw, phonetic, running.add(raw, round(start / cfg.fps * per_second), upto))
+            mel_in = normalised(raw, phonetic, running.add(raw, offset, upto))
         posteriors = network.phone_posteriors(mel_in)
         if recording is None:
             second = stack_posteriors(posteriors, end - first, phonetic.subframes, first - start)
         else:
-            offset = round(start / cfg.fps * phonetic.fps * phonetic.subframes)
             second = stack_posteriors(posteriors, end - first, phonetic.subframes, first,
                                       recording.n_posteriors, offset=offset)
     elif cfg.has_speech_input:
@@ -157,14 +159,12 @@ def _phonetic_level(speech: Union[Audio, AudioFile], phonetic: PhoneticConfig, n
     if phonetic.normalise != "utterance":
         return None
     rate, per_second = speech.sample_rate, phonetic.fps * phonetic.subframes
-    level = np.zeros((phonetic.n_mels, 1))
+    level = RunningLevel(phonetic.n_mels)
     for t0 in range(0, int(np.ceil(speech.duration)), PIECE_SECONDS):
         start = max(0, t0 - MARGIN_SECONDS)
         frames = raw_log_mel(speech.read(start * rate, _piece_stop(t0, rate)), phonetic)
-        offset = round(start * per_second)
-        first, last = round(t0 * per_second), min(round((t0 + PIECE_SECONDS) * per_second), n_post)
-        level[:, 0] += frames[:, first - offset: last - offset].sum(axis=1, dtype=np.float64)
-    return (level / n_post).astype(np.float32)
+        mean = level.add(frames, round(start * per_second), min(round((t0 + PIECE_SECONDS) * per_second), n_post))
+    return mean
 
 
 def whole_sample_frames(sample_rate: int, fps: int) -> int:
