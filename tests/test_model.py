@@ -3,6 +3,7 @@ training path (`UniEG.forward`) and on the sampling path (the two calls of a ste
 either backend, mixed by `guidance.step_eps`)."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -244,3 +245,43 @@ def test_onnx_and_torch_backends_agree_on_every_guidance_mode(guided_bundle, mod
         assert np.abs(a - b).max() <= 1e-4, (mode, length, index, float(np.abs(a - b).max()))  # measured 2e-6
         if mode != "none":  # the guided passes do change the prediction (0.1 - 0.8 here)
             assert np.abs(b - step_eps(torch_net, *args[:-1], Guidance())[0]).max() > 0.05
+
+
+def test_int8_graphs_store_each_weight_once_and_predict_as_the_float_ones(golden_dir):
+    """A distilled student's graphs (`network_graphs(..., int8=True)`): every Linear's product
+    runs in int8 but those of `FLOAT_PRODUCTS`; the file's reader gives each int8 weight back
+    under its parameter's name, dequantised within half a step of its scale, and every other
+    weight exactly; onnxruntime's prediction stays close to the float graphs' on every step."""
+    import onnx
+    from torch import nn
+
+    from diffsheg_core.checkpoints import graph_weights
+    from diffsheg_core.torch_layer.export import FLOAT_PRODUCTS
+
+    bundle = golden_bundle(golden_dir, "beat_small", {}, graphs=True)
+    cfg, weights = bundle.config, bundle.weights
+    graphs = network_graphs(cfg, weights, "beat_small", int8=True)
+    held = graph_weights(graphs)
+    stored = {i.name for g in graphs.values() for i in onnx.load_from_string(g).graph.initializer}
+    int8 = {n.removeprefix("model.").removesuffix(".int8").removesuffix(".T") for n in stored if n.endswith(".int8")}
+    linear = {f"{name}.weight" for name, module in UniEG(cfg).named_modules() if isinstance(module, nn.Linear)}
+    assert int8 == {n for n in linear if not set(n.split(".")) & set(FLOAT_PRODUCTS)} and int8 < linear
+    assert set(held) == set(graph_weights(bundle.graphs))
+    for name, value in held.items():
+        weight = np.asarray(weights[name], np.float32)
+        if name in int8:
+            step = np.abs(weight).max(axis=1, keepdims=True) / 127  # one scale per output feature
+            assert value.dtype == np.float32 and (np.abs(value - weight) <= step / 2 + 1e-7).all(), name
+        else:
+            np.testing.assert_array_equal(value, weight)
+    float_net = OnnxNetwork(bundle, threads=1)
+    int8_net = OnnxNetwork(replace(bundle, graphs=graphs), threads=1)
+    gen, sched = np.random.default_rng(3), Schedule.linear().respaced(25)
+    for index in (24, 10, 0):
+        x = gen.standard_normal((1, cfg.clip_len, cfg.dim), dtype=np.float32)
+        idx = np.array([index])
+        args = (cfg.gesture_dim, x, sched.model_timesteps(idx), gen.random((1, cfg.clip_len, cfg.mel_dim), np.float32),
+                gen.standard_normal((1, cfg.clip_len, cfg.speech_dim), np.float32), np.eye(cfg.style_dim, dtype=np.float32)[:1], sched.x0_coefs(idx, x), Guidance())
+        a, b = step_eps(int8_net, *args)[0], step_eps(float_net, *args)[0]
+        error = np.abs(a - b).mean() / np.abs(b).mean()
+        assert 0 < error <= 0.01, (index, error)  # measured 0.0016-0.0017: int8 ran, and rounded little

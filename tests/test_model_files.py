@@ -16,7 +16,7 @@ import pytest
 
 from diffsheg_core import CheckpointError
 from diffsheg_core.checkpoints import DEFAULT_WEIGHTS, load_model, read_safetensors, write_safetensors
-from diffsheg_core.runtime.graphs import read_graph
+from diffsheg_core.runtime.graphs import named_weights, read_graph
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -76,6 +76,33 @@ def test_the_graph_reader_finds_what_onnx_finds(default_file):
     for junk in (b"abc", b"\x00" * 10, np.random.default_rng(0).bytes(1000)):
         with pytest.raises(ValueError):
             read_graph(junk)
+
+
+def test_the_graph_reader_reads_the_students_int8_weights_as_onnx_does(default_file, tmp_path):
+    """The distilled student's products by weights are stored in int8 (a scale per output
+    column; `.T`: stored transposed, as the product reads it): the reader gives each back as
+    onnx's own tensors dequantise, under its parameter's name, and a student graph whose int8
+    weight lost its scale is refused when the model loads."""
+    meta, tensors = default_file
+    for graph in ("expression", "gesture"):
+        proto = onnx.load_from_string(tensors[f"onnx.student.{graph}"].tobytes())
+        stored = {i.name: onnx.numpy_helper.to_array(i) for i in proto.graph.initializer}
+        held = named_weights(proto.SerializeToString(), "model.")
+        quantised = [name for name in stored if name.endswith(".int8")]
+        assert len(quantised) >= 30 and all(stored[name].dtype == np.int8 for name in quantised)
+        for name in quantised:
+            value = (stored[name].astype(np.float32) - stored[f"{name}.zero"].astype(np.float32)) \
+                * stored[f"{name}.scale"]
+            parameter = name.removeprefix("model.").removesuffix(".int8")
+            if parameter.endswith(".T"):
+                value, parameter = value.T, parameter.removesuffix(".T")
+            np.testing.assert_array_equal(held[parameter], value)
+    scale = next(i for i in proto.graph.initializer if i.name.endswith(".int8.scale"))
+    proto.graph.initializer.remove(scale)
+    path = write_safetensors({**tensors, "onnx.student.gesture": np.frombuffer(proto.SerializeToString(), np.uint8)},
+                             meta, tmp_path / "crafted.safetensors")
+    with pytest.raises(CheckpointError, match="graphs of its distilled student are damaged .*lacks a float32 scale"):
+        load_model(path)
 
 
 @pytest.mark.parametrize("graph", ["phonetic", "gesture"])

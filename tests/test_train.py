@@ -679,7 +679,7 @@ def test_a_beat_model_widens_into_a_whole_body_one_that_keeps_its_upper_body(tmp
 def test_a_guided_model_distils_into_a_student_that_its_file_carries(small_root, tmp_path):
     """objective = "distill" (training.distill): a copy of a guided model learns its guided fast
     steps, one pass each. The loss falls; the run's file is the teacher's, weights to the bit,
-    with the student in it, which then makes the fast sampling. A model without guidance has
+    with the student in it (its products in int8), which then makes the fast sampling. A model without guidance has
     nothing to distil, and an unknown objective is named."""
     base = tmp_path / "base"
     train(TrainConfig.from_dict(config(small_root, base, steps=5, checkpoint_every=5)))
@@ -701,6 +701,9 @@ def test_a_guided_model_distils_into_a_student_that_its_file_carries(small_root,
         "timesteps": [50, 300, 450, 650, 900], "refine_offset": 1000, "steps": 0}
     motion = generate(str(small_root / "talk.wav"), model=run, device="cpu")
     assert motion.meta["student"] == run.student.model_id and np.isfinite(motion.rotations).all()
+    # the student's products by weights run in int8 (torch_layer.export), the teacher's in float
+    assert all(b"MatMulInteger" in run.student.graphs[g] and b"MatMulInteger" not in run.graphs[g]
+               for g in ("expression", "gesture"))
 
     with pytest.raises(DiffshegError, match="there is nothing to distil from an unguided one"):
         Trainer(TrainConfig.from_dict({**settings, "init_from": str(base / MODEL_FILE),

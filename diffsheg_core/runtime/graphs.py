@@ -5,8 +5,9 @@ external files, which onnxruntime would open relative to the working directory.
 Only the fields of onnx.proto that lead to tensors and inputs are followed; everything else
 (raw weights included) is skipped by its length, so reading a 13 MB graph takes milliseconds.
 `named_weights` reads the initializers that carry a network's parameter names (a graph
-exported without constant folding holds every weight that way), so that a model file stores
-each weight once, in its graph, and the torch backend reads it from there.
+exported without constant folding holds every weight that way; an int8 one, under names of this
+project, is read back dequantised), so that a model file stores each weight once, in its graph,
+and the torch backend reads it from there.
 """
 
 from __future__ import annotations
@@ -142,19 +143,25 @@ def _dims(value) -> list[int]:
     return dims
 
 
-RAW_TYPES = {1: np.float32, 10: np.float16}  # the element types a network's weights are stored as
+RAW_TYPES = {1: np.float32, 10: np.float16, 3: np.int8}  # the element types a network's weights are stored as
+INT8, SCALE, ZERO, TRANSPOSED = ".int8", ".int8.scale", ".int8.zero", ".T"
 
 
 def named_weights(graph: bytes, prefix: str) -> dict[str, np.ndarray]:
-    """{name: array} of the graph's float initializers named `prefix` + a parameter name (a
-    `.fp16` suffix, the half-stored copy `export` casts back, is dropped); ValueError when the
-    bytes are not an ONNX model. Tensors not stored as raw bytes are left out."""
-    found: dict[str, np.ndarray] = {}
+    """{name: array} of the graph's initializers named `prefix` + a parameter name; ValueError
+    when the bytes are not an ONNX model. Tensors not stored as raw bytes are left out.
+
+    A weight is stored as one of (`torch_layer.export` writes them):
+      `<name>` or `<name>.fp16`  float32, or the half-stored copy the graph casts back;
+      `<name>[.T].int8` with `.int8.scale` and `.int8.zero`: int8 for a product by the weight
+                        (a distilled student's), transposed if `.T`; read back dequantised,
+                        (int8 - zero) * scale (a scale per column, or one), in float32."""
+    raw: dict[str, np.ndarray] = {}
     try:
         for number, tensor in _fields(_graph_body(memoryview(graph))):
             if number != 5 or not isinstance(tensor, memoryview):
                 continue
-            dims, kind, name, raw = [], None, "", None
+            dims, kind, name, data = [], None, "", None
             for n, value in _fields(tensor):
                 if n == 1:
                     dims += _dims(value)
@@ -163,13 +170,35 @@ def named_weights(graph: bytes, prefix: str) -> dict[str, np.ndarray]:
                 elif n == 8:
                     name = bytes(value).decode("utf-8")
                 elif n == 9:
-                    raw = value
-            if not name.startswith(prefix) or kind not in RAW_TYPES or raw is None:
+                    data = value
+            if not name.startswith(prefix) or kind not in RAW_TYPES or data is None:
                 continue
-            array = np.frombuffer(raw, dtype=np.dtype(RAW_TYPES[kind]).newbyteorder("<"))
+            array = np.frombuffer(data, dtype=np.dtype(RAW_TYPES[kind]).newbyteorder("<"))
             if array.size != int(np.prod(dims, dtype=np.int64)):
                 raise ValueError(f"tensor {name} holds {array.size} values for shape {tuple(dims)}")
-            found[name[len(prefix):].removesuffix(".fp16")] = array.reshape(dims).copy()
+            raw[name[len(prefix):]] = array.reshape(dims).copy()
     except (IndexError, UnicodeDecodeError, TypeError) as exc:
         raise ValueError(f"it is not an ONNX model ({exc})") from None
+    found: dict[str, np.ndarray] = {}
+    for name, array in raw.items():
+        if name.endswith((SCALE, ZERO)):
+            continue
+        if name.endswith(INT8):
+            array = _dequantised(raw, name)
+            name = name.removesuffix(INT8)
+            if name.endswith(TRANSPOSED):
+                array, name = np.ascontiguousarray(array.T), name.removesuffix(TRANSPOSED)
+        elif array.dtype == np.int8:
+            continue
+        found[name.removesuffix(".fp16")] = array
     return found
+
+
+def _dequantised(raw: dict[str, np.ndarray], name: str) -> np.ndarray:
+    """The float32 weight of int8 tensor `name`, from its scale and zero point."""
+    scale, zero = raw.get(name[:-len(INT8)] + SCALE), raw.get(name[:-len(INT8)] + ZERO)
+    values = raw[name]
+    if scale is None or zero is None or values.ndim != 2 or scale.dtype != np.float32 \
+            or scale.size not in (1, values.shape[1]) or zero.size != scale.size:
+        raise ValueError(f"int8 weight {name} lacks a float32 scale and a zero point, one or one per column")
+    return ((values.astype(np.float32) - zero.astype(np.float32).reshape(-1)) * scale.reshape(-1)).astype(np.float32)

@@ -53,7 +53,7 @@ from ..validate import check_number
 from .train_phonetic import load_phonetic, speech_encoding as phonetic_speech
 from ..prior import GesturePrior
 from ..torch_layer.devices import resolve_device
-from ..torch_layer.export import with_graphs
+from ..torch_layer.export import with_graphs, with_student_graphs
 from ..torch_layer.model import PhoneticEncoder, UniEG, load_state_strict, state_arrays
 
 EXPORT_DTYPES = {"float32": torch.float32, "float16": torch.float16}
@@ -709,12 +709,13 @@ class Trainer:
 
     def bundle(self, dtype: torch.dtype = torch.float32) -> ModelBundle:
         """The EMA model as a generation checkpoint, with its ONNX graphs exported from the
-        weights as stored (float16 weights run in float32 on both backends)."""
+        weights as stored (float16 weights run in float32 on both backends; a distilled
+        student's products by weights in int8, `with_student_graphs`)."""
         training = {k: v for k, v in asdict(self.cfg).items() if k not in ("data", "datasets", "card")}
         if self._prior is None:
             self._prior = (self.kept_prior if self.cfg.trains == "face" else
                            fit_prior(self.train_set.takes, self.stats, self.model_cfg, self.kept_prior))
-        own = with_graphs(ModelBundle(
+        own = ModelBundle(
             config=self.model_cfg, weights=state_arrays(self.ema, dtype), mean=self.stats.mean,
             std=self.stats.std,
             sampling=self.sampling, guidance=self.guidance, skip_guidance=self.cfg.skip_guidance,
@@ -724,12 +725,13 @@ class Trainer:
                   "datasets": [asdict(d) for d in self.cfg.datasets],
                   "training": training, "style_names": list(self.cfg.style_names),
                   "default_style": self.cfg.default_style,
-                  "null_style": self.cfg.style_drop > 0}, source=f"run {self.out}"))
+                  "null_style": self.cfg.style_drop > 0}, source=f"run {self.out}")
         if self.teacher_bundle is None:
-            return own
+            return with_graphs(own)
         teacher = self.teacher_bundle
         own.guidance = own.skip_guidance = None
         own.info = {**own.info, "distilled": self.distillation.record(teacher, self.step)}
+        with_student_graphs(own, teacher.graphs.get("phonetic"))
         return replace(teacher, student=own, source=f"run {self.out}")
 
     # -- steps
