@@ -263,6 +263,9 @@ def test_int8_graphs_store_each_weight_once_and_predict_as_the_float_ones(golden
     graphs = network_graphs(cfg, weights, "beat_small", int8=True)
     held = graph_weights(graphs)
     stored = {i.name for g in graphs.values() for i in onnx.load_from_string(g).graph.initializer}
+    protos = [onnx.load_from_string(g) for g in graphs.values()]
+    codes = [onnx.numpy_helper.to_array(i) for p in protos for i in p.graph.initializer if i.name.endswith(".int8")]
+    assert codes and max(np.abs(c.astype(int)).max() for c in codes) == 127  # full range, a scale per column
     int8 = {n.removeprefix("model.").removesuffix(".int8").removesuffix(".T") for n in stored if n.endswith(".int8")}
     linear = {f"{name}.weight" for name, module in UniEG(cfg).named_modules() if isinstance(module, nn.Linear)}
     assert int8 == {n for n in linear if not set(n.split(".")) & set(FLOAT_PRODUCTS)} and int8 < linear
@@ -270,7 +273,7 @@ def test_int8_graphs_store_each_weight_once_and_predict_as_the_float_ones(golden
     for name, value in held.items():
         weight = np.asarray(weights[name], np.float32)
         if name in int8:
-            step = np.abs(weight).max(axis=1, keepdims=True) / 127  # one scale per output feature
+            step = np.abs(weight).max(axis=1, keepdims=True) / 127  # a scale per output feature
             assert value.dtype == np.float32 and (np.abs(value - weight) <= step / 2 + 1e-7).all(), name
         else:
             np.testing.assert_array_equal(value, weight)
@@ -284,4 +287,29 @@ def test_int8_graphs_store_each_weight_once_and_predict_as_the_float_ones(golden
                 gen.standard_normal((1, cfg.clip_len, cfg.speech_dim), np.float32), np.eye(cfg.style_dim, dtype=np.float32)[:1], sched.x0_coefs(idx, x), Guidance())
         a, b = step_eps(int8_net, *args)[0], step_eps(float_net, *args)[0]
         error = np.abs(a - b).mean() / np.abs(b).mean()
-        assert 0 < error <= 0.01, (index, error)  # measured 0.0016-0.0017: int8 ran, and rounded little
+        assert 0 < error <= 0.01, (index, error)  # measured 0.0016: int8 ran, and rounded little
+
+
+def test_an_int8_export_keeps_zero_weights_and_the_gemms_it_leaves_float(monkeypatch):
+    """A fresh network's zero-initialised layers (their int8 scales all 1) and a Gemm kept
+    float (the time embedding, made a float product here) come back from the graphs as the
+    weights they are, each once: the int8 export never halves a scale, and a Gemm it leaves
+    float stays float (onnxruntime quantises a Gemm as the MatMul it becomes)."""
+    import onnx
+
+    from diffsheg_core.checkpoints import graph_weights
+    from diffsheg_core.torch_layer import export
+
+    cfg = ModelConfig(**SMALL)
+    weights = state_arrays(UniEG(cfg))
+    in_float = graph_weights(network_graphs(cfg, weights, "fresh"))  # torch's export keeps one of equal tensors
+    zero = [name for name, value in weights.items() if value.ndim == 2 and not value.any() and name in in_float]
+    assert len(zero) >= 4
+    monkeypatch.setattr(export, "FLOAT_PRODUCTS", export.FLOAT_PRODUCTS + ("time_embed",))
+    graphs = network_graphs(cfg, weights, "fresh", int8=True)
+    held = graph_weights(graphs)
+    stored = {i.name for g in graphs.values() for i in onnx.load_from_string(g).graph.initializer}
+    assert not any(name.endswith(".fp16") and ".int8" in name for name in stored)
+    assert any(name.endswith(".int8") for name in stored) and not any("time_embed" in n and ".int8" in n for n in stored)
+    for name in zero + ["time_embed.0.weight"]:
+        np.testing.assert_array_equal(held[name], weights[name])

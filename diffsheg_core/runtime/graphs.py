@@ -151,11 +151,12 @@ def named_weights(graph: bytes, prefix: str) -> dict[str, np.ndarray]:
     """{name: array} of the graph's initializers named `prefix` + a parameter name; ValueError
     when the bytes are not an ONNX model. Tensors not stored as raw bytes are left out.
 
-    A weight is stored as one of (`torch_layer.export` writes them):
-      `<name>` or `<name>.fp16`  float32, or the half-stored copy the graph casts back;
+    A weight is stored as one of (`torch_layer.export` writes them), transposed if `.T`
+    follows its name (as a product reads it):
+      `<name>[.T]` or `<name>[.T].fp16`  float32, or the half-stored copy the graph casts back;
       `<name>[.T].int8` with `.int8.scale` and `.int8.zero`: int8 for a product by the weight
-                        (a distilled student's), transposed if `.T`; read back dequantised,
-                        (int8 - zero) * scale (a scale per column, or one), in float32."""
+                        (a distilled student's), read back dequantised, (int8 - zero) * scale
+                        (a scale per column, or one), in float32."""
     raw: dict[str, np.ndarray] = {}
     try:
         for number, tensor in _fields(_graph_body(memoryview(graph))):
@@ -184,13 +185,13 @@ def named_weights(graph: bytes, prefix: str) -> dict[str, np.ndarray]:
         if name.endswith((SCALE, ZERO)):
             continue
         if name.endswith(INT8):
-            array = _dequantised(raw, name)
-            name = name.removesuffix(INT8)
-            if name.endswith(TRANSPOSED):
-                array, name = np.ascontiguousarray(array.T), name.removesuffix(TRANSPOSED)
+            array, name = _dequantised(raw, name), name.removesuffix(INT8)
         elif array.dtype == np.int8:
             continue
-        found[name.removesuffix(".fp16")] = array
+        name = name.removesuffix(".fp16")
+        if name.endswith(TRANSPOSED):
+            array, name = np.ascontiguousarray(array.T), name.removesuffix(TRANSPOSED)
+        found[name] = array
     return found
 
 

@@ -25,6 +25,7 @@ from torch import nn
 
 from ..checkpoints import ModelBundle, graph_weights
 from ..config import ModelConfig
+from ..runtime.graphs import INT8, SCALE, TRANSPOSED, ZERO
 from .model import PhoneticEncoder, UniEG, load_state_strict
 
 OPSET = 17
@@ -66,7 +67,7 @@ def _half_initializers(graph: bytes) -> bytes:
     proto = onnx.load_from_string(graph)
     casts = []
     for init in proto.graph.initializer:
-        if init.data_type != onnx.TensorProto.FLOAT:
+        if init.data_type != onnx.TensorProto.FLOAT or init.name.endswith(SCALE):  # an int8 weight's scales stay
             continue
         values = numpy_helper.to_array(init)
         half = values.astype(np.float16)
@@ -85,15 +86,18 @@ FLOAT_PRODUCTS = ("joint_embed", "out", "out_layers", "feat_proj")  # modules wh
 
 
 def _int8_matmuls(graph: bytes) -> bytes:
-    """The graph with its matrix products by weights (MatMul, Gemm) in int8, onnxruntime's
-    dynamic quantisation: each weight int8 with a scale per output column, each call's
-    activations uint8 as they come. On one core the distilled student's calls take about 0.7x
+    """The graph with its matrix products by weights (MatMul, Gemm) in int8, onnxruntime's dynamic
+    quantisation: each weight int8 with a scale per output column, each call's activations
+    uint8 as they come (on x86 without VNNI onnxruntime's u8 x s8 pair sums can saturate at 16
+    bits; 7-bit weights, which cannot, moved the feet: the model card's "its products in
+    int8"). On one core the distilled student's calls take about 0.7x
     the time, in half the bytes of float16. The products of `FLOAT_PRODUCTS` stay float: the
-    motion read in, the prediction written out, each block's output back into the residual
-    stream and the speech features' projection, where rounding the activations showed as
-    jitter in the wrists (measured with the student: the model card's "its products in int8").
-    A weight the product reads transposed (the export's Transpose, Gemm's transB) is stored so,
-    and the quantised initializers take this project's names (`runtime.graphs`):
+    motion read in (`joint_embed`), the prediction written out (`out`), the attention's and
+    feed-forward's output layers (`out_layers`) and the fusion of motion and speech features
+    each layer starts with (`feat_proj`), where rounding the activations showed as jitter in
+    the wrists (measured with the student: the model card's "its products in int8"). A weight
+    the product reads transposed (the export's Transpose, Gemm's transB) is stored so, and the
+    quantised initializers take this project's names (`runtime.graphs`):
     `<parameter>[.T].int8`, `.int8.scale`, `.int8.zero`, which `named_weights` reads back
     dequantised under the parameter's name."""
     import onnx
@@ -106,16 +110,18 @@ def _int8_matmuls(graph: bytes) -> bytes:
                   if node.op_type == "Transpose" and node.input[0] in inits
                   and all(list(a.ints) == [1, 0] for a in node.attribute if a.name == "perm")}
     quantised: set[str] = set()  # the initializers the int8 products read
+    made: set[str] = set()
     excluded: list[str] = []
 
     def int8(parameter: str) -> bool:
         return not set(parameter.split(".")) & set(FLOAT_PRODUCTS)
 
     def transposed(name: str) -> str:
-        if f"{name}.T" not in quantised:
+        if name not in made:
+            made.add(name)
             proto.graph.initializer.append(numpy_helper.from_array(
-                np.ascontiguousarray(numpy_helper.to_array(inits[name]).T), f"{name}.T"))
-        return f"{name}.T"
+                np.ascontiguousarray(numpy_helper.to_array(inits[name]).T), f"{name}{TRANSPOSED}"))
+        return f"{name}{TRANSPOSED}"
 
     for node in proto.graph.node:
         if node.op_type not in ("MatMul", "Gemm"):
@@ -123,15 +129,16 @@ def _int8_matmuls(graph: bytes) -> bytes:
         if not node.name:
             raise RuntimeError("the exported graph has an unnamed matrix product, which the int8 export "
                                "cannot leave out of the quantisation")
-        trans_b = next((a for a in node.attribute if a.name == "transB" and a.i), None)
         weight = transposes.get(node.input[1]) if node.op_type == "MatMul" else node.input[1]
+        trans_b = next((a for a in node.attribute if a.name == "transB" and a.i), None)
+        if node.op_type == "Gemm" and trans_b is not None and weight in inits:
+            # stored as read: the quantiser would transpose it, int8 or not, under a name of its own
+            node.input[1], trans_b.i = transposed(weight), 0
         if weight not in inits or not int8(weight):
-            excluded.append(node.name)
+            excluded += [node.name, f"{node.name}_MatMul"]  # a Gemm is quantised as the MatMul it becomes
             continue
-        if node.op_type == "MatMul" or trans_b is not None:
+        if node.op_type == "MatMul":
             node.input[1] = transposed(weight)
-            if trans_b is not None:
-                trans_b.i = 0
         quantised.add(node.input[1])
     used = {name for node in proto.graph.node for name in node.input}
     nodes = [node for node in proto.graph.node if node.output[0] not in transposes or node.output[0] in used]
@@ -161,14 +168,16 @@ def _renamed_int8(proto, weights: set[str]):
     three stored as raw little-endian tensors (what `runtime.graphs` reads)."""
     from onnx import numpy_helper
 
-    suffixes = {"_quantized": ".int8", "_scale": ".int8.scale", "_zero_point": ".int8.zero"}
+    suffixes = {"_quantized": INT8, "_scale": SCALE, "_zero_point": ZERO}
     names = {f"{w}{old}": f"{w}{new}" for w in weights for old, new in suffixes.items()}
     inits = {init.name: init for init in proto.graph.initializer}
-    missing = sorted(n for n in names if n not in inits)
-    if missing or any(w in inits for w in weights):
-        raise RuntimeError(f"onnxruntime's quantiser left weights in float or named them otherwise than "
-                           f"expected ({', '.join(missing[:3] or sorted(w for w in weights if w in inits)[:3])}); "
-                           "check the onnxruntime version against torch_layer/export.py")
+    unexpected = sorted(n for n in inits if n.endswith(tuple(suffixes)) and n not in names)
+    missing = sorted(n for n in names if n not in inits) + sorted(w for w in weights if w in inits)
+    if missing or unexpected:
+        raise RuntimeError(f"onnxruntime's quantiser did not quantise the weights chosen for int8 as expected "
+                           f"(left or named otherwise: {', '.join(missing[:3]) or 'none'}; quantised beside them: "
+                           f"{', '.join(unexpected[:3]) or 'none'}); check the onnxruntime version against "
+                           "torch_layer/export.py")
     for old, new in names.items():
         inits[old].CopyFrom(numpy_helper.from_array(numpy_helper.to_array(inits[old]), new))
     for node in proto.graph.node:
