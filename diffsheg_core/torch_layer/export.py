@@ -88,18 +88,17 @@ FLOAT_PRODUCTS = ("joint_embed", "out", "out_layers", "feat_proj")  # modules wh
 def _int8_matmuls(graph: bytes) -> bytes:
     """The graph with its matrix products by weights (MatMul, Gemm) in int8, onnxruntime's dynamic
     quantisation: each weight int8 with a scale per output column, each call's activations
-    uint8 as they come (on x86 without VNNI onnxruntime's u8 x s8 pair sums can saturate at 16
-    bits; 7-bit weights, which cannot, moved the feet: the model card's "its products in
-    int8"). On one core the distilled student's calls take about 0.7x
-    the time, in half the bytes of float16. The products of `FLOAT_PRODUCTS` stay float: the
-    motion read in (`joint_embed`), the prediction written out (`out`), the attention's and
-    feed-forward's output layers (`out_layers`) and the fusion of motion and speech features
-    each layer starts with (`feat_proj`), where rounding the activations showed as jitter in
-    the wrists (measured with the student: the model card's "its products in int8"). A weight
-    the product reads transposed (the export's Transpose, Gemm's transB) is stored so, and the
-    quantised initializers take this project's names (`runtime.graphs`):
-    `<parameter>[.T].int8`, `.int8.scale`, `.int8.zero`, which `named_weights` reads back
-    dequantised under the parameter's name."""
+    uint8 as they come. On one core the distilled student's calls take about 0.7x the time, in
+    half the bytes of float16. The products of `FLOAT_PRODUCTS` stay float: the motion read in
+    (`joint_embed`), the prediction written out (`out`), the attention's and feed-forward's
+    output layers (`out_layers`) and the fusion of motion and speech features each layer starts
+    with (`feat_proj`), where rounding the activations showed as jitter in the wrists. Weights
+    stay 8-bit: on x86 without VNNI onnxruntime's u8 x s8 pair sums can saturate at 16 bits,
+    but 7-bit weights, which cannot, moved the feet (the model card's "its products in int8"
+    has both measures). A weight the product reads transposed (the export's Transpose, Gemm's
+    transB) is stored so, and the quantised initializers take this project's names
+    (`runtime.graphs`): `<parameter>[.T].int8`, `.int8.scale`, `.int8.zero`, which
+    `named_weights` reads back dequantised under the parameter's name."""
     import onnx
     from onnx import numpy_helper
     from onnxruntime.quantization import QuantType, quantize_dynamic
