@@ -610,7 +610,7 @@ def test_the_fast_sampling_steps_at_its_own_timesteps_and_keeps_the_models_setti
     """`fast_sampling` of a model's settings: five steps at FAST_TIMESTEPS (the schedule's
     model timesteps), later windows' gestures from the third step and the face from the top
     (deterministic), no RePaint jumps, the refining pass at the lowest step, the prior's draws
-    1.1x as wide; the rest (carry, the prior, eta, refine_skip) as the model has them. --steps N
+    1.2x as wide; the rest (carry, the prior, eta, refine_skip) as the model has them. --steps N
     gives N even steps."""
     from diffsheg_core.foppas import FAST_PRIOR_SPREAD, FAST_TIMESTEPS, fast_sampling, sampling_settings
 
@@ -619,7 +619,7 @@ def test_the_fast_sampling_steps_at_its_own_timesteps_and_keeps_the_models_setti
     assert fast.timesteps == FAST_TIMESTEPS and fast.steps == len(FAST_TIMESTEPS)
     assert (fast.later_start, fast.face_start, fast.face_eta, fast.refine) == (2, 4, 0.0, 0)
     assert (fast.eta, fast.carry, fast.refine_skip, fast.prior_start) == (1.0, 12, 3.5, True)
-    assert fast.prior_spread == FAST_PRIOR_SPREAD == 1.1 and model.prior_spread == 1.0  # the fast steps' draws wider
+    assert fast.prior_spread == FAST_PRIOR_SPREAD == 1.2 and model.prior_spread == 1.0  # the fast steps' draws wider
     assert list(Foppas(Schedule.linear(), fast, 34, 4).schedule.timesteps) == list(FAST_TIMESTEPS)
     assert fast_sampling(replace(model, refine=None)).refine is None
     assert sampling_settings(model, "fast") == fast and sampling_settings(model, "quality") == model
