@@ -12,7 +12,9 @@ card). A weight a graph holds under its own name (graphs exported without consta
 hold them all) is stored there only: `model.*` keeps the rest, and loading reads the network's
 weights back from both. A model may carry a distilled student (`ModelBundle.student`, see
 `training.distill`): its graphs are `onnx.student.*`, its weights outside them `student.*`,
-and the metadata's `student` says what it was distilled from. Reading it needs numpy and
+and the metadata's `student` says what it was distilled from. `onnx.live.*` are the network's
+graphs with their products in int8, which live sessions run (`ModelBundle.live_graphs`): they
+hold no weights, each made from the network's when they are opened. Reading it needs numpy and
 safetensors only. Official checkpoints are torch pickles holding the state dict under
 `encoder`; they need torch, are read with `weights_only=True` (in `torch_layer.official`) and
 loaded strictly by `official_checkpoints`, which knows their format, configuration and
@@ -38,13 +40,13 @@ from .official_checkpoints import OFFICIAL, STATS_ENV, STYLE_KEY, load_official,
 from .phonetic import PhoneticConfig
 from .prior import GesturePrior
 from .rigs import Layout, get_layout
-from .runtime.graphs import named_weights, read_graph
+from .runtime.graphs import check_supplied, left_out, named_weights, read_graph
 from .style import style_names_fit
 
 FORMAT = "diffsheg-core/1"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.safetensors"
-MODEL_PREFIX, PHONETIC_PREFIX, GRAPH_PREFIX, STUDENT_PREFIX = "model.", "phonetic.", "onnx.", "student."
+MODEL_PREFIX, PHONETIC_PREFIX, GRAPH_PREFIX, STUDENT_PREFIX, LIVE_PREFIX = "model.", "phonetic.", "onnx.", "student.", "live."
 NETWORK_GRAPHS = ("expression", "gesture")  # the graphs that hold the network's weights (export names them model.*)
 TORCH_HOW_TO = ("install torch: in Blender, Edit > Preferences > Add-ons > DiffSHEG > Install GPU "
                 "support; elsewhere `pip install torch==2.13.0` (README, GPU)")
@@ -71,6 +73,10 @@ class ModelBundle:
     # shares this one's config, statistics, prior and phonetic encoder, unguided, with what it was
     # distilled at in its info["distilled"] (see pipeline.make_plan for when it samples)
     student: Optional["ModelBundle"] = None
+    # ONNX: expression and gesture with their products by weights in int8, which live sessions
+    # run on onnxruntime (runtime.backends.live_network); they hold no weights of their own: each
+    # is made from `weights` when they are opened (runtime.graphs.supplied_weights)
+    live_graphs: dict[str, bytes] = field(default_factory=dict)
     networks: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # opened backends (runtime)
 
     @property
@@ -206,6 +212,7 @@ def save_checkpoint(bundle: ModelBundle, path: str | Path) -> Path:
         "info": json.dumps(bundle.info, default=str),
         **({"phonetic": bundle.phonetic.metadata()} if bundle.phonetic is not None else {}),
     }
+    tensors.update({f"{GRAPH_PREFIX}{LIVE_PREFIX}{k}": np.frombuffer(v, np.uint8) for k, v in bundle.live_graphs.items()})
     student = bundle.student
     if student is not None:
         tensors.update({f"{STUDENT_PREFIX}{k}": v for k, v in _stored_apart(student.weights, student.graphs).items()})
@@ -247,7 +254,7 @@ def _stored_student(teacher: ModelBundle, meta: dict, tensors: dict, graphs: dic
     weights = _network_weights(_prefixed(tensors, STUDENT_PREFIX), own, path, "distilled student")
     if "phonetic" in teacher.graphs:  # the student hears through the teacher's encoder
         own["phonetic"] = teacher.graphs["phonetic"]
-    return replace(teacher, weights=weights, graphs=own, guidance=None, skip_guidance=None,
+    return replace(teacher, weights=weights, graphs=own, live_graphs={}, guidance=None, skip_guidance=None,
                    model_id=str(record.get("model_id", f"{teacher.model_id}-student")), info=record["info"],
                    student=None, source=f"{path} (distilled student)")
 
@@ -282,9 +289,27 @@ def _load_ours(path: Path) -> ModelBundle:
         skip_guidance=_json(meta, "skip_guidance", "null", path), model_id=meta.get("model_id", path.stem),
         trained=_json(meta, "trained", "true", path), info=info,
         **phonetic, prior=_stored_prior(cfg, tensors, path),
-        graphs={k: v for k, v in graphs.items() if not k.startswith(STUDENT_PREFIX)}, source=str(path))
+        graphs={k: v for k, v in graphs.items() if not k.startswith((STUDENT_PREFIX, LIVE_PREFIX))},
+        live_graphs=_stored_live(graphs, weights, path), source=str(path))
     bundle.student = _stored_student(bundle, meta, tensors, graphs, path)
     return bundle
+
+
+def _stored_live(graphs: dict[str, bytes], weights: dict[str, np.ndarray], path: Path) -> dict[str, bytes]:
+    """The live graphs a file carries ({} none), each weight they leave out one the network's
+    weights make (so onnxruntime reads no file for it)."""
+    live = {k[len(LIVE_PREFIX):]: v for k, v in graphs.items() if k.startswith(LIVE_PREFIX)}
+    if live and set(live) != set(NETWORK_GRAPHS):
+        raise CheckpointError(f"{path}: its live graphs are incomplete (it needs "
+                              f"{', '.join(GRAPH_PREFIX + LIVE_PREFIX + g for g in NETWORK_GRAPHS)}); export it again")
+    for name, graph in live.items():
+        try:
+            check_supplied(left_out(graph), weights, MODEL_PREFIX)
+        except ValueError as exc:
+            raise CheckpointError(f"{path}: refused: its live ONNX graph '{name}' leaves out what the model's "
+                                  f"weights do not make ({exc}): the file was edited or mixes two models; export "
+                                  "it again") from None
+    return live
 
 
 def _check_posture(posture: object, gesture_dim: int, path: Path, what: str) -> None:
@@ -322,7 +347,8 @@ def _graph_inputs(cfg: ModelConfig, phonetic: Optional[PhoneticConfig]) -> dict[
                           "audio": ("float32", (*frames, 2 * cfg.mel_dim)),
                           "expression_x0": ("float32", (*frames, cfg.expression_dim)), **common,
                           "attend": ("bool", (None,))}}
-    graphs.update({STUDENT_PREFIX + name: graphs[name] for name in NETWORK_GRAPHS})  # a distilled student's
+    graphs.update({prefix + name: graphs[name] for name in NETWORK_GRAPHS  # a distilled student's, live's
+                   for prefix in (STUDENT_PREFIX, LIVE_PREFIX)})
     if phonetic is not None:
         graphs["phonetic"] = {"mel": ("float32", (1, phonetic.n_mels, None))}
     return graphs
@@ -338,8 +364,9 @@ def _fits(found: tuple, wanted: tuple) -> bool:
 def _check_graphs(graphs: dict[str, bytes], cfg: ModelConfig, phonetic: Optional[PhoneticConfig],
                   path: Path) -> None:
     """Refuse ONNX graphs that refer to external data (onnxruntime would read those files
-    relative to the working directory) or whose inputs disagree with the metadata, naming
-    what disagrees. Read without the onnx package (runtime.graphs)."""
+    relative to the working directory; a live graph's, made from the weights instead, are
+    checked by `_stored_live`) or whose inputs disagree with the metadata, naming what
+    disagrees. Read without the onnx package (runtime.graphs)."""
     expected = _graph_inputs(cfg, phonetic)
     for name, graph in graphs.items():
         try:
@@ -347,7 +374,7 @@ def _check_graphs(graphs: dict[str, bytes], cfg: ModelConfig, phonetic: Optional
         except ValueError as exc:
             raise CheckpointError(f"{path}: its ONNX graph '{name}' is damaged ({exc}); download or export "
                                   "the model again") from None
-        if found.external:
+        if found.external and not name.startswith(LIVE_PREFIX):  # a live graph's are checked by _stored_live
             raise CheckpointError(
                 f"{path}: refused: its ONNX graph '{name}' refers to external data files (tensor "
                 f"{', '.join(found.external[:3])}); our model files hold all their weights and never use "

@@ -44,11 +44,12 @@ def test_our_format_round_trips(tmp_path):
         b = loaded.weights[k]
         assert isinstance(b, np.ndarray) and b.dtype == a.dtype and np.array_equal(a, b), k
     assert np.array_equal(loaded.std, bundle.std)
-    # the ONNX graphs travel byte for byte, so the file runs without torch
-    assert loaded.has_graphs and loaded.graphs == bundle.graphs
+    # the ONNX graphs travel byte for byte, so the file runs without torch, live's int8 ones too
+    assert loaded.has_graphs and loaded.graphs == bundle.graphs and loaded.live_graphs == bundle.live_graphs
     meta, tensors = read_safetensors(path, "")
     assert all(isinstance(v, np.ndarray) for v in tensors.values())
-    assert {k for k in tensors if k.startswith("onnx.")} == {"onnx.expression", "onnx.gesture"}
+    assert {k for k in tensors if k.startswith("onnx.")} == {
+        "onnx.expression", "onnx.gesture", "onnx.live.expression", "onnx.live.gesture"}
 
 
 def test_truncated_checkpoint_is_reported(tmp_path):

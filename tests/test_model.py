@@ -292,6 +292,40 @@ def test_int8_graphs_store_each_weight_once_and_predict_as_the_float_ones(golden
         assert 0 < error <= 0.01, (index, error)  # measured 0.0016: int8 ran, and rounded little
 
 
+def test_live_graphs_hold_no_weights_and_run_the_int8_graphs_numbers(golden_dir):
+    """A model's live graphs (`live_graphs`): the int8 graphs with every initializer left out,
+    marked external data; opened, each is made from the model's weights (`supplied_weights`,
+    whose int8 codes and scales are onnxruntime's quantiser's own: the export checks every
+    one), so they predict exactly as the int8 graphs holding their weights do."""
+    import onnx
+
+    from diffsheg_core.runtime.graphs import SUPPLIED, read_graph
+    from diffsheg_core.torch_layer.export import live_graphs
+
+    bundle = golden_bundle(golden_dir, "beat_small", {}, graphs=True)
+    cfg = bundle.config
+    live = live_graphs(cfg, bundle.weights, "beat_small")
+    int8 = network_graphs(cfg, bundle.weights, "beat_small", int8=True)
+    for name, graph in live.items():
+        proto = onnx.load_from_string(graph)
+        assert proto.graph.initializer and all(
+            i.data_location == onnx.TensorProto.EXTERNAL and not i.raw_data
+            and [(e.key, e.value) for e in i.external_data] == [("location", SUPPLIED)] for i in proto.graph.initializer)
+        assert sorted(read_graph(graph).external) == sorted(i.name for i in onnx.load_from_string(int8[name]).graph.initializer)
+        assert len(graph) < len(int8[name]) / 5
+    live_net = OnnxNetwork(bundle, threads=1, graphs={**bundle.graphs, **live})
+    int8_net = OnnxNetwork(replace(bundle, graphs={**bundle.graphs, **int8}), threads=1)
+    gen, sched = np.random.default_rng(4), Schedule.linear().respaced(25)
+    for index in (24, 3):
+        x = gen.standard_normal((2, cfg.clip_len, cfg.dim), dtype=np.float32)
+        idx = np.array([index, index])
+        mel = gen.random((2, cfg.clip_len, cfg.mel_dim), np.float32)
+        speech = gen.standard_normal((2, cfg.clip_len, cfg.speech_dim), np.float32)
+        args = (cfg.gesture_dim, x, sched.model_timesteps(idx), mel, speech,
+                np.eye(cfg.style_dim, dtype=np.float32)[[0, 1]], sched.x0_coefs(idx, x), Guidance())
+        np.testing.assert_array_equal(step_eps(live_net, *args)[0], step_eps(int8_net, *args)[0])
+
+
 def test_an_int8_export_keeps_zero_weights_and_the_gemms_it_leaves_float(monkeypatch):
     """A fresh network's zero-initialised layers (their int8 scales all 1) and a Gemm kept
     float (the time embedding, made a float product here) come back from the graphs as the

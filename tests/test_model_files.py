@@ -16,7 +16,7 @@ import pytest
 
 from diffsheg_core import CheckpointError
 from diffsheg_core.checkpoints import DEFAULT_WEIGHTS, load_model, read_safetensors, write_safetensors
-from diffsheg_core.runtime.graphs import named_weights, read_graph
+from diffsheg_core.runtime.graphs import left_out, named_weights, read_graph, supplied_weights
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -116,6 +116,81 @@ def test_a_graph_that_refers_to_external_data_is_refused(default_file, tmp_path,
     with pytest.raises(CheckpointError, match=f"graph '{graph}' refers to external data.*never use external"):
         load_model(path)
     refused_by_the_cli(path, tmp_path, "external data")
+
+
+def test_the_live_graphs_leave_their_weights_to_the_model_and_an_edited_one_is_refused(default_file, tmp_path):
+    """The bundled file's live graphs (int8, for live sessions on onnxruntime) hold no weights:
+    every initializer is external data, made from the model's own weights when they are opened,
+    so onnxruntime reads no file for one. A live graph that leaves out a weight the model does
+    not have, or a file with one live graph of two, is refused when it loads."""
+    from diffsheg_core.runtime.backends import live_network, open_network
+
+    meta, tensors = default_file
+    model = load_model(DEFAULT_WEIGHTS)
+    assert set(model.live_graphs) == {"expression", "gesture"} and sum(map(len, model.live_graphs.values())) < 1e6
+    for name, graph in model.live_graphs.items():
+        names = left_out(graph)
+        assert sorted(names) == sorted(read_graph(graph).external)
+        made = supplied_weights(names, model.weights, "model.")
+        int8 = [n for n in names if n.endswith(".int8")]
+        assert len(int8) >= 30 and all(made[n].dtype == np.int8 and np.abs(made[n]).max() == 127 for n in int8)
+    network = open_network(model, backend="onnx", threads=1)
+    live = live_network(model, network)
+    assert live is not network and live is live_network(model, network) and set(live.sessions) == set(network.sessions)
+    proto = onnx.load_from_string(tensors["onnx.live.gesture"].tobytes())
+    proto.graph.initializer[0].name = "model.not_a_weight"
+    crafted = write_safetensors({**tensors, "onnx.live.gesture": np.frombuffer(proto.SerializeToString(), np.uint8)},
+                                meta, tmp_path / "crafted.safetensors")
+    with pytest.raises(CheckpointError, match="live ONNX graph 'gesture' leaves out what the model's weights do not "
+                                              "make .*not_a_weight"):
+        load_model(crafted)
+    half = write_safetensors({k: v for k, v in tensors.items() if k != "onnx.live.gesture"}, meta,
+                             tmp_path / "half.safetensors")
+    with pytest.raises(CheckpointError, match="its live graphs are incomplete"):
+        load_model(half)
+    refused_by_the_cli(half, tmp_path, "live graphs are incomplete")
+    assert model.student.live_graphs == {}  # made from the teacher's weights, not the student's
+    weight = next(n for n in left_out(model.live_graphs["gesture"]) if n.endswith(".fp16"))
+    parameter = weight.removeprefix("model.").removesuffix(".fp16").removesuffix(".T")
+    other = {**model.weights, parameter: model.weights[parameter].astype(np.float32) + np.float32(1e-5)}
+    with pytest.raises(ValueError, match=f"weight {parameter} is not held in float16"):
+        supplied_weights([weight], other, "model.")
+
+
+def _sparse_external(proto, name: str) -> None:
+    values = onnx.numpy_helper.from_array(np.ones(2, np.float32), name)
+    values.data_location = onnx.TensorProto.EXTERNAL
+    values.external_data.add(key="location", value="secret.txt")
+    proto.graph.sparse_initializer.append(onnx.helper.make_sparse_tensor(
+        values, onnx.numpy_helper.from_array(np.array([0, 1], np.int64), f"{name}.indices"), [4]))
+
+
+def _constant_external(proto, name: str) -> None:
+    value = onnx.numpy_helper.from_array(np.ones(4, np.float32), name)
+    value.ClearField("raw_data")
+    value.data_location = onnx.TensorProto.EXTERNAL
+    value.external_data.add(key="location", value="secret.txt")
+    proto.graph.node.append(onnx.helper.make_node("Constant", [], ["stray"], value=value))
+
+
+def _twice(proto, name: str) -> None:
+    proto.graph.initializer.append(next(i for i in proto.graph.initializer if i.name == name))
+
+
+@pytest.mark.parametrize("craft", [_sparse_external, _constant_external, _twice])
+def test_a_live_graph_whose_external_data_onnxruntime_would_read_is_refused(default_file, tmp_path, craft):
+    """onnxruntime reads a sparse initializer's or a node's external data from its file while it
+    builds the graph, before the weights a live graph leaves out are given to it, and a name
+    given twice is ambiguous: a live graph may leave out only its own dense initializers, each
+    under a name of its own, even one a weight of the model makes."""
+    meta, tensors = default_file
+    proto = onnx.load_from_string(tensors["onnx.live.gesture"].tobytes())
+    craft(proto, next(i.name for i in proto.graph.initializer if i.name.endswith(".int8")))
+    (tmp_path / "secret.txt").write_bytes(b"\x00" * 64)
+    path = write_safetensors({**tensors, "onnx.live.gesture": np.frombuffer(proto.SerializeToString(), np.uint8)},
+                             meta, tmp_path / "crafted.safetensors")
+    with pytest.raises(CheckpointError, match="live ONNX graph 'gesture' .*external data outside the graph's own"):
+        load_model(path)
 
 
 def edited(default_file, path: Path, meta_change=None, tensor_change=None) -> Path:

@@ -41,6 +41,7 @@ from ..guidance import Guidance
 from ..pipeline import (add_posture, build_sampling, calibrated_posture, check_finite, generation_meta, make_plan,
                         to_motion)
 from ..motion import Motion
+from ..runtime.backends import live_network
 from ..settings import GenerateSettings
 from ..speech_features import RunningLevel, frame_features, margin_frames
 from ..validate import CANDIDATES, check_number
@@ -75,7 +76,9 @@ class LiveConfig:
     - skip_scale 3.8: live's new frames are painted against the known ones without the refining
       pass, so they need more skip guidance to move like offline's. Over seeds 0-7 (the take,
       its held-out 20 s, unseen speech) the wrists move 0.93-0.96x offline's speed, jitter
-      1.12-1.14x and jerk 1.01-1.04x (bars 0.9x, 1.2x); at 3.4x (seeds 0-3) 0.85-0.90x.
+      1.12-1.14x and jerk 1.01-1.04x (bars 0.9x, 1.2x); at 3.4x (seeds 0-3) 0.85-0.90x. With
+      the gesture prior's draws 1.2x as wide and live's int8 graphs (2026-12-07): 0.91-0.94x,
+      jitter 1.09-1.12x.
     - later_start 14 of 25 steps (FOPPAS's published value): 15 network calls a window instead
       of 18, the same figures against offline.
     - legs_eta None (the model's eta): less noise sways the hips more, but the first foot
@@ -183,6 +186,7 @@ class LiveEngine:
         if isinstance(sample_rate, bool) or not isinstance(sample_rate, int) or sample_rate < MIN_SAMPLE_RATE:
             raise DiffshegError(f"live audio must come at {MIN_SAMPLE_RATE} Hz or more, got {sample_rate!r}")
         live.check(cfg.clip_len)
+        network = live_network(bundle, network)  # on onnxruntime, the model's int8 live graphs
         self.bundle, self.network, self.settings, self.live = bundle, network, settings, live
         self.sample_rate = sample_rate
         self.fps = int(cfg.fps)

@@ -23,9 +23,11 @@ from typing import Iterator, Optional
 
 import numpy as np
 
-from ..checkpoints import TORCH_HOW_TO, ModelBundle
+from ..checkpoints import MODEL_PREFIX, TORCH_HOW_TO, ModelBundle
 from ..errors import DiffshegError
 from ..validate import BACKENDS, DEVICES, PRECISIONS, THREADS, check_number, parse_whole
+from .graphs import left_out, supplied_weights
+
 THREADS_ENV = "DIFFSHEG_THREADS"
 
 
@@ -68,29 +70,42 @@ def cpu_threads(threads: Optional[int] = None) -> Iterator[None]:
 
 
 class OnnxNetwork:
-    """A model's ONNX graphs on onnxruntime (CPU)."""
+    """A model's ONNX graphs on onnxruntime (CPU): `graphs` (by default the model's own), the
+    weights a graph leaves out made from the model's (`runtime.graphs.supplied_weights`)."""
 
     name = "onnx"
 
-    def __init__(self, bundle: ModelBundle, threads: int):
+    def __init__(self, bundle: ModelBundle, threads: int, graphs: Optional[dict[str, bytes]] = None,
+                 what: str = "ONNX graphs"):
         try:
             import onnxruntime as ort
         except ImportError:
             raise DiffshegError("the onnx backend needs the onnxruntime package: `pip install onnxruntime` "
                                 "(the Blender add-on bundles it), or choose backend torch") from None
+        self.sessions, self._supplied = {}, []
+        try:
+            for name, graph in (bundle.graphs if graphs is None else graphs).items():
+                options = self._options(ort, threads)
+                names = left_out(graph)  # none in a model's own graphs (checkpoints refuses them there)
+                if names:
+                    values = supplied_weights(names, bundle.weights, MODEL_PREFIX)
+                    self._supplied.append([ort.OrtValue.ortvalue_from_numpy(values[n]) for n in names])
+                    options.add_external_initializers(names, self._supplied[-1])
+                self.sessions[name] = ort.InferenceSession(graph, options, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own types for damaged graphs
+            raise DiffshegError(f"{bundle.source}: its {what} do not load ({exc}); export the model again "
+                                "(python -m diffsheg_core export-onnx FILE), or choose backend torch") from None
+        self.inputs = {name: {i.name for i in session.get_inputs()} for name, session in self.sessions.items()}
+        self.device = "cpu"
+
+    @staticmethod
+    def _options(ort, threads: int):
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads
         options.inter_op_num_threads = 1
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         options.log_severity_level = 3
-        try:
-            self.sessions = {name: ort.InferenceSession(graph, options, providers=["CPUExecutionProvider"])
-                             for name, graph in bundle.graphs.items()}
-        except Exception as exc:  # onnxruntime raises its own types for damaged graphs
-            raise DiffshegError(f"{bundle.source}: its ONNX graphs do not load ({exc}); export the model "
-                                "again, or choose backend torch") from None
-        self.inputs = {name: {i.name for i in session.get_inputs()} for name, session in self.sessions.items()}
-        self.device = "cpu"
+        return options
 
     def _run(self, graph: str, feeds: dict) -> list[np.ndarray]:
         """Run `graph` on the feeds it takes (the `null` input exists only in models with a
@@ -180,4 +195,21 @@ def student_network(bundle: ModelBundle, network):
     opened for `bundle`) is: same backend, device, precision and threads. None when `network`
     was not opened that way (a caller's own network runs the guided steps itself)."""
     key = next((k for k, v in bundle.networks.items() if v is network), None)
-    return None if key is None or bundle.student is None else open_network(bundle.student, *key)
+    if key is None or key[0] == "live" or bundle.student is None:
+        return None
+    return open_network(bundle.student, *key)
+
+
+def live_network(bundle: ModelBundle, network):
+    """The network a live session of `bundle` runs, given `network` (one `open_network` opened
+    for `bundle`): on onnxruntime the model's live graphs when the file has them (its products
+    by weights in int8: a window's calls take about 0.8x the time on one core, docs/live.md),
+    else `network` itself (torch runs the model's float weights)."""
+    key = next((k for k, v in bundle.networks.items() if v is network), None)
+    if key is None or key[0] != "onnx" or not bundle.live_graphs:
+        return network
+    live_key = ("live", *key)
+    if live_key not in bundle.networks:
+        bundle.networks[live_key] = OnnxNetwork(bundle, key[3], {**bundle.graphs, **bundle.live_graphs},
+                                                "live int8 graphs (offline generation does not use them)")
+    return bundle.networks[live_key]

@@ -7,7 +7,9 @@ Only the fields of onnx.proto that lead to tensors and inputs are followed; ever
 `named_weights` reads the initializers that carry a network's parameter names (a graph
 exported without constant folding holds every weight that way; an int8 one, under names of this
 project, is read back dequantised), so that a model file stores each weight once, in its graph,
-and the torch backend reads it from there.
+and the torch backend reads it from there. A graph may instead leave its weights out, each
+marked external data at `SUPPLIED` (a model's live graphs, int8 copies of its own):
+`supplied_weights` makes them from the model's weights when the graph is opened.
 """
 
 from __future__ import annotations
@@ -77,13 +79,22 @@ def _fields(buf: memoryview):
             yield number, value
 
 
+def _is_external(tensor: memoryview) -> bool:
+    return any(n == 13 or (n == 14 and v == EXTERNAL) for n, v in _fields(tensor))
+
+
+def _tensor_name(tensor: memoryview) -> str:
+    """A TensorProto's name: its last name field, as protobuf and onnxruntime read it."""
+    names = [bytes(v).decode("utf-8", "replace") for n, v in _fields(tensor) if n == 8]
+    return names[-1] if names else "?"
+
+
 def _external(buf: memoryview, kind: str, found: list[str]) -> None:
     """Append to `found` the names of the tensors reached from message `buf` of `kind`
     that refer to external data."""
     if kind == "tensor":
-        values = list(_fields(buf))
-        if any(n == 13 or (n == 14 and v == EXTERNAL) for n, v in values):
-            found.append(next((bytes(v).decode("utf-8", "replace") for n, v in values if n == 8), "?"))
+        if _is_external(buf):
+            found.append(_tensor_name(buf))
         return
     holds = _TENSORS_IN[kind]
     for number, value in _fields(buf):
@@ -132,6 +143,26 @@ def read_graph(graph: bytes) -> GraphInputs:
     return out
 
 
+def left_out(graph: bytes) -> list[str]:
+    """The initializers a graph leaves out (external data, made by `supplied_weights` and given
+    to onnxruntime by name when it opens the graph); ValueError when the bytes are not an ONNX
+    model, or when any external tensor is not one of the graph's own dense initializers with a
+    name of its own: onnxruntime would read such a tensor (a sparse initializer, a node's
+    constant, a subgraph's) from its file before the supplied ones apply."""
+    external = read_graph(graph).external
+    try:
+        own = [_tensor_name(tensor) for number, body in _fields(memoryview(graph)) if number == 7
+               for field_number, tensor in _fields(body)
+               if field_number == 5 and isinstance(tensor, memoryview) and _is_external(tensor)]
+    except (IndexError, UnicodeDecodeError, TypeError) as exc:
+        raise ValueError(f"it is not an ONNX model ({exc})") from None
+    if sorted(external) != sorted(own) or len(set(own)) != len(own):
+        strays = sorted(set(external) - set(own)) or sorted({n for n in own if own.count(n) > 1})
+        raise ValueError(f"external data outside the graph's own initializers, or under one name twice "
+                         f"({', '.join(strays[:3])})")
+    return own
+
+
 def _dims(value) -> list[int]:
     """A TensorProto's dims field: one varint, or a packed run of them."""
     if isinstance(value, int):
@@ -144,7 +175,8 @@ def _dims(value) -> list[int]:
 
 
 RAW_TYPES = {1: np.float32, 10: np.float16, 3: np.int8}  # the element types a network's weights are stored as
-INT8, SCALE, ZERO, TRANSPOSED = ".int8", ".int8.scale", ".int8.zero", ".T"
+INT8, SCALE, ZERO, TRANSPOSED, HALF = ".int8", ".int8.scale", ".int8.zero", ".T", ".fp16"
+SUPPLIED = "supplied-from-the-model-weights"  # the external data location of a weight a graph leaves out
 
 
 def named_weights(graph: bytes, prefix: str) -> dict[str, np.ndarray]:
@@ -188,7 +220,7 @@ def named_weights(graph: bytes, prefix: str) -> dict[str, np.ndarray]:
             array, name = _dequantised(raw, name), name.removesuffix(INT8)
         elif array.dtype == np.int8:
             continue
-        name = name.removesuffix(".fp16")
+        name = name.removesuffix(HALF)
         if name.endswith(TRANSPOSED):
             array, name = np.ascontiguousarray(array.T), name.removesuffix(TRANSPOSED)
         found[name] = array
@@ -203,3 +235,55 @@ def _dequantised(raw: dict[str, np.ndarray], name: str) -> np.ndarray:
             or scale.size not in (1, values.shape[1]) or zero.size != scale.size:
         raise ValueError(f"int8 weight {name} lacks a float32 scale and a zero point, one or one per column")
     return ((values.astype(np.float32) - zero.astype(np.float32).reshape(-1)) * scale.reshape(-1)).astype(np.float32)
+
+
+def int8_columns(weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(int8 values, float32 scale per column, int8 zero points) of a 2-d float weight: symmetric,
+    each column's largest magnitude at 127, as onnxruntime's dynamic quantisation makes a
+    weight per channel (the same numbers, tested)."""
+    weight = np.asarray(weight, np.float32)
+    scale = np.abs(weight).max(axis=0) / np.float32(127.0)
+    scale = np.where(scale == 0, np.float32(1.0), scale).astype(np.float32)
+    values = np.clip(np.rint(weight / scale), -127, 127).astype(np.int8)
+    return values, scale, np.zeros(scale.shape, np.int8)
+
+
+def _supplied_from(name: str, weights: dict[str, np.ndarray], prefix: str) -> tuple[str, bool, str]:
+    """(parameter, transposed, suffix) of `weights` that make initializer `name` (`supplied_weights`)."""
+    part = name[len(prefix):] if name.startswith(prefix) else ""
+    suffix = next((s for s in (SCALE, ZERO, INT8, HALF) if part.endswith(s)), "")
+    base = part[:len(part) - len(suffix)]
+    parameter = base.removesuffix(TRANSPOSED)
+    if parameter not in weights or (suffix in (INT8, SCALE, ZERO) and np.ndim(weights[parameter]) != 2):
+        raise ValueError(f"no weight of the model makes the graph's initializer {name}")
+    return parameter, base.endswith(TRANSPOSED), suffix
+
+
+def check_supplied(names: list[str], weights: dict[str, np.ndarray], prefix: str) -> None:
+    """ValueError naming an initializer of `names` that `supplied_weights` cannot make."""
+    for name in names:
+        _supplied_from(name, weights, prefix)
+
+
+def supplied_weights(names: list[str], weights: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
+    """{name: array} for initializers a graph leaves out (`SUPPLIED`), each named `prefix` + a
+    parameter of `weights` + what `named_weights` reads: `.T` (transposed), then `.fp16` (half)
+    or `.int8`, `.int8.scale`, `.int8.zero` (`int8_columns`). ValueError names one that no
+    weight makes."""
+    found: dict[str, np.ndarray] = {}
+    for name in names:
+        parameter, transposed, suffix = _supplied_from(name, weights, prefix)
+        value = np.asarray(weights[parameter])
+        value = np.ascontiguousarray(value.T) if transposed else value
+        if suffix in (INT8, SCALE, ZERO):
+            value = dict(zip((INT8, SCALE, ZERO), int8_columns(value)))[suffix]
+        elif suffix == HALF:
+            half = value.astype(np.float16)
+            if not np.array_equal(half.astype(value.dtype), value):
+                raise ValueError(f"the weight {parameter} is not held in float16, as the graph's initializer "
+                                 f"{name} is: the graph was made from other weights")
+            value = half
+        elif value.dtype.kind == "f":  # exported from float32 modules, whatever the weights are held as
+            value = value.astype(np.float32)
+        found[name] = value
+    return found

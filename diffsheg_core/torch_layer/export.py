@@ -7,7 +7,9 @@ from float32 modules holding exactly the weights the file stores, so both backen
 the same numbers; a distilled student's products by weights are int8 (`_int8_matmuls`), and
 the torch backend runs the weights they hold, dequantised. Constant folding is left to
 onnxruntime (it folds when it loads a graph), so every weight stays an initializer named after
-its parameter and the file stores it once, in the graph (`checkpoints.graph_weights`). Needs
+its parameter and the file stores it once, in the graph (`checkpoints.graph_weights`). Live
+sessions run the network's two graphs once more with their products in int8 (`live_graphs`),
+which hold no weights: each is made from the network's when they are opened. Needs
 torch, onnx and onnxruntime (tooling: the trainer calls it when it exports).
 """
 
@@ -23,9 +25,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..checkpoints import ModelBundle, graph_weights
+from ..checkpoints import MODEL_PREFIX, ModelBundle, graph_weights
 from ..config import ModelConfig
-from ..runtime.graphs import INT8, SCALE, TRANSPOSED, ZERO
+from ..runtime.graphs import INT8, SCALE, SUPPLIED, TRANSPOSED, ZERO, supplied_weights
 from .model import PhoneticEncoder, UniEG, load_state_strict
 
 OPSET = 17
@@ -227,6 +229,39 @@ def network_graphs(cfg: ModelConfig, weights: dict[str, np.ndarray], source: str
     return {call: _half_initializers(_int8_matmuls(graph) if int8 else graph) for call, graph in graphs.items()}
 
 
+def _weights_left_out(graph: bytes, weights: dict[str, np.ndarray]) -> bytes:
+    """The graph with each initializer left out, marked external data at `SUPPLIED`: the
+    onnx backend makes it from `weights` when it opens the graph (`runtime.graphs.supplied_weights`,
+    which gives each exactly the values the graph held: checked here)."""
+    import onnx
+    from onnx import numpy_helper
+
+    proto = onnx.load_from_string(graph)
+    for init in proto.graph.initializer:
+        value = numpy_helper.to_array(init)
+        try:
+            made = supplied_weights([init.name], weights, MODEL_PREFIX)[init.name]
+        except ValueError:
+            made = None
+        if made is None or made.dtype != value.dtype or not np.array_equal(made, value):
+            raise RuntimeError(f"the graph's initializer {init.name} is not what the model's weights make "
+                               "(runtime.graphs.supplied_weights); check the onnxruntime version against "
+                               "torch_layer/export.py")
+        name, kind, dims = init.name, init.data_type, list(init.dims)
+        init.Clear()
+        init.name, init.data_type, init.data_location = name, kind, onnx.TensorProto.EXTERNAL
+        init.dims.extend(dims)
+        init.external_data.add(key="location", value=SUPPLIED)
+    return proto.SerializeToString()
+
+
+def live_graphs(cfg: ModelConfig, weights: dict[str, np.ndarray], source: str) -> dict[str, bytes]:
+    """The `expression` and `gesture` graphs live sessions run on onnxruntime: the network's,
+    its products by weights in int8 (`_int8_matmuls`), holding no weights (`_weights_left_out`)."""
+    return {call: _weights_left_out(graph, weights)
+            for call, graph in network_graphs(cfg, weights, source, int8=True).items()}
+
+
 def phonetic_graph(encoder_cfg, weights: dict[str, np.ndarray], source: str) -> bytes:
     """The `phonetic` graph: (1, n_mels, N) log-mel -> (N, phones) posteriors."""
     encoder = PhoneticEncoder(encoder_cfg)
@@ -238,8 +273,9 @@ def phonetic_graph(encoder_cfg, weights: dict[str, np.ndarray], source: str) -> 
 
 def with_graphs(bundle: ModelBundle) -> ModelBundle:
     """`bundle` (and its distilled student, `with_student_graphs`) with ONNX graphs exported
-    from its weights (replacing any it had)."""
+    from its weights, its live graphs among them (replacing any it had)."""
     graphs = network_graphs(bundle.config, bundle.weights, bundle.source)
+    bundle.live_graphs = live_graphs(bundle.config, bundle.weights, bundle.source)
     if bundle.phonetic is not None:
         graphs["phonetic"] = phonetic_graph(bundle.phonetic, bundle.phonetic_weights,
                                             f"{bundle.source} (phonetic encoder)")

@@ -84,8 +84,10 @@ def first_windows(audio: Audio, clip_len: int, fps: float) -> list[Audio]:
 
 def live_take(bundle: ModelBundle, audio: Audio, seed: int) -> Motion:
     """What a live session at the default LiveConfig makes of `audio` (the engine fed it all at
-    once: with its hop held, the frames it makes at real time)."""
-    engine = LiveEngine(bundle, open_network(bundle, threads=1), GenerateSettings(seed=seed), audio.sample_rate)
+    once: with its hop held, the frames it makes at real time), on the CPU as sessions run (on
+    onnxruntime, the model's int8 live graphs, even where torch sees a GPU)."""
+    engine = LiveEngine(bundle, open_network(bundle, device="cpu", threads=1), GenerateSettings(seed=seed),
+                        audio.sample_rate)
     with cpu_threads(1):
         engine.push(audio.samples)
         while engine.ready():
