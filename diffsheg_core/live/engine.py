@@ -83,9 +83,11 @@ class LiveConfig:
       of 18, the same figures against offline.
     - legs_eta None (the model's eta): less noise sways the hips more, but the first foot
       comes down late and a rig's planted foot strays.
-    - legs_skip_scale 4: the hips sway about as offline's (0.89-1.06x, seeds 0-1; the lower
-      branch's channels of the same passes: no more compute); at 3.2x, 0.83x. More sways more
-      but sets a foot down less often.
+    - legs_skip_scale 3.5: the hips sway 0.89x offline's and a foot is down in 91-97 % of frames
+      (seeds 0-7, the take, with the gesture prior's draws 1.2x as wide and live's int8 graphs,
+      2026-12-07; the lower branch's channels of the same passes: no more compute); at 4x 0.97x
+      but 88-96 %, one seed under issue 40's 90 %. More sways more but sets a foot down less
+      often.
     - candidates None: the settings' (one, unless a job asks for more).
     - max_hop 12: a machine too slow for the hop does not fall behind: when more than a hop of
       audio waits, the next window takes it all (a window costs about the same for any hop),
@@ -99,7 +101,7 @@ class LiveConfig:
     later_start: Optional[int] = 14    # schedule index later windows start from, at 25 steps (None: the model's)
     legs_eta: Optional[float] = None   # eta of a whole-body model's legs (None: the model's eta)
     skip_scale: float = 3.8            # the fast sampling's gesture skip guidance live, times the settings'
-    legs_skip_scale: float = 4.0       # ... and that of a whole-body model's hips and legs
+    legs_skip_scale: float = 3.5       # ... and that of a whole-body model's hips and legs
     face_scale: float = 1.5            # ... and its face's classifier-free guidance, times the settings'
     through_lookahead: bool = True     # a window runs on through its lookahead frames (their motion thrown away)
     candidates: Optional[int] = None   # best of this many samplings of each window (None: the settings')
