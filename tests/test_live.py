@@ -331,9 +331,10 @@ def test_live_runs_the_models_int8_live_graphs_on_onnxruntime(speech, model):
 
     engine, int8 = session(bundle, network, 0)
     assert network.name == "onnx" and engine.network is live_network(bundle, network) is not network
+    assert engine.meta()["live"]["int8_graphs"] is True
     assert LiveEngine(bundle, torch_network, GenerateSettings(), 16000).network is torch_network
     float_engine, floats = session(float_bundle, float_network, 0)
-    assert float_engine.network is float_network
+    assert float_engine.network is float_network and float_engine.meta()["live"]["int8_graphs"] is False
     _, other_seed = session(float_bundle, float_network, 1)
     ratio = np.abs(int8 - floats).mean() / np.abs(other_seed - floats).mean()
     assert 0 < ratio < 0.2, ratio  # measured 0.06

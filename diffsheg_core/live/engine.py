@@ -188,7 +188,8 @@ class LiveEngine:
         if isinstance(sample_rate, bool) or not isinstance(sample_rate, int) or sample_rate < MIN_SAMPLE_RATE:
             raise DiffshegError(f"live audio must come at {MIN_SAMPLE_RATE} Hz or more, got {sample_rate!r}")
         live.check(cfg.clip_len)
-        network = live_network(bundle, network)  # on onnxruntime, the model's int8 live graphs
+        opened, network = network, live_network(bundle, network)  # on onnxruntime, the model's int8 live graphs
+        self.int8 = network is not opened
         self.bundle, self.network, self.settings, self.live = bundle, network, settings, live
         self.sample_rate = sample_rate
         self.fps = int(cfg.fps)
@@ -353,7 +354,7 @@ class LiveEngine:
                         "lookahead": self.live.lookahead, "context": self.live.context, "skip_scale": self.live.skip_scale,
                         "face_scale": self.live.face_scale, "through_lookahead": self.live.through_lookahead,
                         "match_velocity": self.live.match_velocity,
-                        "posture_calibrated": self.posture is not None,
+                        "posture_calibrated": self.posture is not None, "int8_graphs": self.int8,
                         "legs_skip_scale": self.live.legs_skip_scale if self.sampler.branch else None,
                         "legs_eta": self.sampler.branch_eta if self.sampler.branch else None}
         return meta
