@@ -194,10 +194,15 @@ def student_network(bundle: ModelBundle, network):
     """The network of `bundle`'s distilled student, opened as `network` (one `open_network`
     opened for `bundle`) is: same backend, device, precision and threads. None when `network`
     was not opened that way (a caller's own network runs the guided steps itself)."""
-    key = next((k for k, v in bundle.networks.items() if v is network), None)
+    key = _opened_as(bundle, network)
     if key is None or key[0] == "live" or bundle.student is None:
         return None
     return open_network(bundle.student, *key)
+
+
+def _opened_as(bundle: ModelBundle, network) -> Optional[tuple]:
+    """The key `open_network` cached `network` under on `bundle` (None: not opened that way)."""
+    return next((k for k, v in bundle.networks.items() if v is network), None)
 
 
 def live_network(bundle: ModelBundle, network):
@@ -205,7 +210,7 @@ def live_network(bundle: ModelBundle, network):
     for `bundle`): on onnxruntime the model's live graphs when the file has them (its products
     by weights in int8: a window's calls take about 0.8x the time on one core, docs/live.md),
     else `network` itself (torch runs the model's float weights)."""
-    key = next((k for k, v in bundle.networks.items() if v is network), None)
+    key = _opened_as(bundle, network)
     if key is None or key[0] != "onnx" or not bundle.live_graphs:
         return network
     live_key = ("live", *key)

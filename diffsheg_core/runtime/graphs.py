@@ -271,12 +271,15 @@ def supplied_weights(names: list[str], weights: dict[str, np.ndarray], prefix: s
     or `.int8`, `.int8.scale`, `.int8.zero` (`int8_columns`). ValueError names one that no
     weight makes."""
     found: dict[str, np.ndarray] = {}
+    quantised: dict[tuple[str, bool], dict[str, np.ndarray]] = {}  # a weight's three int8 tensors, made once
     for name in names:
         parameter, transposed, suffix = _supplied_from(name, weights, prefix)
         value = np.asarray(weights[parameter])
         value = np.ascontiguousarray(value.T) if transposed else value
         if suffix in (INT8, SCALE, ZERO):
-            value = dict(zip((INT8, SCALE, ZERO), int8_columns(value)))[suffix]
+            if (parameter, transposed) not in quantised:
+                quantised[parameter, transposed] = dict(zip((INT8, SCALE, ZERO), int8_columns(value)))
+            value = quantised[parameter, transposed][suffix]
         elif suffix == HALF:
             half = value.astype(np.float16)
             if not np.array_equal(half.astype(value.dtype), value):

@@ -237,13 +237,14 @@ def _weights_left_out(graph: bytes, weights: dict[str, np.ndarray]) -> bytes:
     from onnx import numpy_helper
 
     proto = onnx.load_from_string(graph)
+    try:
+        made = supplied_weights([init.name for init in proto.graph.initializer], weights, MODEL_PREFIX)
+    except ValueError as exc:
+        raise RuntimeError(f"the graph holds an initializer the model's weights do not make ({exc}); check the "
+                           "onnxruntime version against torch_layer/export.py") from None
     for init in proto.graph.initializer:
         value = numpy_helper.to_array(init)
-        try:
-            made = supplied_weights([init.name], weights, MODEL_PREFIX)[init.name]
-        except ValueError:
-            made = None
-        if made is None or made.dtype != value.dtype or not np.array_equal(made, value):
+        if made[init.name].dtype != value.dtype or not np.array_equal(made[init.name], value):
             raise RuntimeError(f"the graph's initializer {init.name} is not what the model's weights make "
                                "(runtime.graphs.supplied_weights); check the onnxruntime version against "
                                "torch_layer/export.py")
