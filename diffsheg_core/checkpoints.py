@@ -110,12 +110,25 @@ class ModelBundle:
         needed = {"expression", "gesture"} | ({"phonetic"} if self.config.phonetic_input else set())
         return needed <= set(self.graphs)
 
+    @property
+    def centre(self) -> np.ndarray:
+        """(D,) the motion the network's zero stands for: the normalisation mean, its arms moved by
+        the model's calibrated arm posture (info["arm_posture"], in normalised units; see
+        training.calibrate), so that every sampling's arms sit on average where its training
+        data's do. Without one, the mean."""
+        arms = self.info.get("arm_posture")
+        if arms is None:
+            return self.mean
+        centre = self.mean.copy()
+        centre[: len(arms)] += self.std[: len(arms)] * np.asarray(arms, np.float32)
+        return centre
+
     def normalise(self, motion: np.ndarray) -> np.ndarray:
-        return (motion - self.mean) / self.std
+        return (motion - self.centre) / self.std
 
     def denormalise(self, motion: np.ndarray) -> np.ndarray:
         out = motion * self.std
-        out += self.mean  # in place: one array the size of the motion, not two
+        out += self.centre  # in place: one array the size of the motion, not two
         return out
 
 
@@ -282,7 +295,8 @@ def _load_ours(path: Path) -> ModelBundle:
         raise CheckpointError(f"{path}: its metadata 'info' is a JSON {type(info).__name__}, not an object: "
                               f"the file was edited or damaged; export it again from its training run")
     _check_styles(info, cfg.style_dim, path)
-    _check_posture(info.get("live_posture"), cfg.gesture_dim, path, "its live posture")
+    for key, what in (("live_posture", "live posture"), ("arm_posture", "arm posture")):
+        _check_posture(info.get(key), cfg.gesture_dim, path, f"its {what}")
     bundle = ModelBundle(
         config=cfg, weights=weights, mean=mean, std=std, sampling=sampling,
         guidance=_json(meta, "guidance", "null", path),

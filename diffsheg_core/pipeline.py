@@ -509,7 +509,7 @@ def _hold_pins(bundle: ModelBundle, normalised: np.ndarray, hold: np.ndarray, pi
     for pin in pins:
         channels = _pin_channels(bundle.layout, pin, start, end)
         rotation = np.array(pin.rotation, dtype=np.float32)
-        normalised[pin.frame, channels] = (rotation - bundle.mean[channels]) / bundle.std[channels]
+        normalised[pin.frame, channels] = (rotation - bundle.centre[channels]) / bundle.std[channels]
         hold[pin.frame, channels] = True
 
 
