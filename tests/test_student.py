@@ -207,10 +207,11 @@ def test_every_sampling_holds_the_arms_where_the_training_data_holds_them(bundle
     measured on other takes) moves the centre the network's output is read about
     (`ModelBundle.centre`) on the shoulders, arms and hands alone. On 30 s of unheard speech,
     seeds 0-1, the 25 steps' arm channels then lie nearer the data's mean (rms 0.28 of a spread
-    against 0.46 uncalibrated, 2026-12-07; at most 0.7x). Every sampling (the 25 steps, the fast one, live, a range
-    regenerated in a take) makes the uncalibrated model's motion with the arms moved by exactly
-    that posture, and the spine, neck, head, face, hips and legs as they were (to float rounding:
-    a range reads the take's frames about the same centre)."""
+    against 0.46 uncalibrated, 2026-12-07; at most 0.7x). Every sampling (the 25 steps, the fast
+    one, live, a range regenerated in a take with a pin in it) makes the uncalibrated model's
+    motion with the arms moved by exactly that posture, and the spine, neck, head, face, hips
+    and legs as they were (to float rounding: a range reads the take's frames about the same
+    centre)."""
     raw = without_arm_posture(bundle)
     arms = arm_channels(bundle)
     assert {"arm_posture", "live_posture", "posture_measured_on"} <= set(bundle.info)
@@ -226,18 +227,24 @@ def test_every_sampling_holds_the_arms_where_the_training_data_holds_them(bundle
     assert spread["calibrated"] <= 0.7 * spread["raw"], spread
     rotated = 3 * len(bundle.layout.joint_names)  # the channels of the upper body's, the hips' and the legs' turns
     moved = arms[:rotated].reshape(-1, 3).all(axis=1)  # the joints the arm posture turns
-    shift = (bundle.std[:rotated] * np.asarray(bundle.info["arm_posture"])[:rotated]).reshape(-1, 3)[moved]
+    shift = (bundle.std[:rotated] * np.asarray(bundle.info["arm_posture"])[:rotated]).reshape(-1, 3)
+    arm = bundle.layout.joint_names.index("RightArm")
+
+    def pinned(model):  # a range with the right arm raised at one frame; the calibrated model's pose is the shifted one
+        raised = np.array([0.0, 0.0, 0.8]) + (shift[arm] if model is bundle else 0.0)
+        return regenerate(quality(model), speech, start=60, end=120, seed=3, sampling="quality", model=model,
+                          pins=(Pin(90, "RightArm", tuple(raised)),))
+
     quality = lambda model: generate(speech, model=model, seed=0, sampling="quality")  # noqa: E731
     takes = {"quality": quality, "fast": lambda model: generate(speech, model=model, seed=0, sampling="fast"),
-             "live": lambda model: live_take(model, speech, 0),
-             "range": lambda model: regenerate(quality(model), speech, start=60, end=120, seed=3, sampling="quality",
-                                              model=model)}
+             "live": lambda model: live_take(model, speech, 0), "range with a pin": pinned}
     for name, make in takes.items():
         calibrated, made = make(bundle), make(raw)
         np.testing.assert_allclose(calibrated.rotations[:, ~moved], made.rotations[:, ~moved], atol=1e-5, err_msg=name)
+        np.testing.assert_allclose(calibrated.root_translation, made.root_translation, atol=1e-6, err_msg=name)
         np.testing.assert_array_equal(calibrated.face, made.face, err_msg=name)
         np.testing.assert_allclose(calibrated.rotations[:, moved] - made.rotations[:, moved],
-                                   np.broadcast_to(shift, (made.n_frames, moved.sum(), 3)),
+                                   np.broadcast_to(shift[moved], (made.n_frames, moved.sum(), 3)),
                                    atol=1e-5, err_msg=name)
 
 

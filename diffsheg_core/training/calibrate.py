@@ -216,11 +216,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="long speech to measure on (default: three shared takes apart from those the "
                              "sampling, posture and live benches judge)")
     parser.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))
-    parser.add_argument("--no-live", action="store_true", help="calibrate the distilled student only")
+    parser.add_argument("--no-live", action="store_true",
+                        help="leave live's posture as it is (with --no-arms: calibrate the distilled student only)")
     parser.add_argument("--no-first", action="store_true", help="leave the student's first window as it is")
     parser.add_argument("--no-student", action="store_true",
-                        help="leave the distilled student's posture as it is: calibrate live and the arms only "
-                             "(after live's defaults change)")
+                        help="leave the distilled student's posture as it is (after live's defaults change; with "
+                             "--no-arms: calibrate live only)")
     parser.add_argument("--no-arms", action="store_true",
                         help="leave the model's arm posture (every sampling's) as it is")
     parser.add_argument("--out", help="where to write it (default: over the input, atomically)")
