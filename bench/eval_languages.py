@@ -51,6 +51,14 @@ motion capture as the reference for the loudness figure: what a real face scores
 (the BEAT2 SMPL-X jaw) and how closely the model's jaw and the exact visemes' agree with
 that captured jaw over voiced frames.
 
+--linear-probe prints how much of the captured Mandarin jaw the speech features the network is
+fed already hold: a ridge regression from them (its log-mel and the phonetic encoder's
+posteriors, +-2 frames about each) to the captured jaw of the four training takes, as read and
+joined, its strength chosen by leave-one-take-out over those four; then its agreement with the
+held-out take's captured jaw, as read and joined (the same figure as the model's, which it
+stands beside). A linear map learnt from 7.4 min of one reader is no animation, but where it
+agrees better than the network does, the speech input is not what limits the network.
+
 --loudness-gain K ... measures what the goal would cost if met by making the mouth follow the
 voice's level: every jawOpen is scaled by the level's amplitude ratio to the recording's
 median voiced level to the power K (6 dB louder opens 2**(K/2) times wider), and the x English
@@ -58,7 +66,7 @@ ratios, the take's phone-following, its agreement with the captured jaw and its 
 percentile jawOpen (1 is a fully open ARKit jaw) are printed for each K.
 
     python bench/eval_languages.py [--seeds 0 1] [--steps N] [--model FILE] [--loudness-gain K ...]
-                                   [--facegood-only]
+                                   [--facegood-only] [--linear-probe]
 """
 
 from __future__ import annotations
@@ -302,6 +310,66 @@ def facegood_takes(model, seeds: list[int], options: dict) -> dict[str, tuple[Fa
     return found
 
 
+PROBE_CONTEXT = 2
+"""Frames either side of each frame the linear probe reads."""
+PROBE_STRENGTHS = (1e2, 1e3, 1e4, 1e5)
+"""Ridge strengths the linear probe chooses from (leave-one-take-out on the training takes)."""
+
+
+def probe_features(bundle, network, audio) -> np.ndarray:
+    """(frames, features) the network's speech input at each frame and PROBE_CONTEXT either side."""
+    from diffsheg_core.speech_features import speech_features
+
+    f = speech_features(bundle, network, audio)
+    mel = np.log10(f.mel + 1e-5) if bundle.config.log_mel else f.mel
+    x = mel if f.speech is None else np.concatenate([mel, f.speech], 1)
+    k = PROBE_CONTEXT
+    padded = np.concatenate([np.repeat(x[:1], k, 0), x, np.repeat(x[-1:], k, 0)])
+    return np.concatenate([padded[i:i + len(x)] for i in range(2 * k + 1)], 1).astype(np.float64)
+
+
+def _ridge(x: np.ndarray, y: np.ndarray, strength: float):
+    mean, spread = x.mean(0), x.std(0) + 1e-6
+    a = (x - mean) / spread
+    w = np.linalg.solve(a.T @ a + strength * np.eye(a.shape[1]), a.T @ (y - y.mean()))
+    return lambda z: ((z - mean) / spread) @ w
+
+
+def linear_probe(bundle) -> str:
+    """The --linear-probe line (see the module docstring)."""
+    from diffsheg_core.runtime.backends import open_network
+
+    network = open_network(bundle)
+    names = read_names(FACEGOOD / "bs_names.json")
+    train, held = {}, {}
+    for name in take_names(FACEGOOD):
+        take = read_take(FACEGOOD, name, names)
+        for version in (take, joined(take, JOIN_PAUSE)):
+            x = probe_features(bundle, network, version.audio)
+            entry = (version, x, arkit_curves(version, bundle.config.fps, len(x))["jawOpen"])
+            (held if name == HELD_OUT else train.setdefault(name, {}))[version.name] = entry
+
+    def fitted(names_used, strength):
+        parts = [e for n in names_used for e in train[n].values()]
+        return _ridge(np.concatenate([x for _, x, _ in parts]), np.concatenate([y for _, _, y in parts]), strength)
+
+    def scores(predict, entries):
+        return [agreement(predict(x), y, bundle.config.fps, v.audio)[1] for v, x, y in entries]
+
+    def left_out(strength):
+        return np.mean([np.mean(scores(fitted([m for m in train if m != n], strength), train[n].values()))
+                        for n in train])
+
+    chosen = {strength: left_out(strength) for strength in PROBE_STRENGTHS}
+    strength = max(chosen, key=chosen.get)
+    predict = fitted(list(train), strength)
+    figures = dict(zip(held, scores(predict, held.values())))
+    return (f"Linear probe (ridge {strength:g} on the speech features, +-{PROBE_CONTEXT} frames, fitted to the "
+            f"captured jaw of the {len(train)} training takes): r voiced on the held-out {HELD_OUT} as read "
+            f"{figures[HELD_OUT]:.2f}, joined {figures[HELD_OUT + '-joined']:.2f}; leave-one-take-out over the "
+            f"training takes {chosen[strength]:.2f}")
+
+
 def with_loudness_gain(motion: Motion, audio, k: float) -> Motion:
     """`motion` with jawOpen times (level's amplitude / the median voiced level's) ** k,
     the level within +-12 dB of that median."""
@@ -376,6 +444,8 @@ def main() -> None:
     parser.add_argument("--model", default=None, help="model file (default: the bundled model)")
     parser.add_argument("--loudness-gain", type=float, nargs="+", default=None, metavar="K",
                         help="also measure the mouth made to follow the voice's level by these gains (0: as made)")
+    parser.add_argument("--linear-probe", action="store_true",
+                        help="also how much of the captured Mandarin jaw a linear map of the speech input gets")
     parser.add_argument("--facegood-only", action="store_true",
                         help="only the captured Mandarin face's figures (issue 42)")
     args = parser.parse_args()
@@ -386,6 +456,9 @@ def main() -> None:
     facegood = facegood_takes(bundle, args.seeds, options)
     print(facegood_tables(facegood, generated[TAKE_WAV]))
     print()
+    if args.linear_probe:
+        print(linear_probe(bundle))
+        print()
     if args.facegood_only:
         print(f"{len(facegood)} takes, seeds {args.seeds}: {time.perf_counter() - started:.0f} s")
         return
