@@ -328,11 +328,17 @@ def probe_features(bundle, network, audio) -> np.ndarray:
     return np.concatenate([padded[i:i + len(x)] for i in range(2 * k + 1)], 1).astype(np.float64)
 
 
-def _ridge(x: np.ndarray, y: np.ndarray, strength: float):
+def _ridge_fits(x: np.ndarray, y: np.ndarray, strengths) -> dict:
+    """strength -> predict(features): ridge regressions of `y` on the standardised `x`, one per
+    strength, sharing one standardisation and one Gram matrix."""
     mean, spread = x.mean(0), x.std(0) + 1e-6
     a = (x - mean) / spread
-    w = np.linalg.solve(a.T @ a + strength * np.eye(a.shape[1]), a.T @ (y - y.mean()))
-    return lambda z: ((z - mean) / spread) @ w
+    gram, target = a.T @ a, a.T @ (y - y.mean())
+
+    def fit(strength):
+        w = np.linalg.solve(gram + strength * np.eye(len(gram)), target)
+        return lambda z: ((z - mean) / spread) @ w
+    return {strength: fit(strength) for strength in strengths}
 
 
 def linear_probe(bundle) -> str:
@@ -349,21 +355,21 @@ def linear_probe(bundle) -> str:
             entry = (version, x, arkit_curves(version, bundle.config.fps, len(x))["jawOpen"])
             (held if name == HELD_OUT else train.setdefault(name, {}))[version.name] = entry
 
-    def fitted(names_used, strength):
+    def fits(names_used, strengths):
         parts = [e for n in names_used for e in train[n].values()]
-        return _ridge(np.concatenate([x for _, x, _ in parts]), np.concatenate([y for _, _, y in parts]), strength)
+        return _ridge_fits(np.concatenate([x for _, x, _ in parts]), np.concatenate([y for _, _, y in parts]),
+                           strengths)
 
     def scores(predict, entries):
         return [agreement(predict(x), y, bundle.config.fps, v.audio)[1] for v, x, y in entries]
 
-    def left_out(strength):
-        return np.mean([np.mean(scores(fitted([m for m in train if m != n], strength), train[n].values()))
-                        for n in train])
-
-    chosen = {strength: left_out(strength) for strength in PROBE_STRENGTHS}
+    left_out = {strength: [] for strength in PROBE_STRENGTHS}  # each training take scored by the others' fit
+    for n in train:
+        for strength, predict in fits([m for m in train if m != n], PROBE_STRENGTHS).items():
+            left_out[strength].append(np.mean(scores(predict, train[n].values())))
+    chosen = {strength: float(np.mean(found)) for strength, found in left_out.items()}
     strength = max(chosen, key=chosen.get)
-    predict = fitted(list(train), strength)
-    figures = dict(zip(held, scores(predict, held.values())))
+    figures = dict(zip(held, scores(fits(list(train), [strength])[strength], held.values())))
     return (f"Linear probe (ridge {strength:g} on the speech features, +-{PROBE_CONTEXT} frames, fitted to the "
             f"captured jaw of the {len(train)} training takes): r voiced on the held-out {HELD_OUT} as read "
             f"{figures[HELD_OUT]:.2f}, joined {figures[HELD_OUT + '-joined']:.2f}; leave-one-take-out over the "
