@@ -274,7 +274,8 @@ def run_manifest(manifest: Path, out_dir: Path, defaults: dict, address: str | N
     from diffsheg_core.manifest import read_manifest
 
     lines = read_manifest(Path(manifest), defaults, presets=["auto", *addon("scene.preset").available_presets()],
-                          style_names=_style_names(defaults.get("model")))
+                          style_names=_style_names(defaults.get("model")),
+                          languages=_face_languages(defaults.get("model")))
     if check_only:
         log(f"{manifest}: {len(lines)} lines, all good")
         return 0
@@ -301,6 +302,12 @@ def _style_names(model) -> list[str] | None:
     from diffsheg_core.checkpoints import stored_style_names
 
     return stored_style_names(model) or None
+
+
+def _face_languages(model) -> list[str]:
+    from diffsheg_core.checkpoints import stored_face_languages
+
+    return stored_face_languages(model)
 
 
 def _run_on_ray(lines: list, keys: dict, out_dir: Path, ledger, address: str | None, workers: int | None,

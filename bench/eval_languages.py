@@ -19,7 +19,9 @@ each take also joined into running speech (metrics.facegood.joined: silences cut
 audio and face together, so the words follow one another; its own mean row): the takes hold
 no running speech, and this is the closest to it they give. Then a second table of the other
 mapped mouth channels' agreement (whole / voiced, means over seeds). 1114_2_05 is the take
-the tests and the fine-tune (weights/default_face_zh.toml) hold out. --facegood-only stops there.
+the tests and the fine-tunes (weights/default_face_zh.toml, default_face_zh_own.toml) hold out.
+Both tables come first with the model's shared face, then again with each language's own face
+the model carries (`--language zh`: the bundled model's Mandarin face). --facegood-only stops there.
 
 Then runs the bundled model with its default settings (seeds 0 and 1) on every recording in
 ../shared/data/audio/lang/ and on the real English recordings of ../shared/data (the take
@@ -459,14 +461,19 @@ def main() -> None:
     options = {} if args.steps is None else {"steps": args.steps}
     started = time.perf_counter()
     generated = {TAKE_WAV: [generate(TAKE_WAV, model=bundle, seed=s, **options) for s in args.seeds]}
-    facegood = facegood_takes(bundle, args.seeds, options)
-    print(facegood_tables(facegood, generated[TAKE_WAV]))
-    print()
+    facegood = 0
+    for language in [None, *sorted(bundle.faces)]:  # the shared face, then each language's own (issue 42)
+        takes = facegood_takes(bundle, args.seeds, {**options, "language": language})
+        facegood += len(takes)
+        print("The shared face (no --language):" if language is None else
+              f"The model's own face for {language} (--language {language}); English as above, with the shared face:")
+        print(facegood_tables(takes, generated[TAKE_WAV]))
+        print()
     if args.linear_probe:
         print(linear_probe(bundle))
         print()
     if args.facegood_only:
-        print(f"{len(facegood)} takes, seeds {args.seeds}: {time.perf_counter() - started:.0f} s")
+        print(f"{facegood} takes, seeds {args.seeds}: {time.perf_counter() - started:.0f} s")
         return
     for path in (*ENGLISH, *sorted(LANG.glob("*.wav"))):
         if path not in generated:

@@ -14,7 +14,10 @@ weights back from both. A model may carry a distilled student (`ModelBundle.stud
 `training.distill`): its graphs are `onnx.student.*`, its weights outside them `student.*`,
 and the metadata's `student` says what it was distilled from. `onnx.live.*` are the network's
 graphs with their products in int8, which live sessions run (`ModelBundle.live_graphs`): they
-hold no weights, each made from the network's when they are opened. Reading it needs numpy and
+hold no weights, each made from the network's when they are opened. A model may carry faces of
+their own for some languages (`ModelBundle.faces`, `faces.py`): each its expression branch
+fine-tuned on that language's captured faces, stored as the graph `onnx.face.<language>.expression`
+(its weights outside it `face.<language>.*`), named in the metadata's `faces`. Reading it needs numpy and
 safetensors only. Official checkpoints are torch pickles holding the state dict under
 `encoder`; they need torch, are read with `weights_only=True` (in `torch_layer.official`) and
 loaded strictly by `official_checkpoints`, which knows their format, configuration and
@@ -47,9 +50,21 @@ FORMAT = "diffsheg-core/1"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.safetensors"
 MODEL_PREFIX, PHONETIC_PREFIX, GRAPH_PREFIX, STUDENT_PREFIX, LIVE_PREFIX = "model.", "phonetic.", "onnx.", "student.", "live."
+FACE_PREFIX = "face."  # a language's own face: its graph onnx.face.<language>.expression, its other weights face.<language>.*
 NETWORK_GRAPHS = ("expression", "gesture")  # the graphs that hold the network's weights (export names them model.*)
 TORCH_HOW_TO = ("install torch: in Blender, Edit > Preferences > Add-ons > DiffSHEG > Install GPU "
                 "support; elsewhere `pip install torch==2.13.0` (README, GPU)")
+
+
+@dataclass
+class Face:
+    """A language's own face (issue 42): the model's expression branch fine-tuned on that
+    language's captured faces (`trains = "face"`), which takes the shared branch's place when
+    a job asks for the language (`ModelBundle.for_language`). The body is the model's own."""
+
+    graph: bytes                     # its ONNX expression graph, products by weights in int8 (export.face_graph)
+    weights: dict[str, np.ndarray]   # the expression branch's weights: what its graph holds (dequantised), and any it does not
+    record: dict                     # what it is: model_id of the run it came from, and what that trained on
 
 
 @dataclass
@@ -77,7 +92,9 @@ class ModelBundle:
     # run on onnxruntime (runtime.backends.live_network); they hold no weights of their own: each
     # is made from `weights` when they are opened (runtime.graphs.supplied_weights)
     live_graphs: dict[str, bytes] = field(default_factory=dict)
+    faces: dict[str, Face] = field(default_factory=dict)  # {language code: its own face} (see Face)
     networks: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # opened backends (runtime)
+    languages: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # for_language's bundles
 
     @property
     def layout(self) -> Layout:
@@ -103,6 +120,25 @@ class ModelBundle:
     def null_style(self) -> bool:
         """The model learned the null style (all zeros), which style guidance needs."""
         return bool(self.info.get("null_style", False))
+
+    def for_language(self, language: Optional[str]) -> "ModelBundle":
+        """The model a job in `language` runs: this one with that language's own face in place
+        of the shared one (`faces`; made once, and its opened networks kept with it), or this
+        one for None. Its fast sampling runs its own guided steps: the distilled student learnt
+        the shared face."""
+        if language is None:
+            return self
+        face = self.faces.get(language)
+        if face is None:
+            held = ", ".join(sorted(self.faces)) or "none"
+            raise CheckpointError(f"{self.source} has no face of its own for language '{language}' (it has: "
+                                  f"{held}): leave the language unset for the model's shared face, which serves "
+                                  "every language")
+        if language not in self.languages:
+            self.languages[language] = replace(
+                self, weights={**self.weights, **face.weights}, graphs={**self.graphs, "expression": face.graph},
+                student=None, faces={}, source=f"{self.source} ({language} face)")
+        return self.languages[language]
 
     @property
     def has_graphs(self) -> bool:
@@ -232,6 +268,12 @@ def save_checkpoint(bundle: ModelBundle, path: str | Path) -> Path:
         tensors.update({f"{GRAPH_PREFIX}{STUDENT_PREFIX}{k}": np.frombuffer(student.graphs[k], np.uint8)
                         for k in NETWORK_GRAPHS})
         meta["student"] = json.dumps({"model_id": student.model_id, "info": student.info}, default=str)
+    for language, face in bundle.faces.items():
+        prefix = f"{FACE_PREFIX}{language}."
+        tensors[f"{GRAPH_PREFIX}{prefix}expression"] = np.frombuffer(face.graph, np.uint8)
+        tensors.update({prefix + k: v for k, v in _stored_apart(face.weights, {"expression": face.graph}).items()})
+    if bundle.faces:
+        meta["faces"] = json.dumps({language: face.record for language, face in bundle.faces.items()}, default=str)
     return write_safetensors(tensors, meta, path)
 
 
@@ -303,10 +345,39 @@ def _load_ours(path: Path) -> ModelBundle:
         skip_guidance=_json(meta, "skip_guidance", "null", path), model_id=meta.get("model_id", path.stem),
         trained=_json(meta, "trained", "true", path), info=info,
         **phonetic, prior=_stored_prior(cfg, tensors, path),
-        graphs={k: v for k, v in graphs.items() if not k.startswith((STUDENT_PREFIX, LIVE_PREFIX))},
+        graphs={k: v for k, v in graphs.items() if not k.startswith((STUDENT_PREFIX, LIVE_PREFIX, FACE_PREFIX))},
         live_graphs=_stored_live(graphs, weights, path), source=str(path))
     bundle.student = _stored_student(bundle, meta, tensors, graphs, path)
+    bundle.faces = _stored_faces(bundle, meta, tensors, graphs, path)
     return bundle
+
+
+def _stored_faces(bundle: ModelBundle, meta: dict, tensors: dict, graphs: dict, path: Path) -> dict[str, Face]:
+    """The languages' own faces a file carries ({}: none), each checked to be the model's
+    expression branch: the same weights by name and shape."""
+    records = _json(meta, "faces", "{}", path)
+    own = {k[len(FACE_PREFIX):]: v for k, v in graphs.items() if k.startswith(FACE_PREFIX)}
+    if not isinstance(records, dict) or not all(isinstance(r, dict) for r in records.values()) \
+            or set(own) != {f"{language}.expression" for language in records}:
+        raise CheckpointError(f"{path}: its languages' own faces are incomplete (each language the metadata "
+                              f"'faces' names needs the graph {GRAPH_PREFIX}{FACE_PREFIX}<language>.expression, "
+                              "and only that); export it again")
+    shared = graph_weights({"expression": bundle.graphs["expression"]}) if "expression" in bundle.graphs else {}
+    faces = {}
+    for language, record in records.items():
+        graph = own[f"{language}.expression"]
+        apart = _prefixed(tensors, f"{FACE_PREFIX}{language}.")
+        weights = _network_weights(apart, {"expression": graph}, path, f"{language} face")
+        held = set(weights) - set(apart)
+        wrong = sorted(set(held) ^ set(shared)) + sorted(
+            k for k, v in weights.items() if k not in bundle.weights or v.shape != bundle.weights[k].shape)
+        if wrong:
+            raise CheckpointError(f"{path}: refused: its {language} face is not this model's expression branch "
+                                  f"({', '.join(wrong[:3])} differ{'s' if len(wrong) == 1 else ''} in name or "
+                                  "shape): the file was edited or mixes two models; add the face again "
+                                  "(python -m diffsheg_core add-face)")
+        faces[language] = Face(graph=graph, weights=weights, record=record)
+    return faces
 
 
 def _stored_live(graphs: dict[str, bytes], weights: dict[str, np.ndarray], path: Path) -> dict[str, bytes]:
@@ -393,7 +464,7 @@ def _check_graphs(graphs: dict[str, bytes], cfg: ModelConfig, phonetic: Optional
                 f"{path}: refused: its ONNX graph '{name}' refers to external data files (tensor "
                 f"{', '.join(found.external[:3])}); our model files hold all their weights and never use "
                 "external data, so this file was edited or is not one of ours: download or export it again")
-        wanted = expected.get(name)
+        wanted = expected.get(name.rsplit(".", 1)[-1] if name.startswith(FACE_PREFIX) else name)  # a face: expression
         if wanted is None:
             raise CheckpointError(f"{path}: it holds an ONNX graph '{name}' that no model of ours has "
                                   f"(expected {', '.join(expected)}): the file was edited; export it again")
@@ -495,6 +566,16 @@ def stored_style_names(source: str | Path | None = None) -> list[str]:
     except Exception:
         return []
     return names if style_names_fit(names, cfg.style_dim) else []
+
+
+def stored_face_languages(source: str | Path | None = None) -> list[str]:
+    """The languages a model file carries a face of its own for (`ModelBundle.faces`), from its
+    metadata alone ([] when it has none or cannot tell; loading it reports a damaged file)."""
+    try:
+        faces = json.loads((_stored_metadata(source) or {}).get("faces", "{}"))
+    except ValueError:
+        return []
+    return sorted(faces) if isinstance(faces, dict) else []
 
 
 def stored_style_count(source: str | Path | None = None) -> Optional[int]:

@@ -133,7 +133,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     warnings.showwarning = _show_warning  # one plain line per warning, not a source location
     delegated = {"train": "training.train", "evaluate": "training.evaluate",
                  "train-autoencoder": "training.autoencoder", "train-phonetic": "training.train_phonetic",
-                 "export-onnx": "torch_layer.export"}
+                 "export-onnx": "torch_layer.export", "add-face": "training.faces"}
     if argv and argv[0] in delegated:
         try:
             return _delegate(argv[0], delegated[argv[0]], argv[1:])
@@ -144,7 +144,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                      description="Speech-driven gesture and expression generation (DiffSHEG).")
     sub = parser.add_subparsers(dest="command", required=True,
                                 metavar="{generate,live,train,evaluate,train-autoencoder,train-phonetic,"
-                                        "export-onnx}")
+                                        "export-onnx,add-face}")
     _generate_parser(sub)
     live_cli.add_parser(sub)
     sub.add_parser("train", help="train a model (see: train --help)")
@@ -152,6 +152,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     sub.add_parser("train-autoencoder", help="train the motion autoencoder for Fréchet distances")
     sub.add_parser("train-phonetic", help="train the phonetic speech encoder on the synthetic corpus")
     sub.add_parser("export-onnx", help="add ONNX graphs (the torch-free runtime's) to a model file")
+    sub.add_parser("add-face", help="add a language's own face (its fine-tuned face branch) to a model file")
     args = parser.parse_args(argv)
     try:
         return live_cli.run(args) if args.command == "live" else run_generate(args)

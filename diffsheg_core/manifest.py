@@ -11,11 +11,12 @@ or empty; an empty cell takes the default from the command line, `defaults`):
     face          face mesh object names, separated by ';' (default: meshes with shape keys)
     preset        rig preset name, 'auto', or a preset .json file
     style, style_at, emotion, emotion_at, seed, face_seed, sampling, steps, overlap, candidates,
-    guidance, skip_guidance (or gesture_energy), style_guidance, upper_body_only (1/0)
+    guidance, skip_guidance (or gesture_energy), style_guidance, upper_body_only (1/0), language
                   the generation settings, spelt as on the command line (`--style calm=0.7,
                   animated=0.3`, `--style-at 0=calm,12.5=animated`, `--emotion sad=0.6`,
                   `--emotion-at 0=happy,12.5=sad`, `--sampling quality`: fast, the default, or
-                  quality, the model's own 25 steps, or an official preset) and checked by
+                  quality, the model's own 25 steps, or an official preset; `--language zh`: a
+                  language whose own face the model carries, empty for its shared face) and checked by
                   diffsheg_core.settings as the command line's are, so a row means what the
                   command line means
     start_frame, max_error, max_face_error, every_frame
@@ -50,7 +51,7 @@ from .errors import DiffshegError
 from .files import resolve_path
 from .settings import _NUMBERS as settings_numbers, GenerateSettings, _check_emotion_at, parse_emotion_at
 from .style import check_style, check_style_at, parse_style, parse_style_at, unknown_styles
-from .validate import check_number, parse_whole
+from .validate import check_language, check_number, parse_whole
 
 OUTPUTS = ("blend", "fbx_unreal", "fbx_unity", "glb", "npz", "arkit_json", "csv", "mp4")
 """The output kinds, in the order a line's outputs are kept."""
@@ -72,7 +73,7 @@ NEEDS_CHARACTER = frozenset({"blend", "fbx_unreal", "fbx_unity", "glb", "mp4"})
 
 CHARACTER = ("blend", "armature", "face", "preset")
 GENERATION = ("style", "style_at", "emotion", "emotion_at", "seed", "face_seed", "sampling", "steps",
-              "overlap", "candidates", "guidance", "skip_guidance", "style_guidance", "upper_body_only")
+              "overlap", "candidates", "guidance", "skip_guidance", "style_guidance", "upper_body_only", "language")
 KEYING = ("start_frame", "max_error", "max_face_error", "every_frame")
 COLUMNS = ("id", "audio") + CHARACTER + GENERATION + KEYING + ("outputs",)
 ALIASES = {"gesture_energy": "skip_guidance"}
@@ -119,13 +120,15 @@ class Line:
 # ------------------------------------------------------------------ reading
 
 def read_manifest(path, defaults: Optional[Mapping[str, Any]] = None, presets: Collection[str] = (),
-                  style_names: Optional[Collection[str]] = None) -> list[Line]:
+                  style_names: Optional[Collection[str]] = None,
+                  languages: Optional[Collection[str]] = None) -> list[Line]:
     """The checked lines of the manifest at `path` (CSV, or JSON Lines for .jsonl/.ndjson).
 
     `defaults`: values for cells a row leaves empty, by column name or GenerateSettings field
     (e.g. `vars(args)` of batch_render.py: keys that are neither are ignored); `face` may be
-    a list. `presets`: the preset names there are. `style_names`: the model's style names
-    (None: not checked here; the model checks them when it runs).
+    a list. `presets`: the preset names there are. `style_names`: the model's style names,
+    `languages` those it has a face of its own for (None: not checked here; the model checks
+    them when it runs).
     Raises ManifestError listing every bad row (missing file, unknown preset or style,
     duplicate id, bad number, unknown column or output, ...)."""
     path = Path(path).expanduser()
@@ -146,7 +149,7 @@ def read_manifest(path, defaults: Optional[Mapping[str, Any]] = None, presets: C
             problems.append(f"row {row}, column id: duplicate id '{line_id}' (also on row {first_row[line_id]})")
         elif not _empty(line_id):
             first_row[line_id] = row
-        line = _line(row, cells, base, folder, presets, style_names, problems)
+        line = _line(row, cells, base, folder, presets, style_names, languages, problems)
         if line is not None and not duplicate:
             lines.append(line)
     _check_file_names(lines, problems)
@@ -278,7 +281,8 @@ def _defaults(defaults: Mapping[str, Any], problems: list[str]) -> dict[str, Any
 
 
 def _line(row: int, cells: dict[str, Any], base: dict[str, Any], folder: Path, presets: Collection[str],
-          style_names: Optional[Collection[str]], problems: list[str]) -> Optional[Line]:
+          style_names: Optional[Collection[str]], languages: Optional[Collection[str]],
+          problems: list[str]) -> Optional[Line]:
     """The Line of one row, or None with its problems added to `problems`."""
     bad = len(problems)
     values = dict(base)
@@ -321,6 +325,10 @@ def _line(row: int, cells: dict[str, Any], base: dict[str, Any], folder: Path, p
         for column in ("style", "style_at"):
             if values.get(column) is not None:
                 _check_style_names(column, values[column], list(style_names), row, problems)
+    if languages is not None and values.get("language") is not None and values["language"] not in languages:
+        problems.append(f"row {row}, column language: the model has no face of its own for '{values['language']}' "
+                        f"(it has: {', '.join(sorted(languages)) or 'none'}); leave the cell empty for its shared "
+                        "face, which serves every language")
     settings = None
     try:
         settings = GenerateSettings(**{f.name: values[f.name] for f in fields(GenerateSettings)
@@ -446,6 +454,8 @@ def _parse(name: str, value, folder: Path):
         return check_emotion(value)
     if name == "sampling":
         return _sampling(value)
+    if name == "language":
+        return check_language(_text(name, value))
     if name == "emotion_at":
         return _check_emotion_at(_argument(parse_emotion_at, value) if isinstance(value, str) else value)
     if name in _NUMBERS:

@@ -286,10 +286,17 @@ def generate(audio: AudioInput, sample_rate: Optional[int] = None, *,
         return _generate(audio, sample_rate, s, sampling, hubert_path, hubert_quirk, pins, progress, cancel)
 
 
+def job_model(s: GenerateSettings, bundle: Optional[ModelBundle] = None) -> ModelBundle:
+    """The model a job runs: `bundle`, else the settings' (loaded from its file), with the own
+    face of the language the job names in place of the shared one (`ModelBundle.for_language`)."""
+    bundle = bundle or (s.model if isinstance(s.model, ModelBundle) else load_model(s.model))
+    return bundle.for_language(s.language)
+
+
 def _generate(audio: AudioInput, sample_rate: Optional[int], s: GenerateSettings, sampling: Optional[FoppasConfig],
               hubert_path: Optional[str], hubert_quirk: bool, pins: tuple["Pin", ...],
               progress: Optional[ProgressCallback], cancel: Optional[threading.Event]) -> Motion:
-    bundle = s.model if isinstance(s.model, ModelBundle) else load_model(s.model)
+    bundle = job_model(s)
     network = open_network(bundle, s.backend, s.device, s.precision, s.threads)
     speech = open_speech(audio, sample_rate)
     n_frames = n_motion_frames(speech, bundle.config.fps)
@@ -357,6 +364,7 @@ def generation_meta(bundle: ModelBundle, s: GenerateSettings, plan: Plan, networ
     prior = uses_prior(bundle, config)
     return {
         "model_id": bundle.model_id, "trained": bundle.trained, "seed": s.seed, "face_seed": s.face_seed,
+        "language": s.language,
         "audio_file": speech.path, "sample_rate": speech.sample_rate,
         **style_meta(bundle, plan.style_weights, plan.guidance.style),
         "style_at": [[t, named_weights(bundle, weights)] for t, weights in plan.style_at],
@@ -394,7 +402,8 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
     and after the range are held and the sampler inpaints the range against both
     (`foppas.inpaint_range`). Every frame outside the range is returned bit for bit; with
     `hold_face` the take's face inside it too (only the gestures change). `pins` are poses the new
-    motion passes through. `sampling` as for `generate`: a name or a FoppasConfig."""
+    motion passes through. `sampling` as for `generate`: a name or a FoppasConfig. Without a
+    language or emotion in the settings the range keeps the take's own."""
     s, sampling = _job_settings(settings, sampling, options)
     with cpu_threads(s.threads):
         return _regenerate(motion, audio, sample_rate, start, end, s, hold_face, pins, sampling, progress, cancel)
@@ -403,7 +412,9 @@ def regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int] = N
 def _regenerate(motion: Motion, audio: AudioInput, sample_rate: Optional[int], start: int, end: int,
                 s: GenerateSettings, hold_face: bool, pins: tuple[Pin, ...], sampling: Optional[FoppasConfig],
                 progress: Optional[ProgressCallback], cancel: Optional[threading.Event]) -> Motion:
-    bundle = s.model if isinstance(s.model, ModelBundle) else load_model(s.model)
+    if s.language is None:  # the range keeps the take's own language, as it keeps its emotion
+        s = replace(s, language=motion.meta.get("language"))
+    bundle = job_model(s)
     layout = bundle.layout
     whole, motion = motion, upper_body(motion)  # the take's hips and legs stay as they are
     if motion.rig != layout.rig or motion.fps != bundle.config.fps:

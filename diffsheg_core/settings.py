@@ -14,7 +14,8 @@ from typing import TYPE_CHECKING
 
 from .errors import DiffshegError
 from .validate import (BACKENDS, CANDIDATES, DEVICES, GUIDANCE, OVERLAP, PRECISIONS, SKIP_GUIDANCE, STEPS,
-                       STYLE_GUIDANCE, THREADS, check_changes, check_number, check_seed, parse_changes)
+                       STYLE_GUIDANCE, THREADS, check_changes, check_language, check_number, check_seed,
+                       parse_changes)
 
 if TYPE_CHECKING:
     from .style import StyleSpec
@@ -57,6 +58,7 @@ class GenerateSettings:
     emotion: str | dict | None = None   # 'happy', 'happy=0.6' or {name: intensity}; None: neutral (see emotion.py)
     emotion_at: tuple | None = None     # emotion changes over time: ((seconds, emotion), ...); before the first, `emotion`
     upper_body_only: bool = False       # no hips and legs (lower_body): for seated characters, or legs keyed by hand
+    language: str | None = None         # a language whose own face the model carries ('zh'); None: the shared face
     guidance: float | None = None       # classifier-free guidance scale; 1: off
     skip_guidance: float | None = None  # gesture energy (skip guidance); 0: off
     device: str = "auto"
@@ -87,6 +89,8 @@ class GenerateSettings:
             self._set("emotion_at", _check_emotion_at(self.emotion_at))
         if not isinstance(self.upper_body_only, bool):
             raise DiffshegError(f"upper_body_only must be True or False, got {self.upper_body_only!r}")
+        if self.language is not None:
+            self._set("language", check_language(self.language))
         _check_choice("device", self.device, DEVICES)
         _check_choice("backend", self.backend, BACKENDS)
         _check_choice("precision", self.precision, PRECISIONS)
@@ -132,6 +136,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--upper-body-only", action="store_true",
                    help="no hips and legs: for seated characters, or when you key the legs yourself "
                         "(default: the whole body, on models of the beat layout)")
+    g.add_argument("--language", type=_language_argument,
+                   help="a language whose own face the model carries, fine-tuned on that language's captured "
+                        "faces: zh (Mandarin) in the bundled model; default: the shared face, which serves every "
+                        "language")
     g.add_argument("--style-guidance", type=float,
                    help="style strength: 1 is the style as trained (default), above 1 goes beyond it "
                         "(models trained with a null style)")
@@ -156,6 +164,13 @@ def _sampling_names() -> tuple[str, ...]:
 def from_arguments(args: argparse.Namespace) -> GenerateSettings:
     """The settings of parsed `add_arguments` options."""
     return GenerateSettings(**{f.name: getattr(args, f.name) for f in fields(GenerateSettings)})
+
+
+def _language_argument(text: str) -> str:
+    try:
+        return check_language(text)
+    except DiffshegError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _emotion_argument(text: str) -> dict:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import math
 import numbers
+import re
 from typing import Callable
 
 from .errors import DiffshegError
@@ -26,6 +27,15 @@ THREADS = (1, 256)
 DEVICES = ("auto", "cpu", "cuda")
 BACKENDS = ("auto", "onnx", "torch")
 PRECISIONS = ("fp32", "bf16", "fp16")
+LANGUAGE_CODE = re.compile(r"[a-z]{2,3}(-[a-z0-9]{2,8})*")  # BCP 47's shape, lower case: zh, yue, pt-br
+
+
+def check_language(language) -> str:
+    """A language code (zh, pt-br; any case) in lower case, else a DiffshegError."""
+    if not isinstance(language, str) or not LANGUAGE_CODE.fullmatch(language.strip().lower()):
+        raise DiffshegError(f"language must be a language code such as zh or pt-br (a language whose own face the "
+                            f"model carries), got {language!r}")
+    return language.strip().lower()
 
 
 def check_number(name: str, value, bounds: tuple, whole: bool = False) -> int | float:

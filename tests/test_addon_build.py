@@ -135,7 +135,8 @@ def shipped_core(built, tmp_path_factory):
     return folder / "lib"
 
 
-@pytest.mark.parametrize("command", ["train", "evaluate", "train-autoencoder", "train-phonetic", "export-onnx"])
+@pytest.mark.parametrize("command", ["train", "evaluate", "train-autoencoder", "train-phonetic", "export-onnx",
+                                     "add-face"])
 def test_the_shipped_core_says_where_the_tooling_commands_are(shipped_core, command, tmp_path):
     # -S: no site-packages, where the checkout's editable install would bring the missing tooling back
     proc = subprocess.run([sys.executable, "-S", "-m", "diffsheg_core", command, "--help"], cwd=tmp_path,

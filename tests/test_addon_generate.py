@@ -288,6 +288,28 @@ def test_panel_options_are_the_models_defaults_until_set(speech):
     assert motion.meta["skip_guidance"] == 0.25 and motion.meta["overlap"] == 6 and motion.meta["steps"] == STEPS
 
 
+def test_the_language_menu_lists_the_model_s_own_faces_and_generate_runs_the_chosen_one(speech, tmp_path):
+    """Issue 42: Language offers the model's shared face ("All languages", the default) and each
+    language's own face its file carries (the bundled model: Mandarin), read from the file's
+    metadata; the choice is GenerateSettings.language, and the take records it."""
+    import diffsheg_core.checkpoints as checkpoints
+    from blender_addon.features.generate import generate_settings
+    from blender_addon.ui.properties import _language_items
+    from diffsheg_core.training.faces import remove_face
+
+    settings = reset_scene().diffsheg
+    menu = [(identifier, name) for identifier, name, _ in _language_items(settings, bpy.context)]
+    assert menu == [("__shared__", "All languages"), ("zh", "Mandarin")]
+    assert settings.language == "__shared__" and generate_settings(settings).language is None
+    settings.language = "zh"
+    chosen = generate_settings(settings)
+    assert chosen.language == "zh"
+    motion = diffsheg_core.generate(str(speech), settings=replace(chosen, steps=STEPS))
+    assert motion.meta["language"] == "zh"
+    settings.model_path = str(checkpoints.save_checkpoint(remove_face(load_model(), "zh"), tmp_path / "m.safetensors"))
+    assert [identifier for identifier, *_ in _language_items(settings, bpy.context)] == ["__shared__"]
+
+
 def test_the_panels_sampling_is_fast_unless_quality_is_chosen(speech):
     """Issue 39, item 5: the Sampling sub-panel's Sampling (Fast, the default, or Quality)
     is GenerateSettings.sampling; the greyed-out Steps shows the chosen sampling's own count

@@ -79,7 +79,7 @@ def test_the_main_panel_and_its_collapsed_sub_panels():
     s = reset_scene().diffsheg
     main = [e[1] for e in draw(DIFFSHEG_PT_generate) if e[0] == "prop"]
     assert main[:3] == ["audio_path", "armature", "preset"] and "range_mode" in main
-    assert {"style", "mix_style", "style_mix", "start_from_pose"} <= set(main)
+    assert {"language", "style", "mix_style", "style_mix", "start_from_pose"} <= set(main)
     assert not {"steps", "seed", "device", "max_error", "key_mode"} & set(main)  # in the sub-panels
     for cls in (DIFFSHEG_PT_sampling, DIFFSHEG_PT_keys):
         assert cls.bl_parent_id == "DIFFSHEG_PT_generate" and "DEFAULT_CLOSED" in cls.bl_options

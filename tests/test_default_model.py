@@ -63,6 +63,9 @@ def test_bundled_weights_load(bundle):
     # float16 weights for the torch backend and the same weights as ONNX graphs for onnxruntime
     assert DEFAULT_WEIGHTS.stat().st_size < 60e6 and bundle.has_graphs  # issue 29: under 60 MB
     assert bundle.trained and bundle.model_id == "diffsheg-default-v10"
+    # issue 42: Mandarin's own face beside the shared one, fine-tuned from v10 on the capture alone
+    assert sorted(bundle.faces) == ["zh"] and bundle.faces["zh"].record["model_id"] == "diffsheg-default-v10-zh"
+    assert [d["kind"] for d in bundle.faces["zh"].record["datasets"]] == ["facegood"]
     # issue 42: v10's face learnt from the real captured Mandarin face beside the English rehearsal
     assert [d["kind"] for d in bundle.info["datasets"]] == ["facegood", "facegood"]
     assert bundle.info["training"]["trains"] == "face" and bundle.info["training"]["keep_unsaid"] == 1.0

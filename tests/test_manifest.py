@@ -260,6 +260,26 @@ def test_emotion_columns_are_read_and_checked_as_the_command_line_does(project):
     assert line_key(a) != line_key(replace(a, settings=replace(a.settings, emotion={"sad": 0.7})))
 
 
+def test_the_language_column_names_a_face_the_model_carries(project):
+    """Issue 42: a row's `language` (a code, any case) over the command line's --language, checked
+    as the command line checks it and, given the model's faces (studio.py reads them from its
+    file), against those, so a batch names a missing face before anything runs."""
+    manifest = write(project / "lines.csv", "id,audio,language,outputs\n"
+                     f"a,{SPEECH2}, ZH ,npz\n"
+                     f"b,{SPEECH},,npz\n"
+                     f"c,{SPEECH},ja,npz\n"
+                     f"d,{SPEECH},Mandarin Chinese,npz\n")
+    with pytest.raises(ManifestError) as caught:
+        read_manifest(manifest, {}, PRESETS, STYLES, languages=["zh"])
+    text = str(caught.value)
+    assert "row 4, column language: the model has no face of its own for 'ja' (it has: zh)" in text
+    assert "row 5, column language: language must be a language code such as zh or pt-br" in text
+    a, b, c = read_manifest(write(project / "good.csv", "\n".join(manifest.read_text().splitlines()[:4]) + "\n"),
+                            {"language": "ja"}, PRESETS, STYLES)  # no faces given: the model checks when it runs
+    assert (a.settings.language, b.settings.language, c.settings.language) == ("zh", "ja", "ja")
+    assert line_key(a) != line_key(replace(a, settings=replace(a.settings, language=None)))
+
+
 def test_the_sampling_column_is_read_and_checked_as_the_command_line_does(project):
     """Issue 39, item 5: a row's `sampling` (fast, quality or an official preset) over the
     command line's --sampling; a bad one is named with its row and the choices, by

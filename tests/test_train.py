@@ -468,8 +468,8 @@ def test_settings_no_run_can_use_are_refused_before_anything_is_written(small_ro
 
 def test_the_bundled_models_training_recipes_read():
     """Every stage's settings in diffsheg_core/weights (base, guided, temporal, acceleration, the
-    multilingual retraining, the whole body and the fine-tune on a captured Mandarin face) read
-    with their `extends` chain resolved."""
+    multilingual retraining, the whole body, the fine-tune on a captured Mandarin face and
+    Mandarin's own face) read with their `extends` chain resolved."""
     from pathlib import Path
 
     recipes = sorted((Path(__file__).resolve().parents[1] / "diffsheg_core" / "weights").glob("*.toml"))
@@ -477,7 +477,8 @@ def test_the_bundled_models_training_recipes_read():
     ids = set()
     for path in recipes:
         cfg = TrainConfig.from_dict(read_config_file(path))
-        assert cfg.model_id.startswith("diffsheg-default-") and cfg.steps > 0 and cfg.data.kind == "corpus", path
+        assert cfg.model_id.startswith("diffsheg-default-") and cfg.steps > 0, path
+        assert cfg.data.kind == ("facegood" if path.name == "default_face_zh_own.toml" else "corpus"), path
         ids.add(cfg.model_id)
     assert len(ids) == len(recipes)
     languages = TrainConfig.from_dict(read_config_file(recipes[0].with_name("default_languages.toml")))
@@ -488,6 +489,10 @@ def test_the_bundled_models_training_recipes_read():
     assert face.trains == "face" and face.keep_unsaid == 1.0 and face.data.face == "source"
     assert [(d.kind, d.pause, d.whole_body, d.face) for d in face.datasets] == [
         ("facegood", 0.0, True, "data"), ("facegood", 0.1, True, "data")]
+    # Mandarin's own face (issue 42): v10's face on the capture alone, as read and joined, no English
+    own = TrainConfig.from_dict(read_config_file(recipes[0].with_name("default_face_zh_own.toml")))
+    assert own.trains == "face" and own.keep_unsaid == 1.0 and own.init_from.endswith("weights/default.safetensors")
+    assert [(d.kind, d.pause) for d in (own.data, *own.datasets)] == [("facegood", 0.0), ("facegood", 0.1)]
 
 
 def test_the_face_alone_fine_tunes_on_captured_faces_beside_the_data(small_root, tmp_path):

@@ -11,8 +11,8 @@ its default width with the panel (before 4.1 on the first tab, see show_tab) and
 3D view area as OUT.png, then quits. With --open the
 sub-panels (Sampling, Keys, Live) are registered open (Blender has no Python switch for a
 panel's open state); with --range the other choices are drawn (a range of frames, a custom
-preset, a style mix, an emotion (Sad at 0.6), Quality sampling, GPU; Live from a socket with VMC
-out).
+preset, a style mix, an emotion (Sad at 0.6), the Mandarin face, Quality sampling, GPU; Live from
+a socket with VMC out).
 Open sub-panels need a taller screen (1600x1900) to be seen whole.
 """
 
@@ -73,6 +73,10 @@ def character():
                 continue
         s.style_mix = 0.3
         s.emotion, s.emotion_intensity = "sad", 0.6
+        try:
+            s.language = "zh"  # the bundled model's own face for Mandarin
+        except TypeError:  # the menu reads the model's faces with safetensors, one of the runtime's packages
+            pass
         s.device, s.key_mode, s.use_face_seed, s.hold_face = "GPU", "EVERY_FRAME", True, True
         s.sampling = "QUALITY"  # the greyed-out Steps shows its 25
         s.live_source, s.live_vmc = "SOCKET", True

@@ -34,6 +34,7 @@ from ..scene.report import model_label, report_details, report_line, write_repor
 CUSTOM_PRESET = "__custom__"   # the preset: a .json file of the user's own
 NO_MIX = "__none__"            # the second style: none
 DEFAULT_STYLE = "__default__"  # the style: the model's default
+SHARED_FACE = "__shared__"     # the language: none, the model's shared face
 NEUTRAL = "neutral"            # the emotion: none (diffsheg_core.emotion.NAMES[0])
 
 
@@ -199,6 +200,7 @@ def generate_settings(settings):
         style_guidance=settings.style_strength if settings.style_strength != 1.0 else None,
         emotion=panel_emotion(settings),
         upper_body_only=settings.upper_body_only,
+        language=None if settings.language in ("", SHARED_FACE) else settings.language,
         guidance=settings.guidance if settings.set_guidance else None,
         skip_guidance=settings.gesture_energy if settings.set_gesture_energy else None,
         device=settings.device_arg())

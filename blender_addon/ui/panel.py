@@ -152,6 +152,7 @@ class DIFFSHEG_PT_generate(_Panel, bpy.types.Panel):
             col.prop(s, "preset_file")
 
         col = layout.column()
+        col.prop(s, "language")
         col.prop(s, "style")
         sub = col.column(align=True)
         sub.prop(s, "mix_style")

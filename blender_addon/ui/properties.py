@@ -11,7 +11,7 @@ from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProp
 
 from diffsheg_core.validate import CANDIDATES, GUIDANCE, OVERLAP, SKIP_GUIDANCE, STEPS, STYLE_GUIDANCE
 
-from ..features.generate import CUSTOM_PRESET, DEFAULT_STYLE, NEUTRAL, NO_MIX
+from ..features.generate import CUSTOM_PRESET, DEFAULT_STYLE, NEUTRAL, NO_MIX, SHARED_FACE
 from ..features.live import SOCKET_HOST as LIVE_HOST  # the VMC receiver's default host too
 from ..scene import preset
 
@@ -90,6 +90,33 @@ def _style_items(self, _context):
     _style_items_cache["style"] = [(DEFAULT_STYLE, "Default", "the model's default style")] + [
         (n, n if not n.isdigit() else f"Style {n}", "") for n in names]
     return _style_items_cache["style"]
+
+
+# Names the Language menu shows for the codes a model's faces are stored under (others show their code).
+LANGUAGE_NAMES = {"zh": "Mandarin", "yue": "Cantonese", "ja": "Japanese", "ko": "Korean", "en": "English",
+                  "es": "Spanish", "fr": "French", "de": "German", "it": "Italian", "pt": "Portuguese",
+                  "ru": "Russian", "sv": "Swedish", "ar": "Arabic", "hi": "Hindi"}
+
+
+@lru_cache(maxsize=16)
+def _model_languages(path: str | None, _modified_ns: int) -> tuple[str, ...]:
+    from diffsheg_core.checkpoints import stored_face_languages
+
+    return tuple(stored_face_languages(path))
+
+
+def _language_items(self, _context):
+    raw = self.model_path.strip()
+    path = bpy.path.abspath(raw) if raw else None
+    try:
+        codes = _model_languages(path, _modified(path))
+    except Exception:  # as for the styles: the panel or Generate says what is wrong
+        codes = ()
+    _style_items_cache["language"] = [(SHARED_FACE, "All languages", "The model's shared face, which serves every "
+                                                                     "language")] + [
+        (c, LANGUAGE_NAMES.get(c, c), f"The model's own face for {LANGUAGE_NAMES.get(c, c)} ({c}), fine-tuned on "
+                                      "that language's captured faces: for speech in it") for c in codes]
+    return _style_items_cache["language"]
 
 
 # diffsheg_core.emotion.NAMES, in its order (a test checks): that module needs numpy, which
@@ -183,6 +210,10 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
                                   description="Style strength: 1 is the style as learned, higher exaggerates it "
                                               "(livelier than lively, calmer than calm; models trained to "
                                               "allow it)")
+    language: EnumProperty(name="Language", items=_language_items,
+                           description="The speech's language, where the model has a face of its own for it "
+                                       "(fine-tuned on that language's captured faces): its lips and jaw follow "
+                                       "that language's speakers more closely. All languages: the shared face")
     emotion: EnumProperty(name="Emotion", default=NEUTRAL, items=EMOTIONS,
                           description="A mood laid over the face and body; Neutral: none, and Regenerate "
                                       "Range keeps the take's own. Timeline markers emotion:sad or "

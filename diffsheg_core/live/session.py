@@ -30,12 +30,13 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..audio import Audio
-from ..checkpoints import ModelBundle, load_model
+from ..checkpoints import ModelBundle
 from ..emotion import EmotionStream
 from ..errors import DiffshegError
 from ..lower_body import (JOINTS as LEG_JOINTS, LowerBodyStream, PlantStream, legs_source, upper_body,
                           with_lower_body)
 from ..motion import Motion
+from ..pipeline import job_model
 from ..runtime.backends import cpu_threads, open_network
 from ..settings import GenerateSettings
 from .engine import LiveConfig, LiveEngine
@@ -155,8 +156,7 @@ class LiveSession:
                  live: LiveConfig = LiveConfig(), underrun_after: float = UNDERRUN_AFTER_S,
                  bundle: Optional[ModelBundle] = None, network=None):
         self.source = source
-        self.bundle = bundle or (settings.model if isinstance(settings.model, ModelBundle)
-                                 else load_model(settings.model))
+        self.bundle = job_model(settings, bundle)
         self.network = network or open_network(self.bundle, settings.backend, settings.device,
                                                settings.precision, settings.threads)
         self.engine = LiveEngine(self.bundle, self.network, settings, source.sample_rate, live)
