@@ -213,7 +213,8 @@ class DIFFSHEG_PG_settings(bpy.types.PropertyGroup):
     language: EnumProperty(name="Language", items=_language_items,
                            description="The speech's language, where the model has a face of its own for it "
                                        "(fine-tuned on that language's captured faces): its lips and jaw follow "
-                                       "that language's speakers more closely. All languages: the shared face")
+                                       "that language's speakers more closely. All languages: the shared face, and "
+                                       "Regenerate Range keeps the take's own")
     emotion: EnumProperty(name="Emotion", default=NEUTRAL, items=EMOTIONS,
                           description="A mood laid over the face and body; Neutral: none, and Regenerate "
                                       "Range keeps the take's own. Timeline markers emotion:sad or "

@@ -43,18 +43,23 @@ def add_face(model: ModelBundle, tuned: ModelBundle, language: str) -> ModelBund
     outside = sorted(k for k in {*model.weights, *tuned.weights} - set(face)
                      if k not in model.weights or k not in tuned.weights
                      or not (np.array_equal(model.weights[k], tuned.weights[k]) or _counter(tuned.weights[k])))
-    same_speech = (not model.phonetic_weights) or (model.phonetic_weights.keys() == tuned.phonetic_weights.keys() and all(
-        np.array_equal(v, tuned.phonetic_weights[k]) for k, v in model.phonetic_weights.items()))
-    if outside or not same_speech or not (np.array_equal(model.mean, tuned.mean) and np.array_equal(model.std, tuned.std)):
-        what = (f"weights outside the face: {', '.join(outside[:3])}{' ...' if len(outside) > 3 else ''}" if outside
-                else "its phonetic encoder" if not same_speech else "its normalisation statistics")
-        raise DiffshegError(f"{tuned.source} differs from {model.source} beyond the face ({what}): a language's "
+    problem = (f"weights outside the face: {', '.join(outside[:3])}{' ...' if len(outside) > 3 else ''}" if outside
+               else "its phonetic encoder" if not _same(model.phonetic_weights, tuned.phonetic_weights)
+               else "its normalisation statistics" if not _same({"mean": model.mean, "std": model.std},
+                                                                {"mean": tuned.mean, "std": tuned.std})
+               else None)
+    if problem:
+        raise DiffshegError(f"{tuned.source} differs from {model.source} beyond the face ({problem}): a language's "
                             f"face is {model.source} fine-tuned on its face alone; train it with init_from and "
                             "phonetic set to that file and trains = \"face\", then add it")
     record = {"model_id": tuned.model_id, **{k: tuned.info[k] for k in ("trained_steps", "data", "datasets")
                                              if k in tuned.info}}
     graph = face_graph(model.config, {**model.weights, **{k: tuned.weights[k] for k in face}}, tuned.source)
     return replace(model, faces={**model.faces, language: Face(graph, graph_weights({"expression": graph}), record)})
+
+
+def _same(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> bool:
+    return a.keys() == b.keys() and all(np.array_equal(v, b[k]) for k, v in a.items())
 
 
 def _counter(weight: np.ndarray) -> bool:
