@@ -461,10 +461,10 @@ def main() -> None:
     options = {} if args.steps is None else {"steps": args.steps}
     started = time.perf_counter()
     generated = {TAKE_WAV: [generate(TAKE_WAV, model=bundle, seed=s, **options) for s in args.seeds]}
-    facegood = 0
+    measured_takes = 0
     for language in [None, *sorted(bundle.faces)]:  # the shared face, then each language's own (issue 42)
         takes = facegood_takes(bundle, args.seeds, {**options, "language": language})
-        facegood += len(takes)
+        measured_takes += len(takes)
         print("The shared face (no --language):" if language is None else
               f"The model's own face for {language} (--language {language}); English as above, with the shared face:")
         print(facegood_tables(takes, generated[TAKE_WAV]))
@@ -473,7 +473,7 @@ def main() -> None:
         print(linear_probe(bundle))
         print()
     if args.facegood_only:
-        print(f"{facegood} takes, seeds {args.seeds}: {time.perf_counter() - started:.0f} s")
+        print(f"{measured_takes} takes, seeds {args.seeds}: {time.perf_counter() - started:.0f} s")
         return
     for path in (*ENGLISH, *sorted(LANG.glob("*.wav"))):
         if path not in generated:

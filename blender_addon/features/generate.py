@@ -182,6 +182,12 @@ def preset_of(settings) -> preset.Preset | None:
     return preset.load_preset(settings.preset)
 
 
+def model_file(settings) -> str | None:
+    """The panel's model file as an absolute path (None: the bundled model)."""
+    raw = settings.model_path.strip()
+    return bpy.path.abspath(raw) if raw else None
+
+
 def generate_settings(settings):
     """The panel's generation options as one `GenerateSettings` (checked there); a switched-off
     "Set ..." toggle means the sampling's or the model's default, emotion Neutral none
@@ -189,7 +195,7 @@ def generate_settings(settings):
     from diffsheg_core.settings import GenerateSettings
 
     return GenerateSettings(
-        model=bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None,
+        model=model_file(settings),
         seed=settings.seed,
         face_seed=settings.face_seed if settings.use_face_seed else None,
         sampling=settings.sampling.lower(),  # FAST, QUALITY: fast, quality
@@ -243,13 +249,11 @@ def check_model(settings) -> None:
 
     if torch_installed():
         return
-    raw = settings.model_path.strip()
-    if raw:
-        path = Path(bpy.path.abspath(raw))
-        if path.is_file() and not is_ours(path):
-            raise DiffshegError(f"{path.name} is an official DiffSHEG checkpoint (a torch file): it needs "
-                                f"torch, which is not installed: {INSTALL_GPU_HINT} (or choose a "
-                                ".safetensors model, or none for the bundled one)")
+    chosen = model_file(settings)
+    if chosen is not None and Path(chosen).is_file() and not is_ours(Path(chosen)):
+        raise DiffshegError(f"{Path(chosen).name} is an official DiffSHEG checkpoint (a torch file): it needs "
+                            f"torch, which is not installed: {INSTALL_GPU_HINT} (or choose a "
+                            ".safetensors model, or none for the bundled one)")
     if settings.device == "GPU":
         raise DiffshegError(f"device GPU needs torch with CUDA, which is not installed: {INSTALL_GPU_HINT} "
                             "(CUDA build), or choose device Auto or CPU")
@@ -275,7 +279,7 @@ def check_targets(settings):
     check_frames(options.start_frame)
     from diffsheg_core.checkpoints import stored_rig  # the runtime's packages: checked above
 
-    rig = stored_rig(bpy.path.abspath(settings.model_path) if settings.model_path.strip() else None)
+    rig = stored_rig(model_file(settings))
     if options.armature is not None and rig is not None and options.preset is not None:
         options.preset.joint_map(rig)  # names the missing section before generating
     return options

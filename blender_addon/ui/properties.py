@@ -11,7 +11,7 @@ from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProp
 
 from diffsheg_core.validate import CANDIDATES, GUIDANCE, OVERLAP, SKIP_GUIDANCE, STEPS, STYLE_GUIDANCE
 
-from ..features.generate import CUSTOM_PRESET, DEFAULT_STYLE, NEUTRAL, NO_MIX, SHARED_FACE
+from ..features.generate import CUSTOM_PRESET, DEFAULT_STYLE, NEUTRAL, NO_MIX, SHARED_FACE, model_file
 from ..features.live import SOCKET_HOST as LIVE_HOST  # the VMC receiver's default host too
 from ..scene import preset
 
@@ -59,8 +59,7 @@ _style_items_cache: dict = {}
 def style_names(settings) -> list[str]:
     """The style choices of the panel's model: its style names, else its style indices
     (official checkpoints: one per speaker)."""
-    raw = settings.model_path.strip()
-    path = bpy.path.abspath(raw) if raw else None
+    path = model_file(settings)
     return list(_model_styles(path, _modified(path)))
 
 
@@ -106,8 +105,7 @@ def _model_languages(path: str | None, _modified_ns: int) -> tuple[str, ...]:
 
 
 def _language_items(self, _context):
-    raw = self.model_path.strip()
-    path = bpy.path.abspath(raw) if raw else None
+    path = model_file(self)
     try:
         codes = _model_languages(path, _modified(path))
     except Exception:  # as for the styles: the panel or Generate says what is wrong
